@@ -1,0 +1,1 @@
+"""Warp kernels, one module per pipeline stage (installed as ``nanogs_warp.kernels``)."""

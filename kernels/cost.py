@@ -1,0 +1,191 @@
+"""Edge costs C(i, j) = lambda_geo D_geo(i, j) + lambda_app ||f_i - f_j||^2 (NanoGS eq. 1)."""
+
+import warp as wp
+
+from .splat_math import LOG_2PI, covariance, first_weight, log_mass, moment_match, rotation_matrix, to_vec3d
+
+wp.set_module_options({"enable_backward": False})
+
+# Finite stand-in for costs that cannot be evaluated (a degenerate merged covariance): such an edge
+# sorts after every real one.
+UNMERGEABLE = wp.constant(3.0e38)
+
+
+@wp.func
+def appearance_distance(features: wp.array2d(dtype=float), i: int, j: int):
+    """D_app = ||f_i - f_j||^2 over every SH coefficient (NanoGS eq. 6)."""
+    d = wp.float64(0.0)
+    for c in range(features.shape[1]):
+        diff = wp.float64(features[i, c] - features[j, c])
+        d += diff * diff
+    return d
+
+
+@wp.func
+def log_normal_axes(x: wp.vec3d, mu: wp.vec3d, rot: wp.mat33d, log_scale: wp.vec3):
+    """log N(x; mu, R diag(s)^2 R^T), evaluated in the splat's own axes."""
+    local = wp.transpose(rot) * (x - mu)
+    m = wp.float64(0.0)
+    log_det_half = wp.float64(0.0)
+    for k in range(3):
+        ls = wp.float64(log_scale[k])
+        u = local[k] * wp.exp(-ls)
+        m += u * u
+        log_det_half += ls
+    return wp.float64(-0.5) * m - log_det_half - wp.float64(1.5) * wp.float64(LOG_2PI)
+
+
+@wp.func
+def cholesky(a: wp.mat33d):
+    """Lower Cholesky factor of a symmetric matrix and whether it is positive definite."""
+    l = wp.mat33d()
+    ok = True
+    l00 = a[0, 0]
+    if l00 <= wp.float64(0.0):
+        ok = False
+        return l, ok
+    l00 = wp.sqrt(l00)
+    l10 = a[1, 0] / l00
+    l20 = a[2, 0] / l00
+    d1 = a[1, 1] - l10 * l10
+    if d1 <= wp.float64(0.0):
+        ok = False
+        return l, ok
+    l11 = wp.sqrt(d1)
+    l21 = (a[2, 1] - l20 * l10) / l11
+    d2 = a[2, 2] - l20 * l20 - l21 * l21
+    if d2 <= wp.float64(0.0):
+        ok = False
+        return l, ok
+    l22 = wp.sqrt(d2)
+    l = wp.mat33d(
+        l00, wp.float64(0.0), wp.float64(0.0),
+        l10, l11, wp.float64(0.0),
+        l20, l21, l22,
+    )  # fmt: skip
+    return l, ok
+
+
+@wp.func
+def log_normal_cholesky(x: wp.vec3d, mu: wp.vec3d, l: wp.mat33d):
+    """log N(x; mu, L L^T) with L lower triangular."""
+    d = x - mu
+    y0 = d[0] / l[0, 0]
+    y1 = (d[1] - l[1, 0] * y0) / l[1, 1]
+    y2 = (d[2] - l[2, 0] * y0 - l[2, 1] * y1) / l[2, 2]
+    log_det_half = wp.log(l[0, 0]) + wp.log(l[1, 1]) + wp.log(l[2, 2])
+    return (
+        wp.float64(-0.5) * (y0 * y0 + y1 * y1 + y2 * y2) - log_det_half - wp.float64(1.5) * wp.float64(LOG_2PI)
+    )
+
+
+@wp.func
+def scales(log_scale: wp.vec3):
+    return wp.vec3d(
+        wp.exp(wp.float64(log_scale[0])), wp.exp(wp.float64(log_scale[1])), wp.exp(wp.float64(log_scale[2]))
+    )
+
+
+@wp.func
+def log_add(a: wp.float64, b: wp.float64):
+    """log(exp(a) + exp(b))."""
+    m = wp.max(a, b)
+    return m + wp.log(wp.exp(a - m) + wp.exp(b - m))
+
+
+@wp.func
+def finite_cost(c: wp.float64):
+    out = wp.float32(c) + wp.float32(0.0)  # + 0 turns -0 into +0, so ties sort by edge
+    if not wp.isfinite(out):
+        out = wp.float32(UNMERGEABLE)
+    return out
+
+
+@wp.kernel
+def idivergence_costs(
+    edge_i: wp.array(dtype=wp.int32),
+    edge_j: wp.array(dtype=wp.int32),
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    features: wp.array2d(dtype=float),
+    samples: wp.array(dtype=wp.vec4),
+    lambda_geo: float,
+    lambda_app: float,
+    costs: wp.array(dtype=float),
+):
+    """Monte Carlo I-divergence I(p~_ij || q_m) between the normalised two-splat mixture and its
+    moment-matched Gaussian (NanoGS eq. 5 and Appendix A, eq. 12). Each sample (z, u) is shared by
+    every edge (common random numbers): x = mu_i + R_i (s_i * z) if u < pi, else from splat j."""
+    e = wp.tid()
+    i = int(edge_i[e])
+    j = int(edge_j[e])
+    pi = first_weight(log_mass(opacities[i], log_scales[i]), log_mass(opacities[j], log_scales[j]))
+    log_pi = wp.log(pi)
+    log_pj = wp.log(wp.float64(1.0) - pi)
+    mu_i = to_vec3d(means[i])
+    mu_j = to_vec3d(means[j])
+    rot_i = rotation_matrix(rotations[i])
+    rot_j = rotation_matrix(rotations[j])
+    mu_m, cov_m = moment_match(
+        pi, mu_i, covariance(rotations[i], log_scales[i]), mu_j, covariance(rotations[j], log_scales[j])
+    )
+    l_m, ok = cholesky(cov_m)
+    if not ok:
+        costs[e] = wp.float32(UNMERGEABLE)
+        return
+    divergence = wp.float64(0.0)
+    for s in range(samples.shape[0]):
+        zu = samples[s]
+        z = wp.vec3d(wp.float64(zu[0]), wp.float64(zu[1]), wp.float64(zu[2]))
+        x = wp.vec3d()
+        if wp.float64(zu[3]) < pi:
+            x = mu_i + rot_i * wp.cw_mul(z, scales(log_scales[i]))
+        else:
+            x = mu_j + rot_j * wp.cw_mul(z, scales(log_scales[j]))
+        log_mixture = log_add(
+            log_pi + log_normal_axes(x, mu_i, rot_i, log_scales[i]),
+            log_pj + log_normal_axes(x, mu_j, rot_j, log_scales[j]),
+        )
+        divergence += log_mixture - log_normal_cholesky(x, mu_m, l_m)
+    divergence = divergence / wp.float64(samples.shape[0])
+    costs[e] = finite_cost(
+        wp.float64(lambda_geo) * divergence + wp.float64(lambda_app) * appearance_distance(features, i, j)
+    )
+
+
+@wp.kernel
+def mse_costs(
+    edge_i: wp.array(dtype=wp.int32),
+    edge_j: wp.array(dtype=wp.int32),
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    features: wp.array2d(dtype=float),
+    lambda_geo: float,
+    lambda_app: float,
+    costs: wp.array(dtype=float),
+):
+    """The fast geometric surrogate of the NanoGS ablation: ||mu_i - mu_j||^2 + ||Sigma_i - Sigma_j||_F^2."""
+    e = wp.tid()
+    i = int(edge_i[e])
+    j = int(edge_j[e])
+    d = to_vec3d(means[i]) - to_vec3d(means[j])
+    dc = covariance(rotations[i], log_scales[i]) - covariance(rotations[j], log_scales[j])
+    frob = wp.float64(0.0)
+    for r in range(3):
+        for c in range(3):
+            frob += dc[r, c] * dc[r, c]
+    costs[e] = finite_cost(
+        wp.float64(lambda_geo) * (wp.dot(d, d) + frob)
+        + wp.float64(lambda_app) * appearance_distance(features, i, j)
+    )
+
+
+@wp.kernel
+def draw_common_samples(seed: int, pass_index: int, samples: wp.array(dtype=wp.vec4)):
+    """Common random numbers of one pass: z ~ N(0, I_3) and u ~ U[0, 1) per sample."""
+    s = wp.tid()
+    state = wp.rand_init(seed, pass_index * samples.shape[0] + s)
+    samples[s] = wp.vec4(wp.randn(state), wp.randn(state), wp.randn(state), wp.randf(state))

@@ -1,0 +1,327 @@
+"""Exact k nearest neighbours on Morton-ordered cell grids of every level.
+
+Points are sorted once by a 63-bit Morton code (21 bits per axis over the bounding cube). A cell of
+level l (side 2^l quanta) is then a contiguous range of the sorted points, those whose codes share
+the prefix ``code >> 3l``, so one sort serves every level. Each level in use gets an open-addressing
+hash table from cell prefix to its range: exact keys, so distant cells never share a bucket.
+
+Each point picks the finest level whose own cell holds k+1 points (read off a window of k+1
+consecutive codes), searches a level or two finer ring by ring around its own cell, skips cells
+farther than its current k-th distance and stops once the next ring cannot hold anything nearer.
+Candidates are ranked by (squared distance, original index), so the result is exact and does not
+depend on the order in which threads or cells run.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+KMAX = wp.constant(32)
+GRID_BITS = wp.constant(21)  # bits per axis of the Morton code
+LEVELS = wp.constant(22)  # level l has cells of side 2^l quanta; level 21 is the whole cube
+EMPTY = wp.constant(wp.int64(-1))  # free hash slot
+
+# Knuth's multiplicative hash constant (2^64 / golden ratio).
+HASH_MUL = wp.constant(wp.uint64(0x9E3779B97F4A7C15))
+
+# Masks that spread 21 bits to every third bit of an int64 (Morton encoding).
+SPREAD_0 = wp.constant(wp.int64(0x1FFFFF))
+SPREAD_1 = wp.constant(wp.int64(0x1F00000000FFFF))
+SPREAD_2 = wp.constant(wp.int64(0x1F0000FF0000FF))
+SPREAD_3 = wp.constant(wp.int64(0x100F00F00F00F00F))
+SPREAD_4 = wp.constant(wp.int64(0x10C30C30C30C30C3))
+SPREAD_5 = wp.constant(wp.int64(0x1249249249249249))
+
+# A candidate ranks by (squared distance, index) as one int64: a non-negative float's bits are ordered.
+topk_keys = wp.types.vector(length=KMAX, dtype=wp.int64)
+NO_KEY = wp.constant(wp.int64(0x7F8000007FFFFFFF))  # (+inf, largest index)
+LOW_32 = wp.constant(wp.int64(0xFFFFFFFF))
+
+
+@wp.func
+def _spread_bits(v: int) -> wp.int64:
+    x = wp.int64(v) & SPREAD_0
+    x = (x | (x << wp.int64(32))) & SPREAD_1
+    x = (x | (x << wp.int64(16))) & SPREAD_2
+    x = (x | (x << wp.int64(8))) & SPREAD_3
+    x = (x | (x << wp.int64(4))) & SPREAD_4
+    x = (x | (x << wp.int64(2))) & SPREAD_5
+    return x
+
+
+@wp.func
+def morton_code(c: wp.vec3i) -> wp.int64:
+    """Interleaves three 21-bit cell coordinates into a 63-bit Morton code (x in the lowest bit)."""
+    return _spread_bits(c[0]) | (_spread_bits(c[1]) << wp.int64(1)) | (_spread_bits(c[2]) << wp.int64(2))
+
+
+@wp.func
+def grid_coords(p: wp.vec3, lo: wp.vec3, inv_quantum: float) -> wp.vec3i:
+    """Level-0 cell of a point: its quantised position in the bounding cube, 21 bits per axis."""
+    u = (p - lo) * inv_quantum
+    top = float((1 << GRID_BITS) - 1)
+    return wp.vec3i(int(wp.clamp(u[0], 0.0, top)), int(wp.clamp(u[1], 0.0, top)), int(wp.clamp(u[2], 0.0, top)))
+
+
+@wp.func
+def shared_level(a: wp.int64, b: wp.int64) -> int:
+    """Finest level whose cells hold both codes: the length of their differing bits, in triples."""
+    x = a ^ b
+    level = int(0)
+    while x != wp.int64(0):
+        x = x >> wp.int64(3)
+        level += 1
+    return level
+
+
+@wp.func
+def _slot_hash(key: wp.int64, mask: int) -> int:
+    h = wp.uint64(key) * HASH_MUL
+    return int(h >> wp.uint64(33)) & mask
+
+
+@wp.func
+def find_cell(keys: wp.array(dtype=wp.int64), base: int, mask: int, key: wp.int64) -> int:
+    """Slot of a cell in its level's hash table (linear probing), or -1 if the cell is empty."""
+    slot = _slot_hash(key, mask)
+    while True:
+        stored = keys[base + slot]
+        if stored == key:
+            return base + slot
+        if stored == EMPTY:
+            return -1
+        slot = (slot + 1) & mask
+    return -1
+
+
+@wp.func
+def _gap(u: float, cell: int, offset: int, side: float, margin: float) -> float:
+    """Lower bound on the distance along one axis from coordinate u (inside `cell`) to cell + offset."""
+    g = float(0.0)
+    if offset > 0:
+        g = float(cell + offset) * side - u
+    elif offset < 0:
+        g = u - float(cell + offset + 1) * side
+    return wp.max(g - margin, 0.0)
+
+
+@wp.kernel
+def bounding_box(points: wp.array(dtype=wp.vec3), threads: int, box: wp.array(dtype=wp.vec3)):
+    # axis-aligned bounding box: each thread reduces a strided share, then one atomic min/max
+    t = wp.tid()
+    lo = points[t]
+    hi = lo
+    for i in range(t + threads, points.shape[0], threads):
+        lo = wp.min(lo, points[i])
+        hi = wp.max(hi, points[i])
+    wp.atomic_min(box, 0, lo)
+    wp.atomic_max(box, 1, hi)
+
+
+@wp.kernel
+def morton_codes(
+    points: wp.array(dtype=wp.vec3),
+    lo: wp.vec3,
+    inv_quantum: float,
+    codes: wp.array(dtype=wp.int64),
+    order: wp.array(dtype=wp.int32),
+):
+    # Morton code of each point's level-0 cell, paired with the point's index for sorting
+    i = wp.tid()
+    codes[i] = morton_code(grid_coords(points[i], lo, inv_quantum))
+    order[i] = i
+
+
+@wp.kernel
+def _gather_points(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.vec3)):
+    # points in Morton order
+    i = wp.tid()
+    out[i] = points[order[i]]
+
+
+@wp.kernel
+def _window_levels(
+    codes: wp.array(dtype=wp.int64),
+    k: int,
+    window_level: wp.array(dtype=wp.int32),
+    split_histogram: wp.array(dtype=wp.int32),
+):
+    # level of the smallest cell holding sorted points a..a+k; histogram of the levels at which
+    # consecutive points part (level l has 1 + #(splits above l) cells)
+    a = wp.tid()
+    n = codes.shape[0]
+    if a + k < n:
+        window_level[a] = shared_level(codes[a], codes[a + k])
+    if a + 1 < n:
+        wp.atomic_add(split_histogram, shared_level(codes[a], codes[a + 1]), 1)
+
+
+@wp.kernel
+def _search_levels(
+    window_level: wp.array(dtype=wp.int32),
+    k: int,
+    finer: int,
+    search_level: wp.array(dtype=wp.int32),
+    level_histogram: wp.array(dtype=wp.int32),
+):
+    # per point: the finest level whose own cell holds >= k+1 points (the best window through the
+    # point), made `finer` levels finer to search smaller cells; histogram of the levels searched
+    i = wp.tid()
+    n = search_level.shape[0]
+    level = int(LEVELS - 1)
+    for a in range(wp.max(i - k, 0), wp.min(i, n - 1 - k) + 1):
+        level = wp.min(level, window_level[a])
+    level = wp.max(level - finer, 0)
+    search_level[i] = level
+    wp.atomic_add(level_histogram, level, 1)
+
+
+@wp.kernel
+def _insert_cells(
+    codes: wp.array(dtype=wp.int64),
+    level_base: wp.array(dtype=wp.int32),
+    level_mask: wp.array(dtype=wp.int32),
+    keys: wp.array(dtype=wp.int64),
+    starts: wp.array(dtype=wp.int32),
+):
+    # hash-table insert of every cell (in each level built) at its first sorted point
+    i = wp.tid()
+    code = codes[i]
+    for level in range(LEVELS):
+        mask = level_mask[level]
+        if mask >= 0:
+            shift = wp.int64(3 * level)
+            key = code >> shift
+            first = True
+            if i > 0:
+                first = (codes[i - 1] >> shift) != key
+            if first:
+                base = level_base[level]
+                slot = _slot_hash(key, mask)
+                while wp.atomic_cas(keys, base + slot, EMPTY, key) != EMPTY:
+                    slot = (slot + 1) & mask
+                starts[base + slot] = i
+
+
+@wp.kernel
+def _close_cells(
+    codes: wp.array(dtype=wp.int64),
+    level_base: wp.array(dtype=wp.int32),
+    level_mask: wp.array(dtype=wp.int32),
+    keys: wp.array(dtype=wp.int64),
+    ends: wp.array(dtype=wp.int32),
+):
+    # end of every cell's range, written by its last sorted point
+    i = wp.tid()
+    n = codes.shape[0]
+    code = codes[i]
+    for level in range(LEVELS):
+        mask = level_mask[level]
+        if mask >= 0:
+            shift = wp.int64(3 * level)
+            key = code >> shift
+            last = True
+            if i < n - 1:
+                last = (codes[i + 1] >> shift) != key
+            if last:
+                ends[find_cell(keys, level_base[level], mask, key)] = i + 1
+
+
+@wp.kernel
+def _knn_query(
+    points: wp.array(dtype=wp.vec3),
+    order: wp.array(dtype=wp.int32),
+    search_level: wp.array(dtype=wp.int32),
+    k: int,
+    lo: wp.vec3,
+    inv_quantum: float,
+    quantum: float,
+    margin: float,
+    level_base: wp.array(dtype=wp.int32),
+    level_mask: wp.array(dtype=wp.int32),
+    keys: wp.array(dtype=wp.int64),
+    starts: wp.array(dtype=wp.int32),
+    ends: wp.array(dtype=wp.int32),
+    neighbours: wp.array2d(dtype=wp.int32),
+    candidates: wp.array(dtype=wp.int32),
+):
+    # exact k nearest neighbours of sorted point i: rings of cells around its own cell, nearest
+    # first; the best k are kept as (squared distance bits << 32 | index) keys by insertion sort
+    i = wp.tid()
+    p = points[i]
+    level = search_level[i]
+    base = level_base[level]
+    mask = level_mask[level]
+    cell = grid_coords(p, lo, inv_quantum)
+    cx = cell[0] >> level
+    cy = cell[1] >> level
+    cz = cell[2] >> level
+    side = quantum * float(1 << level)
+    cells_per_axis = 1 << (GRID_BITS - level)
+    u = p - lo
+    face = wp.min(
+        wp.min(wp.min(u[0] - float(cx) * side, float(cx + 1) * side - u[0]),
+               wp.min(u[1] - float(cy) * side, float(cy + 1) * side - u[1])),
+        wp.min(u[2] - float(cz) * side, float(cz + 1) * side - u[2]),
+    )
+
+    best = topk_keys()
+    for t in range(k):
+        best[t] = NO_KEY
+    worst = NO_KEY  # best[k - 1]
+    worst_d = float(wp.inf)  # its squared distance
+    visited = int(0)
+
+    ring = int(0)
+    while ring <= cells_per_axis:
+        if ring > 0:
+            reach = face + float(ring - 1) * side - margin  # nothing unseen lies nearer than this
+            if reach > 0.0 and reach * reach > worst_d:
+                break
+        for dx in range(-ring, ring + 1):
+            x = cx + dx
+            gx = _gap(u[0], cx, dx, side, margin)
+            gx = gx * gx
+            if x < 0 or x >= cells_per_axis or gx > worst_d:
+                continue
+            for dy in range(-ring, ring + 1):
+                y = cy + dy
+                gy = _gap(u[1], cy, dy, side, margin)
+                gy = gx + gy * gy
+                if y < 0 or y >= cells_per_axis or gy > worst_d:
+                    continue
+                # inside the ring's shell only the two z faces remain unless x or y is on the shell
+                step = 2 * ring
+                if step == 0 or wp.abs(dx) == ring or wp.abs(dy) == ring:
+                    step = 1
+                for dz in range(-ring, ring + 1, step):
+                    z = cz + dz
+                    gz = _gap(u[2], cz, dz, side, margin)
+                    if z < 0 or z >= cells_per_axis or gy + gz * gz > worst_d:
+                        continue
+                    slot = find_cell(keys, base, mask, morton_code(wp.vec3i(x, y, z)))
+                    if slot < 0:
+                        continue
+                    j = starts[slot]
+                    end = ends[slot]
+                    visited += end - j
+                    while j < end:
+                        d = wp.length_sq(points[j] - p)
+                        if d <= worst_d and j != i:
+                            key = (wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(order[j])
+                            if key < worst:
+                                t = k - 1
+                                while t > 0 and best[t - 1] > key:
+                                    best[t] = best[t - 1]
+                                    t -= 1
+                                best[t] = key
+                                worst = best[k - 1]
+                                worst_d = wp.cast(wp.int32(worst >> wp.int64(32)), wp.float32)
+                        j += 1
+        ring += 1
+
+    row = order[i]
+    for t in range(k):
+        neighbours[row, t] = wp.int32(best[t] & LOW_32)
+    if candidates.shape[0] > 0:
+        candidates[row] = visited

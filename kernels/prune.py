@@ -1,0 +1,33 @@
+"""Opacity pruning: activated opacities and keep flags."""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def activated_opacity(
+    logits: wp.array(dtype=float),
+    alpha: wp.array(dtype=float),
+    sort_keys: wp.array(dtype=float),
+    sort_ids: wp.array(dtype=wp.int32),
+):
+    """alpha = sigmoid(logit), plus a copy with row ids to sort."""
+    i = wp.tid()
+    a = 1.0 / (1.0 + wp.exp(-logits[i]))
+    alpha[i] = a
+    sort_keys[i] = a
+    sort_ids[i] = i
+
+
+@wp.kernel
+def keep_at_least(values: wp.array(dtype=float), threshold: wp.float64, keep: wp.array(dtype=wp.int32)):
+    """keep[i] = values[i] >= threshold."""
+    i = wp.tid()
+    keep[i] = wp.where(wp.float64(values[i]) >= threshold, 1, 0)
+
+
+@wp.kernel
+def keep_rows(rows: wp.array(dtype=wp.int32), first: int, keep: wp.array(dtype=wp.int32)):
+    """keep[rows[first + t]] = 1."""
+    keep[rows[first + wp.tid()]] = 1

@@ -1,0 +1,404 @@
+"""3DGS forward rasterisation (the INRIA / gsplat forward pass): projection, tile binning, compositing.
+
+Conventions (shared with ``tests/reference_render.py``):
+
+- Cameras are pinhole, OpenCV/COLMAP axes (x right, y down, z forward), ``x_cam = R x_world + t``.
+- Pixel (px, py) samples the image-plane point (px + 0.5, py + 0.5), so a mean projects to the pixel
+  index coordinate ``u = fx x/z + cx - 0.5``. With ``cx = W/2`` this is INRIA's ``ndc2Pix``
+  (``((ndc + 1) W - 1) / 2`` compared with the integer pixel index).
+- Culling: view-space ``z <= 0.2`` (INRIA's near plane), a non-positive 2D covariance determinant,
+  a zero quaternion, or an empty tile rectangle.
+- Tile binning: 16x16 tiles; a splat covers the tiles of the square of half-side
+  ``ceil(3 sqrt(lambda_max))`` px around its projected mean, INRIA's ``getRect``.
+- Entries are keyed ``tile << 32 | float bits of depth`` (depth > 0.2 > 0, so the bits sort as the
+  floats do) and radix-sorted stably; splats of equal depth keep their row order.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+TILE = wp.constant(16)
+TILE_PIXELS = wp.constant(256)
+NEAR_Z = wp.constant(0.2)
+LOW_PASS = wp.constant(0.3)
+FOV_CLAMP = wp.constant(1.3)
+ALPHA_MIN = wp.constant(1.0 / 255.0)
+ALPHA_MAX = wp.constant(0.99)
+T_MIN = wp.constant(1.0e-4)
+
+SH_C0 = wp.constant(0.28209479177387814)
+SH_C1 = wp.constant(0.4886025119029199)
+SH_C2_0 = wp.constant(1.0925484305920792)
+SH_C2_1 = wp.constant(-1.0925484305920792)
+SH_C2_2 = wp.constant(0.31539156525252005)
+SH_C2_3 = wp.constant(-1.0925484305920792)
+SH_C2_4 = wp.constant(0.5462742152960396)
+SH_C3_0 = wp.constant(-0.5900435899266435)
+SH_C3_1 = wp.constant(2.890611442640554)
+SH_C3_2 = wp.constant(-0.4570457994644658)
+SH_C3_3 = wp.constant(0.3731763325901154)
+SH_C3_4 = wp.constant(-0.4570457994644658)
+SH_C3_5 = wp.constant(1.445305721320277)
+SH_C3_6 = wp.constant(-0.5900435899266435)
+
+
+@wp.struct
+class CameraParams:
+    """A pinhole camera as the kernels see it (built by ``nanogs_warp.render``)."""
+
+    rotation: wp.mat33  # world-to-camera
+    translation: wp.vec3
+    centre: wp.vec3  # camera centre in world space, -R^T t
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    lim_x: float  # 1.3 * tan(half horizontal FOV) = 1.3 * W / (2 fx)
+    lim_y: float
+    width: int
+    height: int
+    tiles_x: int
+    tiles_y: int
+
+
+@wp.func
+def _sh_coef(features: wp.array2d(dtype=float), i: int, rest: int, j: int):
+    """Coefficient j >= 1 of splat i for R, G, B (f_rest is channel-major: rest per channel)."""
+    return wp.vec3(features[i, 2 + j], features[i, 2 + rest + j], features[i, 2 + 2 * rest + j])
+
+
+@wp.func
+def sh_to_rgb(features: wp.array2d(dtype=float), i: int, degree: int, d: wp.vec3):
+    """INRIA's computeColorFromSH: real SH up to ``degree`` at unit direction d, + 0.5, clamped at 0."""
+    rest = (degree + 1) * (degree + 1) - 1
+    c = SH_C0 * wp.vec3(features[i, 0], features[i, 1], features[i, 2])
+    if degree > 0:
+        x = d[0]
+        y = d[1]
+        z = d[2]
+        c = c - SH_C1 * y * _sh_coef(features, i, rest, 1)
+        c = c + SH_C1 * z * _sh_coef(features, i, rest, 2)
+        c = c - SH_C1 * x * _sh_coef(features, i, rest, 3)
+        if degree > 1:
+            xx = x * x
+            yy = y * y
+            zz = z * z
+            xy = x * y
+            yz = y * z
+            xz = x * z
+            c = c + SH_C2_0 * xy * _sh_coef(features, i, rest, 4)
+            c = c + SH_C2_1 * yz * _sh_coef(features, i, rest, 5)
+            c = c + SH_C2_2 * (2.0 * zz - xx - yy) * _sh_coef(features, i, rest, 6)
+            c = c + SH_C2_3 * xz * _sh_coef(features, i, rest, 7)
+            c = c + SH_C2_4 * (xx - yy) * _sh_coef(features, i, rest, 8)
+            if degree > 2:
+                c = c + SH_C3_0 * y * (3.0 * xx - yy) * _sh_coef(features, i, rest, 9)
+                c = c + SH_C3_1 * xy * z * _sh_coef(features, i, rest, 10)
+                c = c + SH_C3_2 * y * (4.0 * zz - xx - yy) * _sh_coef(features, i, rest, 11)
+                c = c + SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * _sh_coef(features, i, rest, 12)
+                c = c + SH_C3_4 * x * (4.0 * zz - xx - yy) * _sh_coef(features, i, rest, 13)
+                c = c + SH_C3_5 * z * (xx - yy) * _sh_coef(features, i, rest, 14)
+                c = c + SH_C3_6 * x * (xx - 3.0 * yy) * _sh_coef(features, i, rest, 15)
+    c = c + wp.vec3(0.5, 0.5, 0.5)
+    return wp.vec3(wp.max(c[0], 0.0), wp.max(c[1], 0.0), wp.max(c[2], 0.0))
+
+
+@wp.kernel
+def project(
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    features: wp.array2d(dtype=float),
+    degree: int,
+    cam: CameraParams,
+    first: int,
+    xy: wp.array(dtype=wp.vec2),
+    depth: wp.array(dtype=float),
+    conic_opacity: wp.array(dtype=wp.vec4),
+    rgb: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4),
+    rect: wp.array(dtype=wp.vec4i),
+    touched: wp.array(dtype=wp.int32),
+):
+    """Per splat (row ``first + tid``): projected mean, depth, conic and opacity, colour, reach box,
+    tile rectangle [x0, x1) x [y0, y1) and its tile count (0 when culled)."""
+    i = first + wp.tid()
+    touched[i] = 0
+    t = cam.rotation * means[i] + cam.translation
+    z = t[2]
+    if z <= NEAR_Z:
+        return
+    q = rotations[i]
+    qn = wp.length(q)
+    if qn == 0.0:
+        return
+    r = wp.quat_to_matrix(q / qn)
+    s = log_scales[i]
+    m = r * wp.diag(wp.vec3(wp.exp(s[0]), wp.exp(s[1]), wp.exp(s[2])))
+    sigma = m * wp.transpose(m)
+
+    # EWA: Jacobian of the perspective projection at the (FOV-clamped) view-space mean.
+    tx = wp.clamp(t[0] / z, -cam.lim_x, cam.lim_x) * z
+    ty = wp.clamp(t[1] / z, -cam.lim_y, cam.lim_y) * z
+    j0 = wp.vec3(cam.fx / z, 0.0, -cam.fx * tx / (z * z))
+    j1 = wp.vec3(0.0, cam.fy / z, -cam.fy * ty / (z * z))
+    wt = wp.transpose(cam.rotation)
+    u = wt * j0  # row 0 of J W, as a column
+    v = wt * j1
+    a = wp.dot(u, sigma * u) + LOW_PASS
+    b = wp.dot(u, sigma * v)
+    c = wp.dot(v, sigma * v) + LOW_PASS
+    det = a * c - b * b
+    if det <= 0.0:
+        return
+    mid = 0.5 * (a + c)
+    lambda1 = mid + wp.sqrt(wp.max(0.1, mid * mid - det))
+    radius = wp.ceil(3.0 * wp.sqrt(lambda1))
+
+    px = cam.fx * t[0] / z + cam.cx - 0.5
+    py = cam.fy * t[1] / z + cam.cy - 0.5
+    conic = wp.vec3(c / det, -b / det, a / det)
+    opacity = 1.0 / (1.0 + wp.exp(-opacities[i]))
+
+    # Where alpha >= 1/255 can hold: opacity * exp(power) >= 1/255, i.e. d^T conic d <= 2 ln(255 opacity),
+    # an ellipse of half-widths sqrt(2 ln(255 opacity) conic_yy / det(conic)) in x, likewise in y.
+    # Widened by 1% + 1 px, so float32 rounding of the per-pixel test cannot matter, this box only
+    # lets pixels and tiles skip splats that cannot reach them: the image is that of INRIA's rule.
+    reach = wp.log(255.0 * opacity)
+    if reach <= 0.0:
+        return  # opacity < 1/255: alpha < 1/255 at every pixel
+    ca = wp.float64(conic[0])
+    cb = wp.float64(conic[1])
+    cc = wp.float64(conic[2])
+    conic_det = ca * cc - cb * cb
+    half_x = float(1.0e30)
+    half_y = float(1.0e30)
+    if conic_det > wp.float64(0.0):
+        two_reach = wp.float64(2.0) * wp.float64(reach)
+        half_x = float(wp.sqrt(two_reach * cc / conic_det)) * 1.01 + 1.0
+        half_y = float(wp.sqrt(two_reach * ca / conic_det)) * 1.01 + 1.0
+
+    # INRIA's getRect (tiles of the 3-sigma square), intersected with the tiles of the reach box.
+    tile = float(TILE)
+    fx_tiles = float(cam.tiles_x)
+    fy_tiles = float(cam.tiles_y)
+    x0 = int(wp.clamp(wp.max((px - radius) / tile, wp.floor((px - half_x) / tile)), 0.0, fx_tiles))
+    x1 = int(wp.clamp(wp.min((px + radius + tile - 1.0) / tile, wp.floor((px + half_x) / tile) + 1.0), 0.0, fx_tiles))
+    y0 = int(wp.clamp(wp.max((py - radius) / tile, wp.floor((py - half_y) / tile)), 0.0, fy_tiles))
+    y1 = int(wp.clamp(wp.min((py + radius + tile - 1.0) / tile, wp.floor((py + half_y) / tile) + 1.0), 0.0, fy_tiles))
+    if x1 <= x0 or y1 <= y0:
+        return
+
+    d = means[i] - cam.centre
+    dn = wp.length(d)
+    if dn > 0.0:
+        d = d / dn
+    rgb[i] = sh_to_rgb(features, i, degree, d)
+    xy[i] = wp.vec2(px, py)
+    box[i] = wp.vec4(px - half_x, px + half_x, py - half_y, py + half_y)
+    depth[i] = z
+    conic_opacity[i] = wp.vec4(conic[0], conic[1], conic[2], opacity)
+    rect[i] = wp.vec4i(x0, y0, x1, y1)
+    touched[i] = (x1 - x0) * (y1 - y0)
+
+
+@wp.kernel
+def emit_entries(
+    depth: wp.array(dtype=float),
+    rect: wp.array(dtype=wp.vec4i),
+    touched: wp.array(dtype=wp.int32),
+    ends: wp.array(dtype=wp.int32),
+    tiles_x: int,
+    first: int,
+    keys: wp.array(dtype=wp.int64),
+    values: wp.array(dtype=wp.int32),
+):
+    """Writes one (tile << 32 | depth bits, splat) entry per covered tile, at the splat's slots
+    [ends[i] - touched[i], ends[i]) of the inclusive prefix sum."""
+    i = first + wp.tid()
+    n = touched[i]
+    if n == 0:
+        return
+    slot = ends[i] - n
+    bits = wp.int64(wp.cast(depth[i], wp.int32))
+    r = rect[i]
+    for ty in range(r[1], r[3]):
+        for tx in range(r[0], r[2]):
+            keys[slot] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | bits
+            values[slot] = i
+            slot += 1
+
+
+@wp.kernel
+def gather_entries(
+    keys: wp.array(dtype=wp.int64),
+    values: wp.array(dtype=wp.int32),
+    count: int,
+    xy: wp.array(dtype=wp.vec2),
+    conic_opacity: wp.array(dtype=wp.vec4),
+    rgb: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4),
+    first: int,
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+):
+    """Copies each sorted entry's splat data into entry order and records each tile's entry range
+    (tiles without entries keep the empty range their arrays were zeroed to)."""
+    k = first + wp.tid()
+    i = values[k]
+    e_xy[k] = xy[i]
+    e_conic_opacity[k] = conic_opacity[i]
+    e_rgb[k] = rgb[i]
+    e_box[k] = box[i]
+    tile = wp.int32(keys[k] >> wp.int64(32))
+    if k == 0:
+        tile_start[tile] = k
+    elif wp.int32(keys[k - 1] >> wp.int64(32)) != tile:
+        tile_start[tile] = k
+    if k == count - 1:
+        tile_end[tile] = k + 1
+    elif wp.int32(keys[k + 1] >> wp.int64(32)) != tile:
+        tile_end[tile] = k + 1
+
+
+@wp.kernel
+def composite(
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
+    tiles_x: int,
+    background: wp.vec3,
+    view: int,
+    first: int,
+    image: wp.array4d(dtype=float),
+):
+    """One thread per pixel, 256 consecutive threads per 16x16 tile (one CUDA block per tile):
+    front-to-back alpha compositing of the tile's depth-sorted entries, INRIA's renderCUDA."""
+    tid = first + wp.tid()
+    tile = tid / TILE_PIXELS
+    local = tid - (tid / TILE_PIXELS) * TILE_PIXELS
+    px = (tile - (tile / tiles_x) * tiles_x) * TILE + local - (local / TILE) * TILE
+    py = (tile / tiles_x) * TILE + local / TILE
+    if px >= width or py >= height:
+        return
+    fpx = float(px)
+    fpy = float(py)
+    transmittance = float(1.0)
+    c = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(tile_start[tile], tile_end[tile]):
+        bx = e_box[k]
+        if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
+            continue
+        p = e_xy[k]
+        co = e_conic_opacity[k]
+        dx = p[0] - fpx
+        dy = p[1] - fpy
+        power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
+        if power > 0.0:
+            continue
+        alpha = wp.min(ALPHA_MAX, co[3] * wp.exp(power))
+        if alpha < ALPHA_MIN:
+            continue
+        test_t = transmittance * (1.0 - alpha)
+        if test_t < T_MIN:
+            break
+        c = c + e_rgb[k] * (alpha * transmittance)
+        transmittance = test_t
+    c = c + background * transmittance
+    image[view, py, px, 0] = c[0]
+    image[view, py, px, 1] = c[1]
+    image[view, py, px, 2] = c[2]
+
+
+@wp.kernel
+def composite_tiles(
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
+    tiles_x: int,
+    background: wp.vec3,
+    view: int,
+    first: int,
+    transmittance: wp.array(dtype=float),
+    colour: wp.array(dtype=wp.vec3),
+    done: wp.array(dtype=wp.int32),
+    image: wp.array4d(dtype=float),
+):
+    """``composite`` for the CPU: one thread per tile, splat-major, visiting only the pixels inside each
+    entry's reach box; per-pixel state in the tile's 256 slots of ``transmittance``, ``colour`` and
+    ``done``. Each pixel sees the same entries in the same order with the same float32 arithmetic as
+    in ``composite``, so the images are identical."""
+    tile = first + wp.tid()
+    base = tile * TILE_PIXELS
+    x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
+    y_lo = (tile / tiles_x) * TILE
+    x_hi = wp.min(x_lo + TILE, width)  # exclusive
+    y_hi = wp.min(y_lo + TILE, height)
+    for s in range(TILE_PIXELS):
+        transmittance[base + s] = 1.0
+        colour[base + s] = wp.vec3(0.0, 0.0, 0.0)
+        done[base + s] = 0
+    remaining = (x_hi - x_lo) * (y_hi - y_lo)
+    fx_lo = float(x_lo)
+    fx_hi = float(x_hi - 1)
+    fy_lo = float(y_lo)
+    fy_hi = float(y_hi - 1)
+    for k in range(tile_start[tile], tile_end[tile]):
+        if remaining == 0:
+            break
+        bx = e_box[k]
+        # pixels px with bx[0] <= px <= bx[1] (and likewise y) inside this tile
+        gx0 = int(wp.ceil(wp.clamp(bx[0], fx_lo, fx_hi + 1.0)))
+        gx1 = int(wp.floor(wp.clamp(bx[1], fx_lo - 1.0, fx_hi)))
+        gy0 = int(wp.ceil(wp.clamp(bx[2], fy_lo, fy_hi + 1.0)))
+        gy1 = int(wp.floor(wp.clamp(bx[3], fy_lo - 1.0, fy_hi)))
+        if gx1 < gx0 or gy1 < gy0:
+            continue
+        p = e_xy[k]
+        co = e_conic_opacity[k]
+        rgb = e_rgb[k]
+        for py in range(gy0, gy1 + 1):
+            row = base + (py - y_lo) * TILE - x_lo
+            dy = p[1] - float(py)
+            for px in range(gx0, gx1 + 1):
+                slot = row + px
+                if done[slot] != 0:
+                    continue
+                dx = p[0] - float(px)
+                power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
+                if power > 0.0:
+                    continue
+                alpha = wp.min(ALPHA_MAX, co[3] * wp.exp(power))
+                if alpha < ALPHA_MIN:
+                    continue
+                t = transmittance[slot]
+                test_t = t * (1.0 - alpha)
+                if test_t < T_MIN:
+                    done[slot] = 1
+                    remaining -= 1
+                    continue
+                colour[slot] = colour[slot] + rgb * (alpha * t)
+                transmittance[slot] = test_t
+    for py in range(y_lo, y_hi):
+        for px in range(x_lo, x_hi):
+            slot = base + (py - y_lo) * TILE + px - x_lo
+            c = colour[slot] + background * transmittance[slot]
+            image[view, py, px, 0] = c[0]
+            image[view, py, px, 1] = c[1]
+            image[view, py, px, 2] = c[2]

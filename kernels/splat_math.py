@@ -1,0 +1,183 @@
+"""Float64 splat geometry shared by the cost and merge kernels.
+
+A splat is N(mu, Sigma) with Sigma = R diag(s)^2 R^T, R from its unit quaternion (Warp's x, y, z, w
+order) and s = exp(log_scale); its opacity alpha = sigmoid(logit) and its mass (NanoGS eq. 4)
+w = (2 pi)^{3/2} alpha prod_k s_k, used here as log w.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+LOG_2PI = wp.constant(1.8378770664093453)
+
+
+@wp.func
+def to_vec3d(v: wp.vec3):
+    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
+
+
+@wp.func
+def rotation_matrix(q: wp.quat):
+    """Rotation matrix of a unit quaternion (x, y, z, w), in float64."""
+    x = wp.float64(q[0])
+    y = wp.float64(q[1])
+    z = wp.float64(q[2])
+    w = wp.float64(q[3])
+    one = wp.float64(1.0)
+    two = wp.float64(2.0)
+    return wp.mat33d(
+        one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y),
+        two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x),
+        two * (x * z - w * y), two * (y * z + w * x), one - two * (x * x + y * y),
+    )  # fmt: skip
+
+
+@wp.func
+def covariance(q: wp.quat, log_scale: wp.vec3):
+    """Sigma = R diag(s^2) R^T."""
+    r = rotation_matrix(q)
+    s0 = wp.exp(wp.float64(2.0) * wp.float64(log_scale[0]))
+    s1 = wp.exp(wp.float64(2.0) * wp.float64(log_scale[1]))
+    s2 = wp.exp(wp.float64(2.0) * wp.float64(log_scale[2]))
+    return r * wp.diag(wp.vec3d(s0, s1, s2)) * wp.transpose(r)
+
+
+@wp.func
+def log_sigmoid(x: wp.float64):
+    """log(sigmoid(x)), stable for large |x|."""
+    return -(wp.max(-x, wp.float64(0.0)) + wp.log(wp.float64(1.0) + wp.exp(-wp.abs(x))))
+
+
+@wp.func
+def log_mass(opacity_logit: float, log_scale: wp.vec3):
+    """log w = 3/2 log(2 pi) + log alpha + sum_k log s_k (NanoGS eq. 4)."""
+    return (
+        wp.float64(1.5) * wp.float64(LOG_2PI)
+        + log_sigmoid(wp.float64(opacity_logit))
+        + wp.float64(log_scale[0])
+        + wp.float64(log_scale[1])
+        + wp.float64(log_scale[2])
+    )
+
+
+@wp.func
+def first_weight(log_w_i: wp.float64, log_w_j: wp.float64):
+    """pi = w_i / (w_i + w_j), computed from log masses."""
+    return wp.float64(1.0) / (wp.float64(1.0) + wp.exp(log_w_j - log_w_i))
+
+
+@wp.func
+def moment_match(pi: wp.float64, mu_i: wp.vec3d, cov_i: wp.mat33d, mu_j: wp.vec3d, cov_j: wp.mat33d):
+    """Weighted moment matching of a two-component mixture (NanoGS eq. 7-8):
+    mu_m = pi mu_i + (1 - pi) mu_j,
+    Sigma_m = pi (Sigma_i + d_i d_i^T) + (1 - pi) (Sigma_j + d_j d_j^T),  d = mu - mu_m."""
+    pj = wp.float64(1.0) - pi
+    mu_m = pi * mu_i + pj * mu_j
+    d_i = mu_i - mu_m
+    d_j = mu_j - mu_m
+    cov_m = pi * (cov_i + wp.outer(d_i, d_i)) + pj * (cov_j + wp.outer(d_j, d_j))
+    return mu_m, cov_m
+
+
+@wp.func
+def _rotate_plane(a: wp.mat33d, v: wp.mat33d, p: int, q: int):
+    """One Jacobi rotation that zeroes a[p, q] (p < q): a <- J^T a J, v <- v J."""
+    apq = a[p, q]
+    if wp.abs(apq) <= wp.float64(1e-300):
+        return a, v
+    tau = (a[q, q] - a[p, p]) / (wp.float64(2.0) * apq)
+    t = wp.float64(1.0) / (wp.abs(tau) + wp.sqrt(wp.float64(1.0) + tau * tau))
+    if tau < wp.float64(0.0):
+        t = -t
+    c = wp.float64(1.0) / wp.sqrt(wp.float64(1.0) + t * t)
+    s = t * c
+    j = wp.identity(n=3, dtype=wp.float64)
+    j[p, p] = c
+    j[q, q] = c
+    j[p, q] = s
+    j[q, p] = -s
+    a = wp.transpose(j) * a * j
+    a[p, q] = wp.float64(0.0)
+    a[q, p] = wp.float64(0.0)
+    return a, v * j
+
+
+@wp.func
+def symmetric_eigen(a: wp.mat33d):
+    """Eigen-decomposition of a symmetric 3x3 matrix by cyclic Jacobi in float64.
+
+    Returns (eigenvalues, eigenvectors as columns) sorted by decreasing eigenvalue, the frame
+    right-handed (det = +1)."""
+    v = wp.identity(n=3, dtype=wp.float64)
+    for _sweep in range(12):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        diag = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+        if off <= wp.float64(1e-36) * diag:
+            break
+        a, v = _rotate_plane(a, v, 0, 1)
+        a, v = _rotate_plane(a, v, 0, 2)
+        a, v = _rotate_plane(a, v, 1, 2)
+    e0 = a[0, 0]
+    e1 = a[1, 1]
+    e2 = a[2, 2]
+    c0 = wp.vec3d(v[0, 0], v[1, 0], v[2, 0])
+    c1 = wp.vec3d(v[0, 1], v[1, 1], v[2, 1])
+    c2 = wp.vec3d(v[0, 2], v[1, 2], v[2, 2])
+    # sort descending with a three-element network
+    if e0 < e1:
+        e0, e1 = e1, e0
+        c0, c1 = c1, c0
+    if e1 < e2:
+        e1, e2 = e2, e1
+        c1, c2 = c2, c1
+    if e0 < e1:
+        e0, e1 = e1, e0
+        c0, c1 = c1, c0
+    if wp.dot(wp.cross(c0, c1), c2) < wp.float64(0.0):
+        c2 = -c2
+    frame = wp.mat33d(
+        c0[0], c1[0], c2[0],
+        c0[1], c1[1], c2[1],
+        c0[2], c1[2], c2[2],
+    )  # fmt: skip
+    return wp.vec3d(e0, e1, e2), frame
+
+
+@wp.func
+def quaternion_from_frame(r: wp.mat33d):
+    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method, float64)."""
+    tr = r[0, 0] + r[1, 1] + r[2, 2]
+    one = wp.float64(1.0)
+    x = wp.float64(0.0)
+    y = wp.float64(0.0)
+    z = wp.float64(0.0)
+    w = wp.float64(1.0)
+    if tr > r[0, 0] and tr > r[1, 1] and tr > r[2, 2]:
+        s = wp.sqrt(one + tr) * wp.float64(2.0)
+        w = wp.float64(0.25) * s
+        x = (r[2, 1] - r[1, 2]) / s
+        y = (r[0, 2] - r[2, 0]) / s
+        z = (r[1, 0] - r[0, 1]) / s
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = wp.sqrt(one + r[0, 0] - r[1, 1] - r[2, 2]) * wp.float64(2.0)
+        w = (r[2, 1] - r[1, 2]) / s
+        x = wp.float64(0.25) * s
+        y = (r[0, 1] + r[1, 0]) / s
+        z = (r[0, 2] + r[2, 0]) / s
+    elif r[1, 1] > r[2, 2]:
+        s = wp.sqrt(one + r[1, 1] - r[0, 0] - r[2, 2]) * wp.float64(2.0)
+        w = (r[0, 2] - r[2, 0]) / s
+        x = (r[0, 1] + r[1, 0]) / s
+        y = wp.float64(0.25) * s
+        z = (r[1, 2] + r[2, 1]) / s
+    else:
+        s = wp.sqrt(one + r[2, 2] - r[0, 0] - r[1, 1]) * wp.float64(2.0)
+        w = (r[1, 0] - r[0, 1]) / s
+        x = (r[0, 2] + r[2, 0]) / s
+        y = (r[1, 2] + r[2, 1]) / s
+        z = wp.float64(0.25) * s
+    n = wp.sqrt(x * x + y * y + z * z + w * w)
+    if w < wp.float64(0.0):
+        n = -n  # canonical sign: w >= 0
+    return wp.quat(wp.float32(x / n), wp.float32(y / n), wp.float32(z / n), wp.float32(w / n))

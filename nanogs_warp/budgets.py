@@ -1,0 +1,70 @@
+"""Budgets from the command line (--ratio / --count lists) and the output path of each."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import InputError
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Keep a ``ratio`` of the input's splats, or an absolute ``count``."""
+
+    ratio: float | None = None
+    count: int | None = None
+
+    @property
+    def label(self) -> str:
+        return f"{self.ratio:g}" if self.ratio is not None else str(self.count)
+
+    def target(self, input_count: int) -> int:
+        """max(1, ceil(ratio * N0)), or the count itself; checked against the input's size."""
+        if self.ratio is not None:
+            return max(1, math.ceil(self.ratio * input_count))
+        if self.count > input_count:
+            raise InputError(f"--count {self.count} is more than the input's {input_count} splats")
+        return self.count
+
+
+def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
+    """Budgets from ``--ratio 0.1,0.01`` or ``--count 5000,500`` (exactly one of the two)."""
+    if (ratio is None) == (count is None):
+        raise InputError("give exactly one of --ratio or --count")
+    text = ratio if ratio is not None else count
+    tokens = [t.strip() for t in text.split(",")]
+    if not tokens or any(not t for t in tokens):
+        raise InputError(f"cannot read budgets from {text!r}: expected comma-separated numbers")
+    budgets = []
+    for token in tokens:
+        if ratio is not None:
+            try:
+                value = float(token)
+            except ValueError:
+                raise InputError(f"--ratio {token!r} is not a number") from None
+            if not (math.isfinite(value) and 0.0 < value <= 1.0):
+                raise InputError(f"--ratio {token} must be in (0, 1]")
+            budgets.append(Budget(ratio=value))
+        else:
+            try:
+                value = int(token)
+            except ValueError:
+                raise InputError(f"--count {token!r} is not a whole number") from None
+            if value < 1:
+                raise InputError(f"--count {token} must be at least 1")
+            budgets.append(Budget(count=value))
+    if len(set(budgets)) != len(budgets):
+        raise InputError(f"the same budget is given twice in {text!r}")
+    return budgets
+
+
+def output_paths(output: Path, budgets: list[Budget]) -> dict[Budget, Path]:
+    """One budget writes ``output`` itself; several write ``<stem>_<label><suffix>`` beside it,
+    e.g. ``out.ply`` with --ratio 0.1,0.01 gives ``out_0.1.ply`` and ``out_0.01.ply``."""
+    output = Path(output)
+    if len(budgets) == 1:
+        return {budgets[0]: output}
+    suffix = output.suffix or ".ply"
+    return {b: output.with_name(f"{output.stem}_{b.label}{suffix}") for b in budgets}

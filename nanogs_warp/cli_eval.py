@@ -1,0 +1,105 @@
+"""``nanogs-warp eval``: what simplification costs, as image metrics against the reference scene.
+
+Registered in ``cli.py`` as ``app.command("eval")(user_errors(eval_command))``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from .errors import InputError
+
+
+def parse_background(text: str) -> tuple[float, float, float]:
+    """``R,G,B`` with each value in [0, 1], or ``black`` / ``white``."""
+    named = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
+    if text.strip().lower() in named:
+        return named[text.strip().lower()]
+    parts = [p for p in re.split(r"[,\s]+", text.strip()) if p]
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
+        raise InputError(f"--background {text!r}: expected R,G,B with values in [0, 1], black or white")
+    return values  # type: ignore[return-value]
+
+
+def _finite_or_none(value):
+    """JSON has no NaN or infinity: NaN (undefined, e.g. no foreground) and inf (identical images)
+    become null; ``identical`` in the output tells the two apart."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def eval_command(
+    reference: Annotated[Path, typer.Argument(help="Reference 3DGS .ply (usually the unsimplified scene).", show_default=False)],
+    tests: Annotated[list[Path], typer.Argument(help="One or more 3DGS .ply files to compare with the reference.", show_default=False)],
+    views: Annotated[int, typer.Option(help="Number of orbit views (ignored with --cameras).")] = 16,
+    size: Annotated[int, typer.Option(help="Image side in pixels: orbit views are square; --cameras views are scaled to this longest side (0 keeps their sizes).")] = 256,
+    device: Annotated[str, typer.Option(help="auto (first GPU, else CPU), cpu, cuda or cuda:N.")] = "auto",
+    cameras: Annotated[Optional[Path], typer.Option(help="The INRIA trainer's cameras.json to render from instead of orbit views.", show_default=False)] = None,
+    up: Annotated[str, typer.Option(help="World up axis of the orbit views: +x, -x, +y, -y, +z or -z (INRIA/COLMAP scenes are -y).")] = "-y",
+    background: Annotated[str, typer.Option(help="Background colour R,G,B in [0, 1] (or black, white).")] = "0,0,0",
+    images: Annotated[Optional[Path], typer.Option(help="Write reference | test | difference x4 PNGs per view and a contact sheet into this directory (one sub-directory per test scene).", show_default=False)] = None,
+    json_output: Annotated[bool, typer.Option("--json", help="Print machine-readable results (JSON) instead of the table.")] = False,
+) -> None:
+    """Render the reference and each test scene from identical cameras and report PSNR, SSIM,
+    foreground PSNR and colour shift (mean and worst view)."""
+    from .cameras import load_cameras_json, orbit_cameras
+    from .device import resolve_device
+    from .evaluate import evaluate, format_table, write_images
+    from .ply import load_ply
+
+    if not tests:
+        raise InputError("give at least one test scene to compare with the reference")
+    if size < 0:
+        raise InputError(f"--size {size}: must be positive (0 keeps the sizes of --cameras)")
+    if size == 0 and cameras is None:
+        raise InputError("--size 0 only applies to --cameras; orbit views need a size")
+    bg = parse_background(background)
+    target = resolve_device(device)
+    for path in [reference, *tests]:
+        if not path.is_file():
+            raise InputError(f"{path}: no such file")
+    if images is not None and images.exists() and not images.is_dir():
+        raise InputError(f"--images {images}: exists and is not a directory")
+
+    ref_splats = load_ply(reference, device=target)
+    if cameras is not None:
+        camera_list = load_cameras_json(cameras, size=size or None)
+    else:
+        camera_list = orbit_cameras(ref_splats, views=views, size=size, up=up)
+    test_splats = [load_ply(path, device=target) for path in tests]
+    rendered: dict = {}
+    result = evaluate(ref_splats, test_splats, camera_list, target, bg, names=[str(p) for p in tests], images=rendered)
+    result["reference"]["path"] = str(reference)
+    result["cameras"] = str(cameras) if cameras is not None else {"orbit": {"views": views, "size": size, "up": up}}
+    for t in result["tests"]:
+        t["identical"] = all(v["psnr"] == math.inf for v in t["views"])
+
+    if images is not None:
+        used: set[str] = set()
+        for k, (path, test_images) in enumerate(zip(tests, rendered["tests"])):
+            sub = path.stem if path.stem not in used else f"{path.stem}_{k}"
+            used.add(sub)
+            written = write_images(images / sub, rendered["reference"], test_images, result["view_names"])
+            result["tests"][k]["images"] = str(images / sub)
+            print(f"wrote {len(written)} images to {images / sub}", file=sys.stderr)
+
+    if json_output:
+        typer.echo(json.dumps(_finite_or_none(result), indent=2))
+    else:
+        typer.echo(format_table(result))

@@ -1,0 +1,53 @@
+"""Warp start-up and the user's choice of device."""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+
+import warp as wp
+
+from .errors import InputError
+
+# Warp's native library prints this when a machine has no NVIDIA driver; on such a machine "no GPU"
+# is the expected state, and --device cuda reports it as an error of its own.
+_NO_DRIVER_NOTICE = "Could not find or load the NVIDIA CUDA driver"
+
+
+def init_warp() -> None:
+    """Initialises Warp once, quietly: the expected no-driver notice is dropped, anything else
+    Warp's native code prints is passed on to stderr."""
+    wp.config.log_level = wp.LOG_WARNING
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile(mode="w+b") as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        captured.seek(0)
+        for line in captured.read().decode(errors="replace").splitlines():
+            if _NO_DRIVER_NOTICE not in line and line.strip():
+                print(line, file=sys.stderr)
+
+
+def resolve_device(name: str) -> wp.Device:
+    """``auto`` (the first GPU, else the CPU), ``cpu``, ``cuda`` or ``cuda:N``."""
+    init_warp()
+    name = name.strip().lower()
+    gpus = wp.get_cuda_device_count()
+    if name == "auto":
+        return wp.get_device("cuda:0" if gpus > 0 else "cpu")
+    if name == "cpu":
+        return wp.get_device("cpu")
+    if name == "cuda" or name.startswith("cuda:"):
+        if gpus == 0:
+            raise InputError(f"--device {name}: no CUDA GPU is available on this machine")
+        ordinal = 0 if name == "cuda" else name.split(":", 1)[1]
+        if not str(ordinal).isdigit() or int(ordinal) >= gpus:
+            raise InputError(f"--device {name}: this machine has {gpus} CUDA GPU(s), cuda:0 to cuda:{gpus - 1}")
+        return wp.get_device(f"cuda:{int(ordinal)}")
+    raise InputError(f"--device {name!r}: expected auto, cpu, cuda or cuda:N")

@@ -1,0 +1,139 @@
+"""``nanogs-warp info``: what a 3DGS PLY file holds, including the values that would fail a load."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .ply import check_values, read_ply_arrays, sh_degree_for_rest_count
+
+
+def scene_info(path) -> dict:
+    """Facts about a 3DGS PLY file as a JSON-ready dict.
+
+    Keys: ``file``, ``file_bytes``, ``format``, ``count``, ``sh_degree``, ``properties`` (list of
+    ``{"name", "dtype"}`` in file order), ``extra_properties``, ``bbox`` (``min``/``max`` xyz over
+    rows with finite means), ``opacity`` (sigmoid of the logits: min, median, mean, max),
+    ``scale`` (exp of the log scales over all three axes: min, median, max), ``nonfinite``
+    (property -> rows with NaN/Inf, extras included, only non-zero counts), ``nonfinite_rows``
+    (rows with NaN/Inf in a 3DGS property, which a load rejects), ``zero_norm_quaternions``,
+    ``comments``, ``obj_info`` and ``other_elements`` (``{"name", "count", "properties"}``).
+    Statistics skip non-finite values and are None when no finite value is left.
+    Raises InputError for files that are not readable 3DGS PLY files; never for bad values.
+    """
+    data = read_ply_arrays(path)
+    a = data.arrays
+    layout = data.layout
+    model = check_values(a)
+    with_extras = check_values(a, extra_names=layout.extra_names)
+    means = a["means"]
+    finite_means = means[np.isfinite(means).all(axis=1)]
+    with np.errstate(all="ignore"):
+        logits = _finite(a["opacities"]).astype(np.float64)
+        opacity = np.exp(-np.logaddexp(0.0, -logits))  # sigmoid without overflow
+        scales = np.exp(_finite(a["log_scales"]).astype(np.float64))
+    return {
+        "file": Path(path).name,
+        "file_bytes": data.file_bytes,
+        "format": data.format,
+        "count": data.count,
+        "sh_degree": sh_degree_for_rest_count(a["features"].shape[1] - 3),
+        "properties": [{"name": n, "dtype": t} for n, t in layout.properties],
+        "extra_properties": list(layout.extra_names),
+        "bbox": {
+            "min": _floats(finite_means.min(axis=0)) if len(finite_means) else None,
+            "max": _floats(finite_means.max(axis=0)) if len(finite_means) else None,
+        },
+        "opacity": _stats(opacity, ("min", "median", "mean", "max")),
+        "scale": _stats(scales, ("min", "median", "max")),
+        "nonfinite": with_extras.nonfinite_by_property,
+        "nonfinite_rows": int(np.count_nonzero(model.nonfinite_rows)),
+        "zero_norm_quaternions": int(np.count_nonzero(model.zero_quat_rows)),
+        "comments": list(layout.comments),
+        "obj_info": list(layout.obj_info),
+        "other_elements": [
+            {"name": e.name, "count": int(e.count), "properties": [p.name for p in e.properties]}
+            for e in layout.other_elements
+        ],
+    }
+
+
+def format_info(info: dict) -> str:
+    """Human-readable text for a :func:`scene_info` dict."""
+    lines = [
+        f"file        {info['file']} ({info['file_bytes']:,} bytes, {info['format']})",
+        f"splats      {info['count']:,}",
+        f"SH degree   {info['sh_degree']} ({3 * (info['sh_degree'] + 1) ** 2} coefficients)",
+    ]
+    props = info["properties"]
+    lines.append(f"properties  {len(props)}: " + " ".join(_compress_names(props)))
+    if info["extra_properties"]:
+        lines.append(f"extras      {', '.join(info['extra_properties'])}")
+    box = info["bbox"]
+    if box["min"] is not None:
+        lines.append(f"bbox min    {_vec(box['min'])}")
+        lines.append(f"bbox max    {_vec(box['max'])}")
+        lines.append(f"bbox size   {_vec([hi - lo for lo, hi in zip(box['min'], box['max'])])}")
+    else:
+        lines.append("bbox        (no finite positions)")
+    lines.append("opacity     " + _stats_text(info["opacity"]))
+    lines.append("scale       " + _stats_text(info["scale"]))
+    nonfinite = info["nonfinite"]
+    if nonfinite:
+        shown = ", ".join(f"{k} {v:,}" for k, v in nonfinite.items())
+        lines.append(f"NaN/Inf     {info['nonfinite_rows']:,} splats; per property: {shown}")
+    else:
+        lines.append("NaN/Inf     none")
+    lines.append(f"zero quats  {info['zero_norm_quaternions']:,}")
+    for e in info["other_elements"]:
+        lines.append(f"element     {e['name']} ({e['count']:,} rows: {', '.join(e['properties'])})")
+    for c in info["comments"]:
+        lines.append(f"comment     {c}")
+    for c in info["obj_info"]:
+        lines.append(f"obj_info    {c}")
+    return "\n".join(lines)
+
+
+def _finite(x: np.ndarray) -> np.ndarray:
+    x = x.reshape(-1)
+    return x[np.isfinite(x)]
+
+
+def _floats(x) -> list[float]:
+    return [float(v) for v in x]
+
+
+def _stats(values: np.ndarray, keys) -> dict | None:
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return None
+    funcs = {"min": np.min, "median": np.median, "mean": np.mean, "max": np.max}
+    return {k: float(funcs[k](values)) for k in keys}
+
+
+def _stats_text(stats: dict | None) -> str:
+    if stats is None:
+        return "(no finite values)"
+    return "  ".join(f"{k} {v:.4g}" for k, v in stats.items())
+
+
+def _vec(v) -> str:
+    return "  ".join(f"{x:+.4g}" for x in v)
+
+
+def _compress_names(props: list[dict]) -> list[str]:
+    """``f_rest_0..44 (f4)``-style runs instead of 45 separate names."""
+    out = []
+    i = 0
+    while i < len(props):
+        name, dtype = props[i]["name"], props[i]["dtype"]
+        stem, _, num = name.rpartition("_")
+        j = i + 1
+        if stem and num.isdigit():
+            while (j < len(props) and props[j]["dtype"] == dtype
+                   and props[j]["name"] == f"{stem}_{int(num) + j - i}"):
+                j += 1
+        out.append(f"{name}..{int(num) + j - i - 1}:{dtype}" if j - i > 1 else f"{name}:{dtype}")
+        i = j
+    return out

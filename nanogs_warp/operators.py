@@ -1,0 +1,33 @@
+"""Merge operators: fuse each chosen pair into one splat.
+
+A merge operator is a callable ``operator(source, pairs, out, destination) -> None``. ``out`` is
+``source`` without the rows ``pairs.j`` (row r of source is row destination[r] of out); the operator
+overwrites the row of each ``pairs.i[p]`` in ``out`` with the pair's merged splat. ``source`` is
+never changed. Add an operator
+by writing its kernel in ``nanogs_warp.kernels.merge`` and a class here, then naming it in ``OPERATORS``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import warp as wp
+
+from .kernels import merge as kernels
+from .pairing import Pairs
+from .splats import SplatSet
+
+
+@dataclass(frozen=True)
+class MassPreservingMomentMatching:
+    """MPMM (NanoGS Sec. 3.3): mass-weighted moments, over-rule opacity."""
+
+    def __call__(self, source: SplatSet, pairs: Pairs, out: SplatSet, destination: wp.array) -> None:
+        wp.launch(
+            kernels.mass_preserving_moment_matching, pairs.count,
+            inputs=[pairs.i, pairs.j, destination, *source.arrays()], outputs=[*out.arrays()],
+            device=source.device,
+        )  # fmt: skip
+
+
+OPERATORS = {"mpmm": MassPreservingMomentMatching}

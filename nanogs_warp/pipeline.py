@@ -1,0 +1,123 @@
+"""The NanoGS simplification loop (Algorithm 1): prune, then pass after pass
+kNN graph -> edge costs -> disjoint greedy pairs -> merge, until the target count."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+
+import warp as wp
+
+from .compact import remove_rows
+from .cost import COSTS
+from .errors import InputError
+from .operators import OPERATORS
+from .pairing import select_pairs
+from .prune import prune_low_opacity
+from .splats import SplatSet
+from .topology import KnnTopology
+
+
+@dataclass(frozen=True)
+class SimplifyConfig:
+    """Every constant of the method; the defaults are the paper's."""
+
+    k: int = 16
+    prune_opacity: float = 0.1
+    samples: int = 1
+    seed: int = 0
+    lambda_geo: float = 1.0
+    lambda_app: float = 1.0
+    cost: str = "idiv"
+    operator: str = "mpmm"
+
+    def validate(self) -> None:
+        if not 1 <= self.k <= KnnTopology.MAX_K:
+            raise InputError(f"--k must be between 1 and {KnnTopology.MAX_K}, got {self.k}")
+        if not 0.0 <= self.prune_opacity <= 1.0:
+            raise InputError(f"--prune-opacity must be in [0, 1], got {self.prune_opacity}")
+        if not 1 <= self.samples <= 1024:
+            raise InputError(f"--samples must be between 1 and 1024, got {self.samples}")
+        if self.cost not in COSTS:
+            raise InputError(f"unknown cost {self.cost!r}; choose one of {', '.join(COSTS)}")
+        if self.operator not in OPERATORS:
+            raise InputError(f"unknown operator {self.operator!r}; choose one of {', '.join(OPERATORS)}")
+        for name in ("lambda_geo", "lambda_app"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class PassReport:
+    """What one pass did: its index, splats before and after, candidate edges."""
+
+    index: int
+    count_before: int
+    count_after: int
+    edges: int
+
+
+def target_count(input_count: int, ratio: float) -> int:
+    """N_tgt = max(1, ceil(ratio * N_0))."""
+    if not (0.0 < ratio <= 1.0):
+        raise InputError(f"ratio must be in (0, 1], got {ratio}")
+    return max(1, math.ceil(ratio * input_count))
+
+
+def simplify_progressively(
+    splats: SplatSet,
+    targets: Sequence[int],
+    config: SimplifyConfig = SimplifyConfig(),
+    on_pass: Callable[[PassReport], None] | None = None,
+) -> Iterator[tuple[int, SplatSet]]:
+    """Yields (target, splats) for each target count, largest first, continuing one progressive merge.
+
+    Every yielded splat set has exactly ``target`` splats and stays on ``splats.device``.
+    """
+    config.validate()
+    targets = sorted(set(int(t) for t in targets), reverse=True)
+    if not targets or targets[-1] < 1 or targets[0] > splats.count:
+        raise InputError(f"target counts must be between 1 and the input's {splats.count} splats, got {targets}")
+    topology = KnnTopology(config.k)
+    cost = COSTS[config.cost](config.lambda_geo, config.lambda_app, config.samples, config.seed)
+    merge = OPERATORS[config.operator]()
+
+    current = prune_low_opacity(splats, config.prune_opacity, keep_at_least=targets[0])
+    pass_index = 0
+    for target in targets:
+        while current.count > target:
+            n = current.count
+            edges = topology(current)
+            costs = cost(current, edges, pass_index)
+            pairs = select_pairs(edges, costs, n, cap=n - target)
+            if pairs.count == 0:  # cannot happen with n >= 2 (a kNN graph has edges); guards the loop
+                raise RuntimeError(f"no merge possible at {n} splats")
+            merged, destination = remove_rows(current, pairs.j, pairs.count)
+            merge(current, pairs, merged, destination)
+            current = merged
+            if on_pass is not None:
+                on_pass(PassReport(pass_index, n, current.count, edges.count))
+            pass_index += 1
+        yield target, current
+
+
+def simplify(
+    splats: SplatSet,
+    ratio: float | None = None,
+    count: int | None = None,
+    device=None,
+    config: SimplifyConfig = SimplifyConfig(),
+) -> SplatSet:
+    """Simplifies ``splats`` to ``count`` splats, or to max(1, ceil(ratio * N)).
+
+    ``device`` is where the work runs ("cpu", "cuda:0", ...; None: the splats' own device); the
+    result stays there.
+    """
+    if (ratio is None) == (count is None):
+        raise InputError("give exactly one of ratio or count")
+    target = target_count(splats.count, ratio) if ratio is not None else int(count)
+    on_device = splats.to(wp.get_device(device) if device is not None else splats.device)
+    _, result = next(simplify_progressively(on_device, [target], config))
+    return result

@@ -1,0 +1,212 @@
+"""Renders a splat set from pinhole cameras: the standard 3DGS forward rasteriser, on the splats' device.
+
+Per view: ``project`` (one thread per splat: cull, EWA 2D covariance, SH colour, tile rectangle),
+an inclusive scan of tile counts, ``emit_entries`` (one (tile, depth) key per covered tile), a stable
+radix sort of the keys, ``gather_entries`` (entry-ordered splat data and per-tile ranges) and
+``composite`` (one thread per pixel). The conventions are documented in ``kernels/render.py``.
+Views are rendered into one device array and copied to the host once per ``render_views`` call.
+
+On the CPU a launch runs on one core, so the splat-, entry- and pixel-parallel kernels are launched
+in chunks from one thread per core (they use no atomics, so the chunks are independent).
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import Sequence
+
+import numpy as np
+import warp as wp
+
+from .cameras import Camera
+from .errors import InputError
+from .kernels import render as kernels
+from .splats import SplatSet
+
+TILE = 16
+
+
+def _cpu_workers() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def camera_params(camera: Camera) -> kernels.CameraParams:
+    """The kernels' view of ``camera``."""
+    rotation = np.asarray(camera.rotation, np.float64).reshape(3, 3)
+    translation = np.asarray(camera.translation, np.float64).reshape(3)
+    p = kernels.CameraParams()
+    p.rotation = wp.mat33(*rotation.ravel().tolist())
+    p.translation = wp.vec3(*translation.tolist())
+    p.centre = wp.vec3(*(-rotation.T @ translation).tolist())
+    p.fx, p.fy = float(camera.fx), float(camera.fy)
+    p.cx, p.cy = float(camera.cx), float(camera.cy)
+    p.lim_x = 1.3 * 0.5 * camera.width / float(camera.fx)
+    p.lim_y = 1.3 * 0.5 * camera.height / float(camera.fy)
+    p.width, p.height = int(camera.width), int(camera.height)
+    p.tiles_x = (p.width + TILE - 1) // TILE
+    p.tiles_y = (p.height + TILE - 1) // TILE
+    return p
+
+
+def _check_camera(camera: Camera) -> None:
+    if int(camera.width) < 1 or int(camera.height) < 1:
+        raise InputError(f"camera {camera.name!r}: image size {camera.width}x{camera.height} is empty")
+    if not (camera.fx > 0 and camera.fy > 0):
+        raise InputError(f"camera {camera.name!r}: focal lengths must be positive")
+
+
+class _Rasteriser:
+    """Buffers for one splat set on one device, reused across views (entry buffers grow as needed)."""
+
+    def __init__(self, splats: SplatSet, workers: int | None = None, method: str | None = None):
+        self.splats = splats
+        self.device = splats.device
+        self.n = splats.count
+        self.degree = splats.sh_degree
+        if workers is None:
+            workers = _cpu_workers() if self.device.is_cpu else 1
+        self.workers = workers
+        if method is None:
+            method = "tiles" if self.device.is_cpu else "pixels"
+        if method not in ("tiles", "pixels"):
+            raise ValueError(f"composite method {method!r}: expected 'tiles' or 'pixels'")
+        self.method = method
+        self.pool = ThreadPoolExecutor(workers) if workers > 1 else None
+        n, d = self.n, self.device
+        self.xy = wp.empty(n, dtype=wp.vec2, device=d)
+        self.depth = wp.empty(n, dtype=wp.float32, device=d)
+        self.conic_opacity = wp.empty(n, dtype=wp.vec4, device=d)
+        self.rgb = wp.empty(n, dtype=wp.vec3, device=d)
+        self.box = wp.empty(n, dtype=wp.vec4, device=d)
+        self.rect = wp.empty(n, dtype=wp.vec4i, device=d)
+        self.touched = wp.empty(n, dtype=wp.int32, device=d)
+        self.ends = wp.empty(n, dtype=wp.int32, device=d)
+        self.capacity = 0
+        self.tile_start = self.tile_end = None
+        wp.load_module(kernels, device=d)
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown()
+
+    def _reserve(self, entries: int) -> None:
+        if entries <= self.capacity:
+            return
+        self.capacity = max(entries, int(self.capacity * 1.5), 1024)
+        c, d = self.capacity, self.device
+        self.keys = wp.empty(2 * c, dtype=wp.int64, device=d)
+        self.values = wp.empty(2 * c, dtype=wp.int32, device=d)
+        self.e_xy = wp.empty(c, dtype=wp.vec2, device=d)
+        self.e_conic_opacity = wp.empty(c, dtype=wp.vec4, device=d)
+        self.e_rgb = wp.empty(c, dtype=wp.vec3, device=d)
+        self.e_box = wp.empty(c, dtype=wp.vec4, device=d)
+
+    def _launch(self, kernel, dim: int, inputs_before: list, inputs_after: list) -> None:
+        """Launches ``kernel`` over ``dim`` threads whose first argument after ``inputs_before`` is the
+        first thread's index; on the CPU in one chunk per worker thread."""
+        if self.pool is None or dim < 64:
+            wp.launch(kernel, dim, inputs=[*inputs_before, 0, *inputs_after], device=self.device)
+            return
+        bounds = np.linspace(0, dim, self.workers + 1).astype(int)
+
+        def run(k):
+            lo, hi = int(bounds[k]), int(bounds[k + 1])
+            if hi > lo:
+                wp.launch(kernel, hi - lo, inputs=[*inputs_before, lo, *inputs_after], device=self.device)
+
+        list(self.pool.map(run, range(self.workers)))
+
+    def render_into(self, camera: Camera, background: wp.vec3, image: wp.array, view: int) -> None:
+        """Composites view ``view`` of ``image`` (V, H, W, 3) from ``camera``."""
+        s, p = self.splats, camera_params(camera)
+        tiles = p.tiles_x * p.tiles_y
+        if self.tile_start is None or self.tile_start.shape[0] < tiles:
+            self.tile_start = wp.zeros(tiles, dtype=wp.int32, device=self.device)
+            self.tile_end = wp.zeros(tiles, dtype=wp.int32, device=self.device)
+            if self.method == "tiles":
+                pixels = tiles * kernels.TILE_PIXELS
+                self.transmittance = wp.empty(pixels, dtype=wp.float32, device=self.device)
+                self.colour = wp.empty(pixels, dtype=wp.vec3, device=self.device)
+                self.done = wp.empty(pixels, dtype=wp.int32, device=self.device)
+        else:
+            self.tile_start.zero_()
+            self.tile_end.zero_()
+        count = 0
+        if self.n > 0:
+            self._launch(
+                kernels.project,
+                self.n,
+                [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p],
+                [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.rect, self.touched],
+            )
+            wp.utils.array_scan(self.touched, self.ends, inclusive=True)
+            count = int(self.ends[self.n - 1 :].numpy()[0])
+        if count > 0:
+            self._reserve(count)
+            self._launch(
+                kernels.emit_entries,
+                self.n,
+                [self.depth, self.rect, self.touched, self.ends, p.tiles_x],
+                [self.keys, self.values],
+            )
+            wp.utils.radix_sort_pairs(self.keys, self.values, count, 0, 32 + max(1, int(tiles - 1).bit_length()))
+            self._launch(
+                kernels.gather_entries,
+                count,
+                [self.keys, self.values, count, self.xy, self.conic_opacity, self.rgb, self.box],
+                [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end],
+            )
+            e_xy, e_co, e_rgb, e_box = self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box
+        else:  # no entries: every tile range is empty; any arrays of the right type will do
+            e_xy, e_co, e_rgb, e_box = self.xy, self.conic_opacity, self.rgb, self.box
+        inputs = [e_xy, e_co, e_rgb, e_box, self.tile_start, self.tile_end, p.width, p.height, p.tiles_x, background, view]
+        if self.method == "tiles":
+            self._launch(kernels.composite_tiles, tiles, inputs, [self.transmittance, self.colour, self.done, image])
+        else:
+            self._launch(kernels.composite, tiles * kernels.TILE_PIXELS, inputs, [image])
+
+
+def _background(background) -> wp.vec3:
+    values = [float(v) for v in background]
+    if len(values) != 3:
+        raise InputError(f"background {background!r}: expected three values (R, G, B)")
+    return wp.vec3(*values)
+
+
+def render(splats: SplatSet, camera: Camera, background=(0.0, 0.0, 0.0)) -> wp.array:
+    """Renders one view: a float32 ``wp.array`` of shape (H, W, 3) on the splats' device (linear RGB,
+    not clamped to [0, 1]; ``.numpy()`` copies it to the host)."""
+    _check_camera(camera)
+    image = wp.full((1, camera.height, camera.width, 3), float("nan"), dtype=wp.float32, device=splats.device)
+    rasteriser = _Rasteriser(splats)
+    try:
+        rasteriser.render_into(camera, _background(background), image, 0)
+    finally:
+        rasteriser.close()
+    return image.reshape((camera.height, camera.width, 3))
+
+
+def render_views(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Renders every camera (all of one image size) into one device array and copies it to the host
+    once: float32 (V, H, W, 3)."""
+    cameras = list(cameras)
+    if not cameras:
+        raise InputError("no cameras to render")
+    for camera in cameras:
+        _check_camera(camera)
+    sizes = {(int(c.width), int(c.height)) for c in cameras}
+    if len(sizes) != 1:
+        raise InputError(f"render_views needs cameras of one image size, got {sorted(sizes)}")
+    (width, height), bg = sizes.pop(), _background(background)
+    images = wp.full((len(cameras), height, width, 3), float("nan"), dtype=wp.float32, device=splats.device)
+    rasteriser = _Rasteriser(splats)
+    try:
+        for view, camera in enumerate(cameras):
+            rasteriser.render_into(camera, bg, images, view)
+    finally:
+        rasteriser.close()
+    return images.numpy()

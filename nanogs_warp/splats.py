@@ -1,0 +1,137 @@
+"""The splat set: one struct of arrays on one device, passed explicitly to every stage."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+
+@dataclass
+class PlyLayout:
+    """How the splats were stored in their file, so that output keeps names, order and types.
+
+    ``properties`` lists the vertex properties in file order as (name, numpy dtype string).
+    ``extra_names`` are the vertex properties that are not part of the 3DGS model; they are carried
+    through as ``SplatSet.extras`` columns in this order. ``other_elements``, ``comments`` and
+    ``obj_info`` are kept verbatim from the input file.
+    """
+
+    properties: list[tuple[str, str]]
+    extra_names: list[str]
+    other_elements: list = field(default_factory=list)
+    comments: list[str] = field(default_factory=list)
+    obj_info: list[str] = field(default_factory=list)
+
+
+@dataclass
+class SplatSet:
+    """N Gaussian splats in the INRIA 3DGS parameterisation, all arrays on ``device``.
+
+    - ``means``: centres, vec3.
+    - ``rotations``: unit quaternions in Warp's (x, y, z, w) order (PLY stores w first).
+    - ``log_scales``: natural-log standard deviations along the rotated axes, vec3.
+    - ``opacities``: opacity logits (the activated opacity is sigmoid(logit)).
+    - ``features``: (N, F) spherical-harmonics coefficients in file order, f_dc_0..2 then f_rest_*
+      (channel-major: all R coefficients, then G, then B).
+    - ``extras``: (N, E) other per-vertex properties carried through a simplification (E may be 0).
+    """
+
+    means: wp.array
+    rotations: wp.array
+    log_scales: wp.array
+    opacities: wp.array
+    features: wp.array
+    extras: wp.array
+    layout: PlyLayout | None = None
+
+    @property
+    def count(self) -> int:
+        return self.means.shape[0]
+
+    @property
+    def device(self) -> wp.Device:
+        return self.means.device
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_for_features(self.features.shape[1])
+
+    @staticmethod
+    def from_numpy(
+        means: np.ndarray,
+        rotations: np.ndarray,
+        log_scales: np.ndarray,
+        opacities: np.ndarray,
+        features: np.ndarray,
+        extras: np.ndarray | None = None,
+        layout: PlyLayout | None = None,
+        device=None,
+    ) -> SplatSet:
+        """Builds a splat set from host arrays; quaternions are given w-first, as PLY stores them."""
+        device = wp.get_device(device)
+        n = means.shape[0]
+        quat_xyzw = np.ascontiguousarray(np.asarray(rotations, dtype=np.float32)[:, [1, 2, 3, 0]])
+        if extras is None:
+            extras = np.zeros((n, 0), np.float32)
+
+        def f32(a, shape):
+            return np.ascontiguousarray(np.asarray(a, dtype=np.float32).reshape(shape))
+
+        return SplatSet(
+            means=wp.array(f32(means, (n, 3)), dtype=wp.vec3, device=device),
+            rotations=wp.array(quat_xyzw, dtype=wp.quat, device=device),
+            log_scales=wp.array(f32(log_scales, (n, 3)), dtype=wp.vec3, device=device),
+            opacities=wp.array(f32(opacities, (n,)), dtype=wp.float32, device=device),
+            features=wp.array(f32(features, (n, features.shape[1])), dtype=wp.float32, device=device),
+            extras=wp.array(f32(extras, (n, extras.shape[1])), dtype=wp.float32, device=device),
+            layout=layout,
+        )
+
+    def to_numpy(self) -> dict[str, np.ndarray]:
+        """Host copies of every attribute (never views of device memory): means, rotations (w-first),
+        log_scales, opacities, features, extras."""
+        quat = self.rotations.numpy().reshape(-1, 4)
+        return {
+            "means": self.means.numpy().reshape(-1, 3).copy(),
+            "rotations": np.ascontiguousarray(quat[:, [3, 0, 1, 2]]),
+            "log_scales": self.log_scales.numpy().reshape(-1, 3).copy(),
+            "opacities": self.opacities.numpy().reshape(-1).copy(),
+            "features": self.features.numpy().reshape(self.count, -1).copy(),
+            "extras": self.extras.numpy().reshape(self.count, -1).copy(),
+        }
+
+    def to(self, device) -> SplatSet:
+        """This splat set on ``device`` (itself when it is already there)."""
+        device = wp.get_device(device)
+        if device == self.device:
+            return self
+        return SplatSet(
+            *(wp.clone(a, device=device) for a in self.arrays()),
+            layout=self.layout,
+        )
+
+    def arrays(self) -> tuple[wp.array, ...]:
+        return (self.means, self.rotations, self.log_scales, self.opacities, self.features, self.extras)
+
+    @staticmethod
+    def empty(count: int, feature_count: int, extra_count: int, device, layout=None) -> SplatSet:
+        """An uninitialised splat set of ``count`` rows (callers fill every row)."""
+        return SplatSet(
+            means=wp.empty(count, dtype=wp.vec3, device=device),
+            rotations=wp.empty(count, dtype=wp.quat, device=device),
+            log_scales=wp.empty(count, dtype=wp.vec3, device=device),
+            opacities=wp.empty(count, dtype=wp.float32, device=device),
+            features=wp.empty((count, feature_count), dtype=wp.float32, device=device),
+            extras=wp.empty((count, extra_count), dtype=wp.float32, device=device),
+            layout=layout,
+        )
+
+
+def sh_degree_for_features(feature_count: int) -> int:
+    """SH degree d from the number of coefficients per splat, 3 * (d + 1)^2."""
+    for degree in range(4):
+        if feature_count == 3 * (degree + 1) ** 2:
+            return degree
+    raise ValueError(f"{feature_count} SH coefficients is not 3 * (d + 1)^2 for d in 0..3")

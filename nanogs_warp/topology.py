@@ -1,0 +1,159 @@
+"""Candidate topology: the exact k-nearest-neighbour graph of the splat centres and its undirected edges.
+
+Everything runs on the device of the input; the host reads only a bounding box, two 22-bin level
+histograms and the edge count.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from nanogs_warp.kernels import edges as edge_kernels
+from nanogs_warp.kernels import knn as knn_kernels
+
+KMAX = knn_kernels.KMAX
+_LEVELS = knn_kernels.LEVELS
+_GRID_CELLS = 1 << knn_kernels.GRID_BITS
+# Search this many levels finer than the finest level whose own cell holds k+1 points.
+_FINER = 1
+
+
+@dataclass
+class Edges:
+    """Unique undirected edges, i < j, sorted by (i, j)."""
+
+    i: wp.array  # int32, length count
+    j: wp.array  # int32
+    count: int
+
+
+def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp.array:
+    """(N, k) int32 array on means.device: for each point its k nearest OTHER points (self excluded),
+    sorted by (squared distance, index) ascending. Requires 1 <= k <= min(KMAX, N-1).
+
+    ``candidates``, if given (int32, length N), receives the number of points each query examined.
+    """
+    n = means.shape[0]
+    if not 1 <= k <= min(KMAX, n - 1):
+        raise ValueError(f"k must be in [1, min({KMAX}, N-1)] for N = {n} points, got {k}")
+    device = means.device
+    if candidates is None:
+        candidates = wp.empty(0, dtype=wp.int32, device=device)
+    elif candidates.shape[0] != n:
+        raise ValueError(f"candidates must have length {n}, got {candidates.shape[0]}")
+
+    lo, quantum, margin = _bounding_cube(means)
+
+    # One Morton sort: every level's cells become contiguous ranges of the sorted points.
+    codes = wp.empty(2 * n, dtype=wp.int64, device=device)
+    order = wp.empty(2 * n, dtype=wp.int32, device=device)
+    wp.launch(knn_kernels.morton_codes, n, inputs=[means, lo, 1.0 / quantum], outputs=[codes, order], device=device)
+    wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
+    codes, order = codes[:n], order[:n]
+    points = wp.empty(n, dtype=wp.vec3, device=device)
+    wp.launch(knn_kernels._gather_points, n, inputs=[means, order], outputs=[points], device=device)
+
+    # Per point, the level to search; per level, how many cells it has.
+    window_level = wp.empty(n - k, dtype=wp.int32, device=device)
+    split_histogram = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
+    wp.launch(knn_kernels._window_levels, n, inputs=[codes, k], outputs=[window_level, split_histogram], device=device)
+    search_level = wp.empty(n, dtype=wp.int32, device=device)
+    level_histogram = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
+    wp.launch(
+        knn_kernels._search_levels,
+        n,
+        inputs=[window_level, k, _FINER],
+        outputs=[search_level, level_histogram],
+        device=device,
+    )
+
+    # Hash tables cell -> sorted range for the levels searched, at most half full.
+    splits = split_histogram.numpy()
+    searched = level_histogram.numpy()
+    base = np.zeros(_LEVELS, dtype=np.int32)
+    mask = np.full(_LEVELS, -1, dtype=np.int32)
+    total = 0
+    for level in range(_LEVELS):
+        if searched[level] > 0:
+            cells = 1 + int(splits[level + 1 :].sum())
+            capacity = 1 << (2 * cells - 1).bit_length()
+            base[level], mask[level] = total, capacity - 1
+            total += capacity
+    level_base = wp.array(base, dtype=wp.int32, device=device)
+    level_mask = wp.array(mask, dtype=wp.int32, device=device)
+    keys = wp.full(total, knn_kernels.EMPTY, dtype=wp.int64, device=device)
+    starts = wp.empty(total, dtype=wp.int32, device=device)
+    ends = wp.empty(total, dtype=wp.int32, device=device)
+    wp.launch(knn_kernels._insert_cells, n, inputs=[codes, level_base, level_mask], outputs=[keys, starts], device=device)
+    wp.launch(knn_kernels._close_cells, n, inputs=[codes, level_base, level_mask, keys], outputs=[ends], device=device)
+
+    neighbours = wp.full((n, k), -1, dtype=wp.int32, device=device)
+    wp.launch(
+        knn_kernels._knn_query,
+        n,
+        inputs=[points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, level_base, level_mask, keys]
+        + [starts, ends],
+        outputs=[neighbours, candidates],
+        device=device,
+    )
+    return neighbours
+
+
+def candidate_edges(neighbours: wp.array) -> Edges:
+    """Union of directed kNN edges as undirected, deduplicated, i < j, sorted by (i, j)."""
+    n, k = neighbours.shape
+    device = neighbours.device
+    m = n * k
+    keys = wp.empty(2 * m, dtype=wp.int64, device=device)
+    values = wp.empty(2 * m, dtype=wp.int32, device=device)
+    wp.launch(edge_kernels._edge_keys, (n, k), inputs=[neighbours], outputs=[keys, values], device=device)
+    wp.utils.radix_sort_pairs(keys, values, m, end_bit=max(1, (n * n - 1).bit_length()))
+    keys = keys[:m]
+    first = wp.empty(m, dtype=wp.int32, device=device)
+    wp.launch(edge_kernels._mark_unique, m, inputs=[keys], outputs=[first], device=device)
+    position = wp.empty(m, dtype=wp.int32, device=device)
+    wp.utils.array_scan(first, position, inclusive=True)
+    count = int(position[m - 1 : m].numpy()[0]) if m > 0 else 0
+    i = wp.full(count, -1, dtype=wp.int32, device=device)
+    j = wp.full(count, -1, dtype=wp.int32, device=device)
+    wp.launch(
+        edge_kernels._compact_edges, m, inputs=[keys, first, position, wp.int64(n)], outputs=[i, j], device=device
+    )
+    return Edges(i=i, j=j, count=count)
+
+
+def _bounding_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
+    """Corner and level-0 cell side of the cube that quantises the points to 21 bits per axis, and a
+    margin that covers float32 rounding in cell assignment and cell-distance bounds."""
+    device = means.device
+    box = wp.array([[np.inf] * 3, [-np.inf] * 3], dtype=wp.vec3, device=device)
+    threads = min(means.shape[0], 4096)
+    wp.launch(knn_kernels.bounding_box, threads, inputs=[means, threads], outputs=[box], device=device)
+    lo, hi = box.numpy().astype(np.float64)
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise ValueError("means contain non-finite coordinates")
+    side = float(np.max(hi - lo))
+    if side <= 0.0:
+        side = 1.0
+    quantum = side / _GRID_CELLS
+    margin = 2.0 * quantum + 8.0 * float(np.finfo(np.float32).eps) * float(np.max(np.abs([lo, hi])))
+    return wp.vec3(*lo), quantum, margin
+
+
+@dataclass(frozen=True)
+class KnnTopology:
+    """The candidate topology stage: a callable ``topology(splats) -> Edges`` over the splat centres,
+    with k clamped to N - 1 for small sets (Algorithm 1: k_eff = min(max(1, k), N - 1))."""
+
+    k: int = 16
+    MAX_K = KMAX
+
+    def __call__(self, splats) -> Edges:
+        n = splats.count
+        if n < 2:
+            none = wp.zeros(0, dtype=wp.int32, device=splats.device)
+            return Edges(none, none, 0)
+        return candidate_edges(knn_graph(splats.means, min(max(1, self.k), n - 1)))

@@ -1,0 +1,147 @@
+"""The command line: budgets and outputs, summaries, and one clear line for every bad input."""
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import subprocess
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+from scene_factory import random_splats_ply
+from typer.testing import CliRunner
+
+from nanogs_warp.cli import app
+from nanogs_warp.ply import load_ply
+
+SAMPLE = Path(str(resources.files("nanogs_warp.data") / "plant_crop.ply"))
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture
+def scene(tmp_path):
+    path = tmp_path / "scene.ply"
+    random_splats_ply(path, 600, sh_degree=1, seed=1)
+    return path
+
+
+def test_several_budgets_in_one_run(scene, tmp_path):
+    result = run("simplify", scene, "-o", tmp_path / "out.ply", "--ratio", "0.1,0.01", "--device", "cpu", "--json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert [(o["budget"], o["count"]) for o in summary["outputs"]] == [("0.1", 60), ("0.01", 6)]
+    assert load_ply(tmp_path / "out_0.1.ply").count == 60
+    assert load_ply(tmp_path / "out_0.01.ply").count == 6
+    assert not (tmp_path / "out.ply").exists()
+
+
+def test_count_budget_and_text_summary(scene, tmp_path):
+    out = tmp_path / "small.ply"
+    result = run("simplify", scene, "-o", out, "--count", "50", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert "50 splats" in result.stdout
+    assert load_ply(out).count == 50
+
+
+def test_same_input_same_bytes(scene, tmp_path):
+    for name in ("a.ply", "b.ply"):
+        assert run("simplify", scene, "-o", tmp_path / name, "--ratio", "0.05", "--device", "cpu", "-q").exit_code == 0
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+
+
+def test_info(scene):
+    result = run("info", scene, "--json")
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["count"] == 600
+    text = run("info", scene)
+    assert text.exit_code == 0 and "600" in text.stdout
+
+
+def digest(path):
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def nan_scene(tmp_path):
+    path = tmp_path / "nan.ply"
+    random_splats_ply(path, 100, seed=2)
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(path), mmap=False)
+    ply["vertex"].data["opacity"][3] = np.nan
+    ply.write(str(path))
+    return path
+
+
+BAD = {
+    "missing file": lambda t, s: ["simplify", t / "nope.ply", "-o", t / "o.ply", "--ratio", "0.1"],
+    "not a ply": lambda t, s: ["simplify", (t / "x.ply").write_text("hello") and t / "x.ply", "-o", t / "o.ply", "--ratio", "0.1"],
+    "ratio zero": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "0"],
+    "ratio above one": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "1.5"],
+    "ratio not a number": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "abc"],
+    "count too large": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--count", "601"],
+    "count zero": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--count", "0"],
+    "both budgets": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--count", "5", "--ratio", "0.1"],
+    "no budget": lambda t, s: ["simplify", s, "-o", t / "o.ply"],
+    "output is input": lambda t, s: ["simplify", s, "-o", s, "--ratio", "0.1"],
+    "missing output dir": lambda t, s: ["simplify", s, "-o", t / "no" / "o.ply", "--ratio", "0.1"],
+    "bad k": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "0.1", "--k", "0"],
+    "bad cost": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "0.1", "--cost", "nope"],
+    "bad device": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "0.1", "--device", "tpu"],
+    "nan values": lambda t, s: ["simplify", nan_scene(t), "-o", t / "o.ply", "--ratio", "0.1"],
+}
+if wp.get_cuda_device_count() == 0:
+    BAD["cuda without gpu"] = lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "0.1", "--device", "cuda"]
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_input_one_line_exit_2(case, scene, tmp_path):
+    before = digest(scene)
+    result = run(*BAD[case](tmp_path, scene))
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("nanogs-warp: error: "), result.stderr
+    assert "Traceback" not in result.output
+    assert not list(tmp_path.glob("o*.ply")) and not (tmp_path / "no").exists()
+    assert digest(scene) == before
+
+
+def test_unwritable_output_directory(scene, tmp_path):
+    if os.geteuid() == 0:
+        pytest.skip("root can write into read-only directories")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    result = run("simplify", scene, "-o", locked / "o.ply", "--ratio", "0.1")
+    assert result.exit_code == 2 and "not writable" in result.stderr
+
+
+def test_drop_invalid(tmp_path):
+    out = tmp_path / "o.ply"
+    result = run("simplify", nan_scene(tmp_path), "-o", out, "--count", "10", "--drop-invalid", "--device", "cpu", "-q")
+    assert result.exit_code == 0, result.output
+    assert load_ply(out).count == 10
+
+
+def test_installed_command_on_the_shipped_sample(tmp_path):
+    """The README's first command, through the installed entry point."""
+    exe = shutil.which("nanogs-warp") or pytest.skip("nanogs-warp is not on PATH")
+    version = subprocess.run([exe, "--version"], capture_output=True, text=True, check=True)
+    assert version.stdout.startswith("nanogs-warp ")
+    out = tmp_path / "plant.ply"
+    done = subprocess.run(
+        [exe, "simplify", SAMPLE, "-o", out, "--ratio", "0.1,0.01,0.001", "--device", "cpu", "--json"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    n = load_ply(SAMPLE).count
+    for ratio in (0.1, 0.01, 0.001):
+        assert load_ply(tmp_path / f"plant_{ratio:g}.ply").count == max(1, math.ceil(ratio * n))
+    assert json.loads(done.stdout)["input_count"] == n

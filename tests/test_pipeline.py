@@ -1,0 +1,132 @@
+"""The whole simplification: exact counts, invariants, determinism, one pass against numpy."""
+
+import math
+
+import numpy as np
+import pytest
+import reference
+import warp as wp
+from scene_factory import random_splat_arrays
+
+from nanogs_warp.errors import InputError
+from nanogs_warp.pipeline import SimplifyConfig, simplify, simplify_progressively
+from nanogs_warp.splats import SplatSet
+
+
+def clustered_scene(n, seed, sh_degree=1):
+    """Splats in a few tight clusters of different density, like a trained scene."""
+    arrays = random_splat_arrays(n, sh_degree=sh_degree, seed=seed)
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-1, 1, (6, 3))
+    spread = np.array([0.002, 0.01, 0.03, 0.1, 0.2, 0.5])
+    which = rng.integers(0, 6, n)
+    arrays["means"] = (centres[which] + rng.normal(size=(n, 3)) * spread[which, None]).astype(np.float32)
+    arrays["log_scales"] = (np.log(spread[which, None] / 5) + rng.normal(scale=0.3, size=(n, 3))).astype(np.float32)
+    return arrays
+
+
+def assert_valid(out: dict, input_means: np.ndarray):
+    for key, value in out.items():
+        assert np.all(np.isfinite(value)), key
+    np.testing.assert_allclose(np.linalg.norm(out["rotations"], axis=1), 1.0, atol=1e-5)
+    lo, hi = input_means.min(0), input_means.max(0)
+    tol = 1e-5 * (hi - lo).max()
+    assert np.all(out["means"] >= lo - tol) and np.all(out["means"] <= hi + tol)
+
+
+@pytest.mark.parametrize("ratio", [0.5, 0.1, 0.01, 0.001])
+def test_exact_target_count(device, ratio):
+    arrays = clustered_scene(3000, seed=1)
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    out = simplify(splats, ratio=ratio)
+    assert out.count == max(1, math.ceil(ratio * 3000))
+    assert out.device == wp.get_device(device)
+    assert_valid(out.to_numpy(), arrays["means"])
+
+
+def test_same_input_same_output(device):
+    arrays = clustered_scene(2000, seed=2, sh_degree=2)
+    runs = [simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.05).to_numpy() for _ in range(2)]
+    for key in runs[0]:
+        assert runs[0][key].tobytes() == runs[1][key].tobytes(), key
+
+
+def test_seed_changes_the_monte_carlo_cost(device):
+    arrays = clustered_scene(1500, seed=3)
+    a = simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.1, config=SimplifyConfig(seed=0))
+    b = simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.1, config=SimplifyConfig(seed=1))
+    assert not np.array_equal(a.means.numpy(), b.means.numpy())
+
+
+def test_budgets_continue_one_progressive_merge(device):
+    """Several budgets in one run: the first equals a run to that budget alone, all are exact."""
+    arrays = clustered_scene(2500, seed=4)
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    results = {t: s.to_numpy() for t, s in simplify_progressively(splats, [250, 25, 3])}
+    assert {t: len(r["means"]) for t, r in results.items()} == {250: 250, 25: 25, 3: 3}
+    alone = simplify(SplatSet.from_numpy(**arrays, device=device), count=250).to_numpy()
+    for key in alone:
+        assert alone[key].tobytes() == results[250][key].tobytes(), key
+
+
+def test_pruning_keeps_the_most_opaque_when_short_of_target(device):
+    """tau' = min(tau, median) drops the 300 least opaque; a 900 target keeps the 900 most opaque."""
+    arrays = clustered_scene(1000, seed=5)
+    arrays["opacities"][:] = np.repeat(np.float32([-10.0, -8.0, 4.0]), [300, 300, 400])
+    pruned = simplify(SplatSet.from_numpy(**arrays, device=device), count=700, config=SimplifyConfig(prune_opacity=0.5))
+    assert sorted(pruned.opacities.numpy().tolist()) == [-8.0] * 300 + [4.0] * 400
+    out = simplify(SplatSet.from_numpy(**arrays, device=device), count=900, config=SimplifyConfig(prune_opacity=0.5))
+    assert sorted(out.opacities.numpy().tolist()) == [-10.0] * 200 + [-8.0] * 300 + [4.0] * 400
+
+
+@pytest.mark.parametrize("n,count", [(1, 1), (2, 1), (3, 1), (17, 2)])
+def test_tiny_inputs(device, n, count):
+    arrays = clustered_scene(n, seed=6)
+    out = simplify(SplatSet.from_numpy(**arrays, device=device), count=count, config=SimplifyConfig(prune_opacity=0.0))
+    assert out.count == count
+    assert_valid(out.to_numpy(), arrays["means"])
+
+
+def test_impossible_targets(device):
+    splats = SplatSet.from_numpy(**clustered_scene(10, seed=7), device=device)
+    for kwargs in ({"ratio": 0.0}, {"ratio": 1.5}, {"count": 0}, {"count": 11}, {}):
+        with pytest.raises(InputError):
+            simplify(splats, **kwargs)
+
+
+def test_one_pass_matches_numpy(device):
+    """One pass from the float64 references: brute-force kNN, I-divergence, greedy pairs, MPMM."""
+    n, k = 400, 8
+    arrays = clustered_scene(n, seed=8)
+    arrays["opacities"] = np.abs(arrays["opacities"]) + 1.0  # nothing pruned
+    target = 300
+    config = SimplifyConfig(k=k, prune_opacity=0.0, seed=3)
+    out = simplify(SplatSet.from_numpy(**arrays, device=device), count=target, config=config).to_numpy()
+
+    # reference: kNN graph -> edges -> costs with the same common samples -> greedy -> MPMM -> compaction
+    from nanogs_warp.kernels import cost as cost_kernels
+
+    samples = wp.empty(1, dtype=wp.vec4, device="cpu")
+    wp.launch(cost_kernels.draw_common_samples, 1, inputs=[3, 0], outputs=[samples], device="cpu")
+    means = arrays["means"].astype(np.float64)
+    d2 = ((means[:, None] - means[None]) ** 2).sum(-1)
+    np.fill_diagonal(d2, np.inf)
+    nbr = np.argsort(d2, axis=1, kind="stable")[:, :k]
+    edges = sorted({(min(i, j), max(i, j)) for i in range(n) for j in nbr[i]})
+    ei, ej = np.array(edges).T
+    costs = np.array(
+        [reference.idivergence(arrays, i, j, samples.numpy()) + reference.appearance_distance(arrays, i, j) for i, j in edges],
+        dtype=np.float32,
+    )
+    pairs = reference.greedy_pairs(ei, ej, costs, n, n - target)
+    assert len(pairs) == n - target
+    absorbed = {j for _, j in pairs}
+    kept = [r for r in range(n) if r not in absorbed]
+    assert len(out["means"]) == len(kept)
+    merged_at = {i: reference.mpmm(arrays, i, j) for i, j in pairs}
+    for row, r in enumerate(kept):
+        if r in merged_at:
+            np.testing.assert_allclose(out["means"][row], merged_at[r]["mean"], rtol=1e-5, atol=1e-6)
+            np.testing.assert_allclose(reference.sigmoid(out["opacities"][row]), merged_at[r]["alpha"], rtol=1e-5)
+        else:
+            np.testing.assert_array_equal(out["means"][row], arrays["means"][r])
