@@ -5,11 +5,12 @@ level l (side 2^l quanta) is then a contiguous range of the sorted points, those
 the prefix ``code >> 3l``, so one sort serves every level. Each level in use gets an open-addressing
 hash table from cell prefix to its range: exact keys, so distant cells never share a bucket.
 
-Each point picks the finest level whose own cell holds k+1 points (read off a window of k+1
-consecutive codes), searches a level or two finer ring by ring around its own cell, skips cells
-farther than its current k-th distance and stops once the next ring cannot hold anything nearer.
-Candidates are ranked by (squared distance, original index), so the result is exact and does not
-depend on the order in which threads or cells run.
+Each point searches at the finest level whose own cell holds k+1 points (read off windows of k+1
+consecutive codes). It seeds its k best with the 2k points around it in Morton order, then visits
+rings of cells around its own cell, skipping cells, and blocks of 8 sorted points inside them, that
+lie farther than its current k-th distance, and stops once the next ring cannot hold anything nearer.
+Candidates rank by (squared distance, original index), so the result is exact and independent of the
+order in which threads or cells run.
 """
 
 import warp as wp
@@ -20,6 +21,8 @@ KMAX = wp.constant(32)
 GRID_BITS = wp.constant(21)  # bits per axis of the Morton code
 LEVELS = wp.constant(22)  # level l has cells of side 2^l quanta; level 21 is the whole cube
 EMPTY = wp.constant(wp.int64(-1))  # free hash slot
+BLOCK = wp.constant(8)  # sorted points per pruning box
+SLACK = wp.constant(1.000001)  # box distances are compared with this relative slack for rounding
 
 # Knuth's multiplicative hash constant (2^64 / golden ratio).
 HASH_MUL = wp.constant(wp.uint64(0x9E3779B97F4A7C15))
@@ -65,13 +68,15 @@ def grid_coords(p: wp.vec3, lo: wp.vec3, inv_quantum: float) -> wp.vec3i:
 
 @wp.func
 def shared_level(a: wp.int64, b: wp.int64) -> int:
-    """Finest level whose cells hold both codes: the length of their differing bits, in triples."""
+    """Finest level whose cells hold both codes: the bit length of their difference, in triples."""
     x = a ^ b
-    level = int(0)
-    while x != wp.int64(0):
-        x = x >> wp.int64(3)
-        level += 1
-    return level
+    x = x | (x >> wp.int64(1))
+    x = x | (x >> wp.int64(2))
+    x = x | (x >> wp.int64(4))
+    x = x | (x >> wp.int64(8))
+    x = x | (x >> wp.int64(16))
+    x = x | (x >> wp.int64(32))
+    return (wp.bit_count(x) + 2) / 3
 
 
 @wp.func
@@ -105,17 +110,32 @@ def _gap(u: float, cell: int, offset: int, side: float, margin: float) -> float:
     return wp.max(g - margin, 0.0)
 
 
+@wp.func
+def _box_distance(p: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> float:
+    """Squared distance from p to the box [lo, hi]."""
+    g = wp.max(wp.max(lo - p, p - hi), wp.vec3(0.0))
+    return wp.length_sq(g)
+
+
 @wp.kernel
 def bounding_box(points: wp.array(dtype=wp.vec3), threads: int, box: wp.array(dtype=wp.vec3)):
-    # axis-aligned bounding box: each thread reduces a strided share, then one atomic min/max
+    # axis-aligned bounding box (box[0], box[1]) and, in box[2][0], the count of non-finite points:
+    # each thread reduces a strided share, then one atomic each
     t = wp.tid()
-    lo = points[t]
-    hi = lo
-    for i in range(t + threads, points.shape[0], threads):
-        lo = wp.min(lo, points[i])
-        hi = wp.max(hi, points[i])
+    lo = wp.vec3(wp.inf)
+    hi = wp.vec3(-wp.inf)
+    bad = float(0.0)
+    for i in range(t, points.shape[0], threads):
+        p = points[i]
+        if wp.isfinite(p):
+            lo = wp.min(lo, p)
+            hi = wp.max(hi, p)
+        else:
+            bad += 1.0
     wp.atomic_min(box, 0, lo)
     wp.atomic_max(box, 1, hi)
+    if bad > 0.0:
+        wp.atomic_add(box, 2, wp.vec3(bad, 0.0, 0.0))
 
 
 @wp.kernel
@@ -140,6 +160,19 @@ def _gather_points(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int
 
 
 @wp.kernel
+def _block_boxes(points: wp.array(dtype=wp.vec3), box_lo: wp.array(dtype=wp.vec3), box_hi: wp.array(dtype=wp.vec3)):
+    # bounding box of each block of BLOCK consecutive sorted points
+    b = wp.tid()
+    lo = points[b * BLOCK]
+    hi = lo
+    for j in range(b * BLOCK + 1, wp.min(b * BLOCK + BLOCK, points.shape[0])):
+        lo = wp.min(lo, points[j])
+        hi = wp.max(hi, points[j])
+    box_lo[b] = lo
+    box_hi[b] = hi
+
+
+@wp.kernel
 def _window_levels(
     codes: wp.array(dtype=wp.int64),
     k: int,
@@ -160,18 +193,16 @@ def _window_levels(
 def _search_levels(
     window_level: wp.array(dtype=wp.int32),
     k: int,
-    finer: int,
     search_level: wp.array(dtype=wp.int32),
     level_histogram: wp.array(dtype=wp.int32),
 ):
-    # per point: the finest level whose own cell holds >= k+1 points (the best window through the
-    # point), made `finer` levels finer to search smaller cells; histogram of the levels searched
+    # per point: the finest level whose own cell holds >= k+1 points (the best window of k+1
+    # consecutive points through it); histogram of the levels searched
     i = wp.tid()
     n = search_level.shape[0]
     level = int(LEVELS - 1)
     for a in range(wp.max(i - k, 0), wp.min(i, n - 1 - k) + 1):
         level = wp.min(level, window_level[a])
-    level = wp.max(level - finer, 0)
     search_level[i] = level
     wp.atomic_add(level_histogram, level, 1)
 
@@ -229,6 +260,7 @@ def _close_cells(
 
 @wp.kernel
 def _knn_query(
+    first: int,
     points: wp.array(dtype=wp.vec3),
     order: wp.array(dtype=wp.int32),
     search_level: wp.array(dtype=wp.int32),
@@ -242,12 +274,15 @@ def _knn_query(
     keys: wp.array(dtype=wp.int64),
     starts: wp.array(dtype=wp.int32),
     ends: wp.array(dtype=wp.int32),
+    box_lo: wp.array(dtype=wp.vec3),
+    box_hi: wp.array(dtype=wp.vec3),
     neighbours: wp.array2d(dtype=wp.int32),
     candidates: wp.array(dtype=wp.int32),
 ):
-    # exact k nearest neighbours of sorted point i: rings of cells around its own cell, nearest
-    # first; the best k are kept as (squared distance bits << 32 | index) keys by insertion sort
-    i = wp.tid()
+    # exact k nearest neighbours of sorted point i (from `first` on): seed, then rings of cells
+    # around its own cell; the best k are kept as (distance bits << 32 | index) by insertion sort
+    i = first + wp.tid()
+    n = points.shape[0]
     p = points[i]
     level = search_level[i]
     base = level_base[level]
@@ -271,53 +306,73 @@ def _knn_query(
     worst = NO_KEY  # best[k - 1]
     worst_d = float(wp.inf)  # its squared distance
     visited = int(0)
+    # the seed: blocks holding the 2k+1 points around i in Morton order, scanned as ring -1
+    seed = wp.max(wp.min(i - k, n - 1 - 2 * k), 0)
+    seed_first = seed / BLOCK
+    seed_last = wp.min(seed + 2 * k, n - 1) / BLOCK
+    skip_first = int(-1)  # blocks already scanned
+    skip_last = int(-1)
 
-    ring = int(0)
+    ring = int(-1)
     while ring <= cells_per_axis:
         if ring > 0:
             reach = face + float(ring - 1) * side - margin  # nothing unseen lies nearer than this
             if reach > 0.0 and reach * reach > worst_d:
                 break
-        for dx in range(-ring, ring + 1):
+        r = wp.max(ring, 0)
+        for dx in range(-r, r + 1):
             x = cx + dx
             gx = _gap(u[0], cx, dx, side, margin)
             gx = gx * gx
             if x < 0 or x >= cells_per_axis or gx > worst_d:
                 continue
-            for dy in range(-ring, ring + 1):
+            for dy in range(-r, r + 1):
                 y = cy + dy
                 gy = _gap(u[1], cy, dy, side, margin)
                 gy = gx + gy * gy
                 if y < 0 or y >= cells_per_axis or gy > worst_d:
                     continue
                 # inside the ring's shell only the two z faces remain unless x or y is on the shell
-                step = 2 * ring
-                if step == 0 or wp.abs(dx) == ring or wp.abs(dy) == ring:
+                step = 2 * r
+                if step == 0 or wp.abs(dx) == r or wp.abs(dy) == r:
                     step = 1
-                for dz in range(-ring, ring + 1, step):
+                for dz in range(-r, r + 1, step):
                     z = cz + dz
                     gz = _gap(u[2], cz, dz, side, margin)
                     if z < 0 or z >= cells_per_axis or gy + gz * gz > worst_d:
                         continue
-                    slot = find_cell(keys, base, mask, morton_code(wp.vec3i(x, y, z)))
-                    if slot < 0:
-                        continue
-                    j = starts[slot]
-                    end = ends[slot]
-                    visited += end - j
-                    while j < end:
-                        d = wp.length_sq(points[j] - p)
-                        if d <= worst_d and j != i:
-                            key = (wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(order[j])
-                            if key < worst:
-                                t = k - 1
-                                while t > 0 and best[t - 1] > key:
-                                    best[t] = best[t - 1]
-                                    t -= 1
-                                best[t] = key
-                                worst = best[k - 1]
-                                worst_d = wp.cast(wp.int32(worst >> wp.int64(32)), wp.float32)
-                        j += 1
+                    begin = seed_first * BLOCK
+                    end = wp.min(seed_last * BLOCK + BLOCK, n)
+                    if ring >= 0:
+                        slot = find_cell(keys, base, mask, morton_code(wp.vec3i(x, y, z)))
+                        if slot < 0:
+                            continue
+                        begin = starts[slot]
+                        end = ends[slot]
+                    for b in range(begin / BLOCK, (end - 1) / BLOCK + 1):
+                        if b >= skip_first and b <= skip_last:
+                            continue
+                        if _box_distance(p, box_lo[b], box_hi[b]) > worst_d * SLACK:
+                            continue
+                        j = wp.max(begin, b * BLOCK)
+                        block_end = wp.min(end, b * BLOCK + BLOCK)
+                        visited += block_end - j
+                        while j < block_end:
+                            d = wp.length_sq(points[j] - p)
+                            if d <= worst_d and j != i:
+                                key = (wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(order[j])
+                                if key < worst:
+                                    t = k - 1
+                                    while t > 0 and best[t - 1] > key:
+                                        best[t] = best[t - 1]
+                                        t -= 1
+                                    best[t] = key
+                                    worst = best[k - 1]
+                                    worst_d = wp.cast(wp.int32(worst >> wp.int64(32)), wp.float32)
+                            j += 1
+        if ring < 0:
+            skip_first = seed_first
+            skip_last = seed_last
         ring += 1
 
     row = order[i]

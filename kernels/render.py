@@ -6,12 +6,21 @@ Conventions (shared with ``tests/reference_render.py``):
 - Pixel (px, py) samples the image-plane point (px + 0.5, py + 0.5), so a mean projects to the pixel
   index coordinate ``u = fx x/z + cx - 0.5``. With ``cx = W/2`` this is INRIA's ``ndc2Pix``
   (``((ndc + 1) W - 1) / 2`` compared with the integer pixel index).
+- Activations: opacity = sigmoid(logit), scale = exp(log-scale), quaternion normalised; 3D covariance
+  R S S^T R^T; EWA 2D covariance J W Sigma W^T J^T with the view-space x/z and y/z clamped to 1.3x the
+  half-FOV tangents (W/(2 fx), H/(2 fy)) inside J, plus 0.3 px^2 on the diagonal.
+- Colour: INRIA's real SH basis (C0 = 0.28209479177387814 ...) of degree 0-3 at the unit direction
+  mean - camera centre, + 0.5, clamped at 0 (not at 1).
 - Culling: view-space ``z <= 0.2`` (INRIA's near plane), a non-positive 2D covariance determinant,
-  a zero quaternion, or an empty tile rectangle.
+  a zero quaternion, an empty tile rectangle, or opacity < 1/255 (which can reach no pixel).
 - Tile binning: 16x16 tiles; a splat covers the tiles of the square of half-side
-  ``ceil(3 sqrt(lambda_max))`` px around its projected mean, INRIA's ``getRect``.
+  ``ceil(3 sqrt(lambda_max))`` px around its projected mean (INRIA's ``getRect``), less the tiles
+  where its alpha is below 1/255 for certain (see ``project``): the same image, fewer entries.
 - Entries are keyed ``tile << 32 | float bits of depth`` (depth > 0.2 > 0, so the bits sort as the
   floats do) and radix-sorted stably; splats of equal depth keep their row order.
+- Compositing, per pixel in depth order: alpha = min(0.99, opacity exp(-d^T conic d / 2)); skip
+  alpha < 1/255; stop before accumulating when T (1 - alpha) < 1e-4; C += rgb alpha T, T *= 1 - alpha;
+  finally C + T background.
 """
 
 import warp as wp
@@ -22,7 +31,6 @@ TILE = wp.constant(16)
 TILE_PIXELS = wp.constant(256)
 NEAR_Z = wp.constant(0.2)
 LOW_PASS = wp.constant(0.3)
-FOV_CLAMP = wp.constant(1.3)
 ALPHA_MIN = wp.constant(1.0 / 255.0)
 ALPHA_MAX = wp.constant(0.99)
 T_MIN = wp.constant(1.0e-4)

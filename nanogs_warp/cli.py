@@ -15,6 +15,7 @@ import typer
 
 from . import __version__
 from .budgets import Budget, output_paths, parse_budgets
+from .cli_eval import eval_command
 from .errors import InputError
 
 app = typer.Typer(
@@ -187,6 +188,9 @@ def info(
 
     details = scene_info(input)
     typer.echo(json.dumps(details, indent=2) if json_output else format_info(details))
+
+
+app.command("eval")(user_errors(eval_command))
 
 
 def main() -> None:

@@ -58,7 +58,7 @@ def eval_command(
 ) -> None:
     """Render the reference and each test scene from identical cameras and report PSNR, SSIM,
     foreground PSNR and colour shift (mean and worst view)."""
-    from .cameras import load_cameras_json, orbit_cameras
+    from .cameras import load_cameras_json, orbit_cameras, parse_up
     from .device import resolve_device
     from .evaluate import evaluate, format_table, write_images
     from .ply import load_ply
@@ -70,6 +70,7 @@ def eval_command(
     if size == 0 and cameras is None:
         raise InputError("--size 0 only applies to --cameras; orbit views need a size")
     bg = parse_background(background)
+    parse_up(up)
     target = resolve_device(device)
     for path in [reference, *tests]:
         if not path.is_file():

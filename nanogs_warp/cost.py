@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from .kernels import cost as kernels
+from .parallel import launch_rows
 from .splats import SplatSet
 from .topology import Edges
 
@@ -30,15 +31,13 @@ class IDivergenceCost:
         common = wp.empty(self.samples, dtype=wp.vec4, device=device)
         wp.launch(kernels.draw_common_samples, self.samples, inputs=[self.seed, pass_index], outputs=[common], device=device)
         costs = wp.empty(edges.count, dtype=wp.float32, device=device)
-        wp.launch(
-            kernels.idivergence_costs,
-            edges.count,
-            inputs=[
-                edges.i, edges.j, splats.means, splats.rotations, splats.log_scales, splats.opacities,
-                splats.features, common, self.lambda_geo, self.lambda_app,
+        launch_rows(
+            kernels.idivergence_costs, edges.count,
+            lambda rows: [
+                edges.i[rows], edges.j[rows], splats.means, splats.rotations, splats.log_scales,
+                splats.opacities, splats.features, common, self.lambda_geo, self.lambda_app, costs[rows],
             ],
-            outputs=[costs],
-            device=device,
+            device,
         )  # fmt: skip
         return costs
 
@@ -54,15 +53,13 @@ class MeanSquaredCost:
 
     def __call__(self, splats: SplatSet, edges: Edges, pass_index: int) -> wp.array:
         costs = wp.empty(edges.count, dtype=wp.float32, device=splats.device)
-        wp.launch(
-            kernels.mse_costs,
-            edges.count,
-            inputs=[
-                edges.i, edges.j, splats.means, splats.rotations, splats.log_scales, splats.features,
-                self.lambda_geo, self.lambda_app,
+        launch_rows(
+            kernels.mse_costs, edges.count,
+            lambda rows: [
+                edges.i[rows], edges.j[rows], splats.means, splats.rotations, splats.log_scales,
+                splats.features, self.lambda_geo, self.lambda_app, costs[rows],
             ],
-            outputs=[costs],
-            device=splats.device,
+            splats.device,
         )  # fmt: skip
         return costs
 

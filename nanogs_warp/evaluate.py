@@ -238,7 +238,10 @@ def contact_sheet(strips: Sequence[np.ndarray], gap: int = 4) -> np.ndarray:
 
 
 def write_images(
-    directory: Path | str, reference_images: Sequence[np.ndarray], test_images: Sequence[np.ndarray], names: Sequence[str]
+    directory: Path | str,
+    reference_images: Sequence[np.ndarray],
+    test_images: Sequence[np.ndarray],
+    names: Sequence[str],
 ) -> list[Path]:
     """Writes ``<name>.png`` per view (reference | test | difference x 4) and ``contact_sheet.png``
     (every view's strip on a grid) into ``directory`` (created if missing). Returns the paths."""

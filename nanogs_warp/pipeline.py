@@ -16,6 +16,7 @@ from .operators import OPERATORS
 from .pairing import select_pairs
 from .prune import prune_low_opacity
 from .splats import SplatSet
+from .timing import StageClock, no_clock
 from .topology import KnnTopology
 
 
@@ -71,10 +72,12 @@ def simplify_progressively(
     targets: Sequence[int],
     config: SimplifyConfig = SimplifyConfig(),
     on_pass: Callable[[PassReport], None] | None = None,
+    clock: StageClock | None = None,
 ) -> Iterator[tuple[int, SplatSet]]:
     """Yields (target, splats) for each target count, largest first, continuing one progressive merge.
 
-    Every yielded splat set has exactly ``target`` splats and stays on ``splats.device``.
+    Every yielded splat set has exactly ``target`` splats and stays on ``splats.device``; none of
+    them, nor the input, is changed afterwards. ``clock`` (benchmarks) records per-stage times.
     """
     config.validate()
     targets = sorted(set(int(t) for t in targets), reverse=True)
@@ -84,18 +87,28 @@ def simplify_progressively(
     cost = COSTS[config.cost](config.lambda_geo, config.lambda_app, config.samples, config.seed)
     merge = OPERATORS[config.operator]()
 
-    current = prune_low_opacity(splats, config.prune_opacity, keep_at_least=targets[0])
+    stage = clock.stage if clock is not None else no_clock
+
+    with stage("prune"):
+        current = prune_low_opacity(splats, config.prune_opacity, keep_at_least=targets[0])
     pass_index = 0
     for target in targets:
         while current.count > target:
+            if clock is not None:
+                clock.next_pass()
             n = current.count
-            edges = topology(current)
-            costs = cost(current, edges, pass_index)
-            pairs = select_pairs(edges, costs, n, cap=n - target)
+            with stage("topology"):
+                edges = topology(current)
+            with stage("cost"):
+                costs = cost(current, edges, pass_index)
+            with stage("pairing"):
+                pairs = select_pairs(edges, costs, n, cap=n - target)
             if pairs.count == 0:  # cannot happen with n >= 2 (a kNN graph has edges); guards the loop
                 raise RuntimeError(f"no merge possible at {n} splats")
-            merged, destination = remove_rows(current, pairs.j, pairs.count)
-            merge(current, pairs, merged, destination)
+            with stage("compaction"):
+                merged, destination = remove_rows(current, pairs.j, pairs.count)
+            with stage("merge"):
+                merge(current, pairs, merged, destination)
             current = merged
             if on_pass is not None:
                 on_pass(PassReport(pass_index, n, current.count, edges.count))

@@ -163,7 +163,8 @@ class _Rasteriser:
             e_xy, e_co, e_rgb, e_box = self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box
         else:  # no entries: every tile range is empty; any arrays of the right type will do
             e_xy, e_co, e_rgb, e_box = self.xy, self.conic_opacity, self.rgb, self.box
-        inputs = [e_xy, e_co, e_rgb, e_box, self.tile_start, self.tile_end, p.width, p.height, p.tiles_x, background, view]
+        inputs = [e_xy, e_co, e_rgb, e_box, self.tile_start, self.tile_end]
+        inputs += [p.width, p.height, p.tiles_x, background, view]
         if self.method == "tiles":
             self._launch(kernels.composite_tiles, tiles, inputs, [self.transmittance, self.colour, self.done, image])
         else:

@@ -6,6 +6,8 @@ histograms and the edge count.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,8 +19,8 @@ from nanogs_warp.kernels import knn as knn_kernels
 KMAX = knn_kernels.KMAX
 _LEVELS = knn_kernels.LEVELS
 _GRID_CELLS = 1 << knn_kernels.GRID_BITS
-# Search this many levels finer than the finest level whose own cell holds k+1 points.
-_FINER = 1
+_BLOCK = knn_kernels.BLOCK
+_MIN_ROWS_PER_THREAD = 16384  # CPU: below this, splitting a launch over threads does not pay
 
 
 @dataclass
@@ -55,6 +57,10 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
     codes, order = codes[:n], order[:n]
     points = wp.empty(n, dtype=wp.vec3, device=device)
     wp.launch(knn_kernels._gather_points, n, inputs=[means, order], outputs=[points], device=device)
+    blocks = (n + _BLOCK - 1) // _BLOCK
+    box_lo = wp.empty(blocks, dtype=wp.vec3, device=device)
+    box_hi = wp.empty(blocks, dtype=wp.vec3, device=device)
+    wp.launch(knn_kernels._block_boxes, blocks, inputs=[points], outputs=[box_lo, box_hi], device=device)
 
     # Per point, the level to search; per level, how many cells it has.
     window_level = wp.empty(n - k, dtype=wp.int32, device=device)
@@ -63,11 +69,7 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
     search_level = wp.empty(n, dtype=wp.int32, device=device)
     level_histogram = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
     wp.launch(
-        knn_kernels._search_levels,
-        n,
-        inputs=[window_level, k, _FINER],
-        outputs=[search_level, level_histogram],
-        device=device,
+        knn_kernels._search_levels, n, inputs=[window_level, k], outputs=[search_level, level_histogram], device=device
     )
 
     # Hash tables cell -> sorted range for the levels searched, at most half full.
@@ -78,7 +80,7 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
     total = 0
     for level in range(_LEVELS):
         if searched[level] > 0:
-            cells = 1 + int(splits[level + 1 :].sum())
+            cells = 1 + int(splits[level + 1 :].sum())  # consecutive points part below `level`
             capacity = 1 << (2 * cells - 1).bit_length()
             base[level], mask[level] = total, capacity - 1
             total += capacity
@@ -91,13 +93,12 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
     wp.launch(knn_kernels._close_cells, n, inputs=[codes, level_base, level_mask, keys], outputs=[ends], device=device)
 
     neighbours = wp.full((n, k), -1, dtype=wp.int32, device=device)
-    wp.launch(
+    tables = [level_base, level_mask, keys, starts, ends, box_lo, box_hi]
+    _launch_rows(
         knn_kernels._knn_query,
         n,
-        inputs=[points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, level_base, level_mask, keys]
-        + [starts, ends],
-        outputs=[neighbours, candidates],
-        device=device,
+        [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, neighbours, candidates],
+        device,
     )
     return neighbours
 
@@ -107,6 +108,9 @@ def candidate_edges(neighbours: wp.array) -> Edges:
     n, k = neighbours.shape
     device = neighbours.device
     m = n * k
+    if m == 0:
+        empty = wp.empty(0, dtype=wp.int32, device=device)
+        return Edges(i=empty, j=wp.empty(0, dtype=wp.int32, device=device), count=0)
     keys = wp.empty(2 * m, dtype=wp.int64, device=device)
     values = wp.empty(2 * m, dtype=wp.int32, device=device)
     wp.launch(edge_kernels._edge_keys, (n, k), inputs=[neighbours], outputs=[keys, values], device=device)
@@ -116,7 +120,7 @@ def candidate_edges(neighbours: wp.array) -> Edges:
     wp.launch(edge_kernels._mark_unique, m, inputs=[keys], outputs=[first], device=device)
     position = wp.empty(m, dtype=wp.int32, device=device)
     wp.utils.array_scan(first, position, inclusive=True)
-    count = int(position[m - 1 : m].numpy()[0]) if m > 0 else 0
+    count = int(position[m - 1 :].numpy()[0])
     i = wp.full(count, -1, dtype=wp.int32, device=device)
     j = wp.full(count, -1, dtype=wp.int32, device=device)
     wp.launch(
@@ -125,16 +129,33 @@ def candidate_edges(neighbours: wp.array) -> Edges:
     return Edges(i=i, j=j, count=count)
 
 
+class KnnTopology:
+    """The topology stage as the pipeline calls it: splats -> candidate edges of their kNN graph.
+
+    k shrinks to N-1 when fewer than k+1 splats are left.
+    """
+
+    MAX_K = KMAX
+
+    def __init__(self, k: int):
+        if not 1 <= k <= KMAX:
+            raise ValueError(f"k must be in [1, {KMAX}], got {k}")
+        self.k = k
+
+    def __call__(self, splats) -> Edges:
+        return candidate_edges(knn_graph(splats.means, min(self.k, splats.count - 1)))
+
+
 def _bounding_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     """Corner and level-0 cell side of the cube that quantises the points to 21 bits per axis, and a
     margin that covers float32 rounding in cell assignment and cell-distance bounds."""
     device = means.device
-    box = wp.array([[np.inf] * 3, [-np.inf] * 3], dtype=wp.vec3, device=device)
+    box = wp.array([[np.inf] * 3, [-np.inf] * 3, [0.0] * 3], dtype=wp.vec3, device=device)
     threads = min(means.shape[0], 4096)
     wp.launch(knn_kernels.bounding_box, threads, inputs=[means, threads], outputs=[box], device=device)
-    lo, hi = box.numpy().astype(np.float64)
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise ValueError("means contain non-finite coordinates")
+    lo, hi, bad = box.numpy().astype(np.float64)
+    if bad[0] > 0:
+        raise ValueError(f"means contain {int(bad[0])} non-finite points")
     side = float(np.max(hi - lo))
     if side <= 0.0:
         side = 1.0
@@ -143,17 +164,22 @@ def _bounding_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     return wp.vec3(*lo), quantum, margin
 
 
-@dataclass(frozen=True)
-class KnnTopology:
-    """The candidate topology stage: a callable ``topology(splats) -> Edges`` over the splat centres,
-    with k clamped to N - 1 for small sets (Algorithm 1: k_eff = min(max(1, k), N - 1))."""
+def _launch_rows(kernel, n: int, inputs: list, device) -> None:
+    """Launches `kernel(first, *inputs)` over rows 0..n-1. A CPU launch runs on one core, so on the
+    CPU the rows are cut into contiguous chunks launched from a thread per core (the kernel must
+    write only its own rows and use no atomics)."""
+    threads = 1
+    if device.is_cpu:
+        threads = max(1, min(len(os.sched_getaffinity(0)), n // _MIN_ROWS_PER_THREAD))
+    if threads == 1:
+        wp.launch(kernel, n, inputs=[0, *inputs], device=device)
+        return
+    chunks = 4 * threads  # several chunks per thread even out dense and sparse regions
+    bounds = [n * c // chunks for c in range(chunks + 1)]
+    wp.load_module(kernel.module, device=device)  # compile once, before the threads race to it
 
-    k: int = 16
-    MAX_K = KMAX
+    def launch(c: int) -> None:
+        wp.launch(kernel, bounds[c + 1] - bounds[c], inputs=[bounds[c], *inputs], device=device)
 
-    def __call__(self, splats) -> Edges:
-        n = splats.count
-        if n < 2:
-            none = wp.zeros(0, dtype=wp.int32, device=splats.device)
-            return Edges(none, none, 0)
-        return candidate_edges(knn_graph(splats.means, min(max(1, self.k), n - 1)))
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(launch, range(chunks)))

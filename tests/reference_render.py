@@ -7,9 +7,11 @@ A splat reaches a pixel only when the pixel's 16x16 tile lies in the splat's til
 The rasteriser computes in float32, so a handful of discrete decisions can go the other way there:
 an alpha within rounding of 1/255, a transmittance within rounding of 1e-4, a tile rectangle edge or
 near-plane test within rounding, two splats of (almost) equal depth. Each flips a pixel by up to a whole
-splat contribution, not by rounding. The reference flags the pixels where such a decision is within
-``eps`` (relative) of its threshold as ``ambiguous``; tests compare the other pixels and check that
-ambiguous ones are rare.
+splat contribution, not by rounding. The reference flags the pixels where such a threshold decision
+is within ``eps`` (relative) of its threshold as ``ambiguous``. Depth ties (depths within 1e-6
+relative, the order float32 cannot be trusted to keep) are reported in ``stats["ties"]`` instead;
+``render_reference(..., swap=pair)`` renders with that pair's order reversed, so that a test can
+accept either order.
 """
 
 from __future__ import annotations
@@ -105,9 +107,10 @@ def project(splats: dict, camera, eps: float = 1e-5) -> dict:
 
     view = means @ R.T + t
     z = view[:, 2]
-    scale_of_z = 1.0 + np.abs(means).sum(1) + np.abs(t).sum()
-    near_ambiguous = np.abs(z - NEAR_Z) <= eps * scale_of_z
-    zs = np.where(z > NEAR_Z - eps * scale_of_z, z, 1.0)  # keep the maths finite for culled splats
+    # float32 rounds z = R p + t to about 6e-8 (|p| + |t|); allow 16x that
+    z_tolerance = 1e-6 * (1.0 + np.abs(means).sum(1) + np.abs(t).sum())
+    near_ambiguous = np.abs(z - NEAR_Z) <= z_tolerance
+    zs = np.where(z > NEAR_Z - z_tolerance, z, 1.0)  # keep the maths finite for culled splats
 
     rot = quat_to_matrix(splats["rotations"].astype(np.float64))
     m = rot * np.exp(splats["log_scales"].astype(np.float64))[:, None, :]
@@ -160,8 +163,10 @@ def project(splats: dict, camera, eps: float = 1e-5) -> dict:
     )  # fmt: skip
 
 
-def render_reference(splats: dict, camera, background=(0.0, 0.0, 0.0), eps: float = 1e-4):
-    """Returns (image (H, W, 3) float64, ambiguous (H, W) bool, stats dict)."""
+def render_reference(splats: dict, camera, background=(0.0, 0.0, 0.0), eps: float = 1e-4, swap=None):
+    """Returns (image (H, W, 3) float64, ambiguous (H, W) bool, stats dict). ``stats["ties"]`` lists
+    the pairs of rows adjacent in depth order whose depths are within 1e-6 relative; ``swap``, one
+    such pair, composites that pair in the other order."""
     W, H = int(camera.width), int(camera.height)
     s = project(splats, camera)
     bg = np.asarray(background, np.float64)
@@ -171,7 +176,7 @@ def render_reference(splats: dict, camera, background=(0.0, 0.0, 0.0), eps: floa
     trans = np.ones((H, W))
     done = np.zeros((H, W), bool)
     ambiguous = np.zeros((H, W), bool)
-    stats = dict(contributions=0, terminated=0, visible=int(s["visible"].sum()))
+    stats = dict(contributions=0, terminated=0, visible=int(s["visible"].sum()), ties=[])
 
     def in_rect(rect, i):
         x0, x1, y0, y1 = (r[i] for r in rect)
@@ -186,16 +191,20 @@ def render_reference(splats: dict, camera, background=(0.0, 0.0, 0.0), eps: floa
     rows = np.flatnonzero(s["maybe_visible"])
     order = rows[np.lexsort((rows, s["depth"][rows]))]
     depths = s["depth"][order]
-    for pos, i in enumerate(order):
+    close = np.flatnonzero(np.abs(np.diff(depths)) <= 1e-6 * depths[1:])
+    stats["ties"] = [(int(order[k]), int(order[k + 1])) for k in close]
+    if swap is not None:
+        k = int(np.flatnonzero(order == swap[0])[0])
+        if order[k + 1] != swap[1]:
+            raise ValueError(f"{swap} is not a pair of rows adjacent in depth order")
+        order[k], order[k + 1] = order[k + 1], order[k]
+    for i in order:
         power, alpha = alpha_of(i)
         reaches = alpha >= ALPHA_MIN * (1 - eps)
-        # Decisions within rounding: the splat's visibility, its rectangle's edge, its depth order.
+        # Decisions within rounding: the splat's visibility, its rectangle's edge.
         unsure = in_rect(s["outer"], i) & ~in_rect(s["inner"], i)
         if s["near_ambiguous"][i]:
             unsure |= in_rect(s["outer"], i)
-        for other in (pos - 1, pos + 1):
-            if 0 <= other < len(order) and abs(depths[other] - depths[pos]) <= 1e-6 * depths[pos]:
-                unsure |= in_rect(s["outer"], i)
         ambiguous |= unsure & reaches & ~done
         if not s["visible"][i]:
             continue

@@ -1,28 +1,30 @@
 """Brute-force float64 numpy references for the candidate-topology stage (nanogs_warp.topology)."""
 
+from __future__ import annotations
+
 import numpy as np
 
 
-def knn_reference(means: np.ndarray, k: int, chunk: int = 512) -> tuple[np.ndarray, np.ndarray]:
-    """(N, k) indices of each point's k nearest other points, sorted by (distance, index), and their
-    float64 squared distances. Brute force over all pairs, in row chunks."""
+def knn_reference(
+    means: np.ndarray, k: int, rows: np.ndarray | None = None, chunk: int = 128
+) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (len(rows), k) of the k nearest other points of each point in `rows` (default: all),
+    sorted by (squared distance, index), and those float64 squared distances. Brute force."""
     points = np.asarray(means, dtype=np.float64)
-    n = points.shape[0]
-    indices = np.empty((n, k), dtype=np.int64)
-    distances = np.empty((n, k), dtype=np.float64)
-    columns = np.arange(n)
-    for begin in range(0, n, chunk):
-        rows = np.arange(begin, min(begin + chunk, n))
-        d2 = ((points[rows, None, :] - points[None, :, :]) ** 2).sum(axis=2)
-        d2[np.arange(rows.size), rows] = np.inf  # self excluded
-        # every point tied with the k-th nearest must be ranked by index: take all up to the (k+1)-th
-        part = np.argpartition(d2, k, axis=1)[:, : k + 1]
-        kth = np.take_along_axis(d2, part, axis=1).max(axis=1, keepdims=True)
-        for r, row in enumerate(rows):
-            near = columns[d2[r] <= kth[r]]
+    rows = np.arange(points.shape[0]) if rows is None else np.asarray(rows)
+    indices = np.empty((rows.size, k), dtype=np.int64)
+    distances = np.empty((rows.size, k), dtype=np.float64)
+    for begin in range(0, rows.size, chunk):
+        part = rows[begin : begin + chunk]
+        d2 = ((points[part, None, :] - points[None, :, :]) ** 2).sum(axis=2)
+        d2[np.arange(part.size), part] = np.inf  # self excluded
+        # everything up to the (k+1)-th smallest distance, then ranked by (distance, index)
+        bound = np.partition(d2, k, axis=1)[:, k : k + 1]
+        for r in range(part.size):
+            near = np.flatnonzero(d2[r] <= bound[r])
             ranked = near[np.lexsort((near, d2[r, near]))][:k]
-            indices[row] = ranked
-            distances[row] = d2[r, ranked]
+            indices[begin + r] = ranked
+            distances[begin + r] = d2[r, ranked]
     return indices, distances
 
 

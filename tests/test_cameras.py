@@ -1,0 +1,140 @@
+"""Orbit cameras derived from a scene, and the INRIA trainer's cameras.json."""
+
+import json
+
+import numpy as np
+import pytest
+
+from nanogs_warp.cameras import Camera, load_cameras_json, orbit_cameras, parse_up, scene_frame
+from nanogs_warp.errors import InputError
+from nanogs_warp.splats import SplatSet
+
+
+def project(camera: Camera, point):
+    p = camera.rotation @ np.asarray(point, np.float64) + camera.translation
+    return np.array([camera.fx * p[0] / p[2] + camera.cx, camera.fy * p[1] / p[2] + camera.cy]), p[2]
+
+
+def scene_means(rng, n=500):
+    means = rng.normal([1.0, -2.0, 0.5], [1.0, 0.5, 2.0], size=(n, 3))
+    means[:10] += 1000.0  # far outliers must not move the centre or the radius much
+    return means
+
+
+@pytest.mark.parametrize("up", ["+x", "-x", "+y", "-y", "+z", "-z"])
+def test_orbit_cameras_look_at_the_robust_centre_upright(rng, up):
+    means = scene_means(rng)
+    cameras = orbit_cameras(means, views=16, size=128, up=up)
+    centre, radius = scene_frame(means)
+    np.testing.assert_allclose(centre, np.median(means, axis=0))
+    expected_radius = 2.2 * np.percentile(np.linalg.norm(means - centre, axis=1), 90)
+    assert radius == pytest.approx(expected_radius)
+    up_vector = parse_up(up)
+    assert len(cameras) == 16 and len({c.name for c in cameras}) == 16
+    for camera in cameras:
+        np.testing.assert_allclose(camera.rotation @ camera.rotation.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(camera.rotation) == pytest.approx(1.0)
+        assert np.linalg.norm(camera.centre - centre) == pytest.approx(radius)
+        uv, depth = project(camera, centre)
+        assert depth > 0
+        np.testing.assert_allclose(uv, [64.0, 64.0], atol=1e-9)
+        # 60 degree vertical FOV on a square image
+        assert camera.fy == pytest.approx(64.0 / np.tan(np.radians(30.0)))
+        assert (camera.width, camera.height, camera.fx) == (128, 128, camera.fy)
+        # world up points to the top of the image, unless the view looks along the up axis
+        forward = camera.rotation[2]
+        if abs(forward @ up_vector) < 0.99:
+            above, _ = project(camera, centre + 0.01 * radius * up_vector)
+            assert above[1] < 64.0
+
+
+def test_orbit_views_cover_the_sphere(rng):
+    cameras = orbit_cameras(scene_means(rng), views=64, size=32)
+    directions = np.array([c.rotation[2] for c in cameras])
+    np.testing.assert_allclose(directions.mean(axis=0), 0.0, atol=0.05)
+    cosines = directions @ directions.T - 2 * np.eye(64)
+    nearest = np.degrees(np.arccos(np.clip(cosines.max(axis=1), -1, 1)))
+    assert nearest.min() > 15 and nearest.max() < 35  # evenly spread: about 26 degrees apart
+
+
+def test_orbit_from_a_splat_set_equals_orbit_from_its_means(rng):
+    means = scene_means(rng, 100).astype(np.float32)
+    n = len(means)
+    splats = SplatSet.from_numpy(means, np.tile([1.0, 0, 0, 0], (n, 1)), np.zeros((n, 3)), np.zeros(n), np.zeros((n, 3)))
+    a, b = orbit_cameras(splats, views=5), orbit_cameras(means, views=5)
+    for ca, cb in zip(a, b):
+        np.testing.assert_array_equal(ca.rotation, cb.rotation)
+        np.testing.assert_array_equal(ca.translation, cb.translation)
+
+
+def test_orbit_rejects_bad_requests():
+    means = np.zeros((3, 3))
+    with pytest.raises(InputError, match="--up"):
+        orbit_cameras(means, up="up")
+    with pytest.raises(InputError, match="--views"):
+        orbit_cameras(means, views=0)
+    with pytest.raises(InputError, match="finite"):
+        orbit_cameras(np.full((2, 3), np.nan))
+    # all centres at one point: radius falls back to 1
+    assert np.linalg.norm(orbit_cameras(means, views=1)[0].centre) == pytest.approx(1.0)
+
+
+def test_look_at_along_the_up_axis_is_still_a_rotation():
+    camera = Camera.look_at([0, 5, 0], [0, 0, 0], [0, 1, 0], 10, 10, 8, 8)
+    np.testing.assert_allclose(camera.rotation @ camera.rotation.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(camera.rotation[2], [0, -1, 0])
+
+
+def inria_entry(rng, k, width=1600, height=1040):
+    """An entry as the INRIA trainer's camera_to_JSON writes it: camera-to-world rotation and centre."""
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    c2w = q * np.sign(np.linalg.det(q))
+    return {
+        "id": k,
+        "img_name": f"DSC{k:05d}",
+        "width": width,
+        "height": height,
+        "position": rng.normal(size=3).tolist(),
+        "rotation": [row.tolist() for row in c2w],
+        "fy": 1200.0,
+        "fx": 1190.0,
+    }
+
+
+def test_load_cameras_json_round_trips_the_inria_pose(tmp_path, rng):
+    entries = [inria_entry(rng, k) for k in range(3)]
+    path = tmp_path / "cameras.json"
+    path.write_text(json.dumps(entries))
+    cameras = load_cameras_json(path)
+    for entry, camera in zip(entries, cameras):
+        c2w, position = np.array(entry["rotation"]), np.array(entry["position"])
+        np.testing.assert_allclose(camera.centre, position, atol=1e-12)
+        # a point along the camera's +z axis (third column of camera-to-world) is straight ahead
+        uv, depth = project(camera, position + 3.0 * c2w[:, 2])
+        assert depth == pytest.approx(3.0)
+        np.testing.assert_allclose(uv, [800.0, 520.0], atol=1e-9)
+        assert camera.name == entry["img_name"]
+        assert (camera.width, camera.height, camera.fx, camera.fy) == (1600, 1040, 1190.0, 1200.0)
+
+
+def test_load_cameras_json_rescales_to_the_longest_side(tmp_path, rng):
+    path = tmp_path / "cameras.json"
+    path.write_text(json.dumps([inria_entry(rng, 0)]))
+    (camera,) = load_cameras_json(path, size=400)
+    assert (camera.width, camera.height) == (400, 260)
+    assert camera.fx == pytest.approx(1190.0 / 4) and camera.fy == pytest.approx(1200.0 / 4)
+    assert (camera.cx, camera.cy) == (200.0, 130.0)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [("not json", "not JSON"), ("[]", "non-empty"), ('[{"width": 3}]', "malformed"),
+     ('[{"id":0,"width":0,"height":2,"position":[0,0,0],"rotation":[[1,0,0],[0,1,0],[0,0,1]],"fx":1,"fy":1}]', "non-positive")],
+)  # fmt: skip
+def test_load_cameras_json_rejects_bad_files(tmp_path, text, message):
+    path = tmp_path / "cameras.json"
+    path.write_text(text)
+    with pytest.raises(InputError, match=message):
+        load_cameras_json(path)
+    with pytest.raises(InputError, match="cannot read"):
+        load_cameras_json(tmp_path / "missing.json")
