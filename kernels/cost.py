@@ -2,13 +2,15 @@
 
 import warp as wp
 
-from .splat_math import LOG_2PI, covariance, first_weight, log_mass, moment_match, rotation_matrix, to_vec3d
+from .merge import log_area_mass
+from .splat_math import LOG_2PI, covariance, first_weight, log_mass, log_sigmoid, moment_match, rotation_matrix, to_vec3d
 
 wp.set_module_options({"enable_backward": False})
 
 # Finite stand-in for costs that cannot be evaluated (a degenerate merged covariance): such an edge
 # sorts after every real one.
 UNMERGEABLE = wp.constant(3.0e38)
+SH_C0 = wp.constant(0.28209479177387814)
 
 
 @wp.func
@@ -101,6 +103,49 @@ def finite_cost(c: wp.float64):
     return out
 
 
+@wp.func
+def mixture_divergence(
+    pi: wp.float64,
+    i: int,
+    j: int,
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    samples: wp.array(dtype=wp.vec4),
+):
+    """Monte Carlo KL(p~ || q_m) of the normalised mixture p~ = pi N_i + (1 - pi) N_j against its
+    moment-matched Gaussian q_m (NanoGS eq. 5 and Appendix A, eq. 12), and whether q_m is valid.
+    Each sample (z, u) is shared by every edge (common random numbers): x = mu_i + R_i (s_i * z)
+    if u < pi, else from splat j."""
+    log_pi = wp.log(pi)
+    log_pj = wp.log(wp.float64(1.0) - pi)
+    mu_i = to_vec3d(means[i])
+    mu_j = to_vec3d(means[j])
+    rot_i = rotation_matrix(rotations[i])
+    rot_j = rotation_matrix(rotations[j])
+    mu_m, cov_m = moment_match(
+        pi, mu_i, covariance(rotations[i], log_scales[i]), mu_j, covariance(rotations[j], log_scales[j])
+    )
+    l_m, ok = cholesky(cov_m)
+    divergence = wp.float64(0.0)
+    if not ok:
+        return divergence, ok
+    for s in range(samples.shape[0]):
+        zu = samples[s]
+        z = wp.vec3d(wp.float64(zu[0]), wp.float64(zu[1]), wp.float64(zu[2]))
+        x = wp.vec3d()
+        if wp.float64(zu[3]) < pi:
+            x = mu_i + rot_i * wp.cw_mul(z, scales(log_scales[i]))
+        else:
+            x = mu_j + rot_j * wp.cw_mul(z, scales(log_scales[j]))
+        log_mixture = log_add(
+            log_pi + log_normal_axes(x, mu_i, rot_i, log_scales[i]),
+            log_pj + log_normal_axes(x, mu_j, rot_j, log_scales[j]),
+        )
+        divergence += log_mixture - log_normal_cholesky(x, mu_m, l_m)
+    return divergence / wp.float64(samples.shape[0]), ok
+
+
 @wp.kernel
 def idivergence_costs(
     edge_i: wp.array(dtype=wp.int32),
@@ -115,43 +160,81 @@ def idivergence_costs(
     lambda_app: float,
     costs: wp.array(dtype=float),
 ):
-    """Monte Carlo I-divergence I(p~_ij || q_m) between the normalised two-splat mixture and its
-    moment-matched Gaussian (NanoGS eq. 5 and Appendix A, eq. 12). Each sample (z, u) is shared by
-    every edge (common random numbers): x = mu_i + R_i (s_i * z) if u < pi, else from splat j."""
+    """The paper's cost: Monte Carlo I-divergence I(p~_ij || q_m) between the normalised two-splat
+    mixture (mass weights, NanoGS eq. 4) and its moment-matched Gaussian, + lambda_app D_app."""
     e = wp.tid()
     i = int(edge_i[e])
     j = int(edge_j[e])
     pi = first_weight(log_mass(opacities[i], log_scales[i]), log_mass(opacities[j], log_scales[j]))
-    log_pi = wp.log(pi)
-    log_pj = wp.log(wp.float64(1.0) - pi)
-    mu_i = to_vec3d(means[i])
-    mu_j = to_vec3d(means[j])
-    rot_i = rotation_matrix(rotations[i])
-    rot_j = rotation_matrix(rotations[j])
-    mu_m, cov_m = moment_match(
-        pi, mu_i, covariance(rotations[i], log_scales[i]), mu_j, covariance(rotations[j], log_scales[j])
-    )
-    l_m, ok = cholesky(cov_m)
+    divergence, ok = mixture_divergence(pi, i, j, means, rotations, log_scales, samples)
     if not ok:
         costs[e] = wp.float32(UNMERGEABLE)
         return
-    divergence = wp.float64(0.0)
-    for s in range(samples.shape[0]):
-        zu = samples[s]
-        z = wp.vec3d(wp.float64(zu[0]), wp.float64(zu[1]), wp.float64(zu[2]))
-        x = wp.vec3d()
-        if wp.float64(zu[3]) < pi:
-            x = mu_i + rot_i * wp.cw_mul(z, scales(log_scales[i]))
-        else:
-            x = mu_j + rot_j * wp.cw_mul(z, scales(log_scales[j]))
-        log_mixture = log_add(
-            log_pi + log_normal_axes(x, mu_i, rot_i, log_scales[i]),
-            log_pj + log_normal_axes(x, mu_j, rot_j, log_scales[j]),
-        )
-        divergence += log_mixture - log_normal_cholesky(x, mu_m, l_m)
-    divergence = divergence / wp.float64(samples.shape[0])
     costs[e] = finite_cost(
         wp.float64(lambda_geo) * divergence + wp.float64(lambda_app) * appearance_distance(features, i, j)
+    )
+
+
+@wp.func
+def rgb_distance(features: wp.array2d(dtype=float), i: int, j: int):
+    """||c_i - c_j||^2 of the view-independent colours c = max(C0 f_dc + 1/2, 0)."""
+    d = wp.float64(0.0)
+    for c in range(3):
+        ci = wp.max(wp.float64(SH_C0) * wp.float64(features[i, c]) + wp.float64(0.5), wp.float64(0.0))
+        cj = wp.max(wp.float64(SH_C0) * wp.float64(features[j, c]) + wp.float64(0.5), wp.float64(0.0))
+        d += (ci - cj) * (ci - cj)
+    return d
+
+
+@wp.kernel
+def weighted_idivergence_costs(
+    edge_i: wp.array(dtype=wp.int32),
+    edge_j: wp.array(dtype=wp.int32),
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    features: wp.array2d(dtype=float),
+    samples: wp.array(dtype=wp.vec4),
+    lambda_geo: float,
+    lambda_app: float,
+    area_weights: int,
+    mass_scaled: int,
+    app_mode: int,
+    costs: wp.array(dtype=float),
+):
+    """Experimental family: weights volume mass (0) or opacity x area (1); geometric KL scaled by the
+    pair's weight W (mass_scaled 1) and appearance scaled by w_i w_j / W; appearance on raw SH (0)
+    or activated DC colour (1)."""
+    e = wp.tid()
+    i = int(edge_i[e])
+    j = int(edge_j[e])
+    log_w_i = wp.float64(0.0)
+    log_w_j = wp.float64(0.0)
+    if area_weights == 1:
+        log_w_i = log_area_mass(opacities[i], log_scales[i])
+        log_w_j = log_area_mass(opacities[j], log_scales[j])
+    else:
+        log_w_i = log_mass(opacities[i], log_scales[i])
+        log_w_j = log_mass(opacities[j], log_scales[j])
+    pi = first_weight(log_w_i, log_w_j)
+    divergence, ok = mixture_divergence(pi, i, j, means, rotations, log_scales, samples)
+    if not ok:
+        costs[e] = wp.float32(UNMERGEABLE)
+        return
+    app = wp.float64(0.0)
+    if app_mode == 1:
+        app = rgb_distance(features, i, j)
+    else:
+        app = appearance_distance(features, i, j)
+    geo_scale = wp.float64(1.0)
+    app_scale = wp.float64(1.0)
+    if mass_scaled == 1:
+        log_w = log_w_i - log_sigmoid(log_w_i - log_w_j)
+        geo_scale = wp.exp(log_w)
+        app_scale = wp.exp(log_w) * pi * (wp.float64(1.0) - pi)
+    costs[e] = finite_cost(
+        wp.float64(lambda_geo) * geo_scale * divergence + wp.float64(lambda_app) * app_scale * app
     )
 
 

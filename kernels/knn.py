@@ -1,6 +1,7 @@
 """Exact k nearest neighbours on Morton-ordered cell grids of every level.
 
-Points are sorted once by a 63-bit Morton code (21 bits per axis over the bounding cube). A cell of
+Points are sorted once by a 63-bit Morton code (21 bits per axis over a cube around the points;
+far outliers are clamped into its boundary cells, which reach to infinity outwards). A cell of
 level l (side 2^l quanta) is then a contiguous range of the sorted points, those whose codes share
 the prefix ``code >> 3l``, so one sort serves every level. Each level in use gets an open-addressing
 hash table from cell prefix to its range: exact keys, so distant cells never share a bucket.
@@ -101,13 +102,26 @@ def find_cell(keys: wp.array(dtype=wp.int64), base: int, mask: int, key: wp.int6
 
 @wp.func
 def _gap(u: float, cell: int, offset: int, side: float, margin: float) -> float:
-    """Lower bound on the distance along one axis from coordinate u (inside `cell`) to cell + offset."""
+    """Lower bound on the distance along one axis from coordinate u (in `cell`) to the points of cell
+    + offset. Points outside the cube are clamped into its boundary cells, which therefore reach to
+    infinity outwards: only the face towards u counts, and u itself may lie outside its cell."""
     g = float(0.0)
     if offset > 0:
         g = float(cell + offset) * side - u
     elif offset < 0:
         g = u - float(cell + offset + 1) * side
     return wp.max(g - margin, 0.0)
+
+
+@wp.func
+def _ring_gap(u: float, cell: int, ring: int, side: float, cells_per_axis: int) -> float:
+    """Distance along one axis from u to the cells `ring` steps away (either way), inf if none exist."""
+    g = float(wp.inf)
+    if cell + ring < cells_per_axis:
+        g = float(cell + ring) * side - u
+    if cell - ring >= 0:
+        g = wp.min(g, u - float(cell - ring + 1) * side)
+    return g
 
 
 @wp.func
@@ -136,6 +150,13 @@ def bounding_box(points: wp.array(dtype=wp.vec3), threads: int, box: wp.array(dt
     wp.atomic_max(box, 1, hi)
     if bad > 0.0:
         wp.atomic_add(box, 2, wp.vec3(bad, 0.0, 0.0))
+
+
+@wp.kernel
+def _sample_axis(points: wp.array(dtype=wp.vec3), stride: int, axis: int, out: wp.array(dtype=float)):
+    # one coordinate of every stride-th point, for quantiles
+    t = wp.tid()
+    out[t] = points[t * stride][axis]
 
 
 @wp.kernel
@@ -210,6 +231,8 @@ def _search_levels(
 @wp.kernel
 def _insert_cells(
     codes: wp.array(dtype=wp.int64),
+    first_level: int,
+    last_level: int,
     level_base: wp.array(dtype=wp.int32),
     level_mask: wp.array(dtype=wp.int32),
     keys: wp.array(dtype=wp.int64),
@@ -218,7 +241,7 @@ def _insert_cells(
     # hash-table insert of every cell (in each level built) at its first sorted point
     i = wp.tid()
     code = codes[i]
-    for level in range(LEVELS):
+    for level in range(first_level, last_level + 1):
         mask = level_mask[level]
         if mask >= 0:
             shift = wp.int64(3 * level)
@@ -237,6 +260,8 @@ def _insert_cells(
 @wp.kernel
 def _close_cells(
     codes: wp.array(dtype=wp.int64),
+    first_level: int,
+    last_level: int,
     level_base: wp.array(dtype=wp.int32),
     level_mask: wp.array(dtype=wp.int32),
     keys: wp.array(dtype=wp.int64),
@@ -246,7 +271,7 @@ def _close_cells(
     i = wp.tid()
     n = codes.shape[0]
     code = codes[i]
-    for level in range(LEVELS):
+    for level in range(first_level, last_level + 1):
         mask = level_mask[level]
         if mask >= 0:
             shift = wp.int64(3 * level)
@@ -294,11 +319,8 @@ def _knn_query(
     side = quantum * float(1 << level)
     cells_per_axis = 1 << (GRID_BITS - level)
     u = p - lo
-    face = wp.min(
-        wp.min(wp.min(u[0] - float(cx) * side, float(cx + 1) * side - u[0]),
-               wp.min(u[1] - float(cy) * side, float(cy + 1) * side - u[1])),
-        wp.min(u[2] - float(cz) * side, float(cz + 1) * side - u[2]),
-    )
+    # points outside the cube sit in its boundary cells: float32 rounding of u grows with |u|
+    margin_p = margin + 2.5e-7 * wp.max(wp.max(wp.abs(u[0]), wp.abs(u[1])), wp.abs(u[2]))
 
     best = topk_keys()
     for t in range(k):
@@ -314,21 +336,24 @@ def _knn_query(
     skip_last = int(-1)
 
     ring = int(-1)
-    while ring <= cells_per_axis:
+    while True:
         if ring > 0:
-            reach = face + float(ring - 1) * side - margin  # nothing unseen lies nearer than this
+            # nothing unseen lies nearer than the nearest cell of this ring (inf: no cells left)
+            reach = wp.min(wp.min(_ring_gap(u[0], cx, ring, side, cells_per_axis),
+                                  _ring_gap(u[1], cy, ring, side, cells_per_axis)),
+                           _ring_gap(u[2], cz, ring, side, cells_per_axis)) - margin_p
             if reach > 0.0 and reach * reach > worst_d:
                 break
         r = wp.max(ring, 0)
         for dx in range(-r, r + 1):
             x = cx + dx
-            gx = _gap(u[0], cx, dx, side, margin)
+            gx = _gap(u[0], cx, dx, side, margin_p)
             gx = gx * gx
             if x < 0 or x >= cells_per_axis or gx > worst_d:
                 continue
             for dy in range(-r, r + 1):
                 y = cy + dy
-                gy = _gap(u[1], cy, dy, side, margin)
+                gy = _gap(u[1], cy, dy, side, margin_p)
                 gy = gx + gy * gy
                 if y < 0 or y >= cells_per_axis or gy > worst_d:
                     continue
@@ -338,7 +363,7 @@ def _knn_query(
                     step = 1
                 for dz in range(-r, r + 1, step):
                     z = cz + dz
-                    gz = _gap(u[2], cz, dz, side, margin)
+                    gz = _gap(u[2], cz, dz, side, margin_p)
                     if z < 0 or z >= cells_per_axis or gy + gz * gz > worst_d:
                         continue
                     begin = seed_first * BLOCK

@@ -1,5 +1,8 @@
 """Merge operators: fuse each chosen pair (i, j) of a source set into one splat of an output set,
-at row destination[i] (the row where i itself went when the absorbed rows j were removed)."""
+at row destination[i] (the row where i itself went when the absorbed rows j were removed).
+
+Every operator is a weighted moment match (``merge_weighted``): the pair's weights give the merged
+mean, covariance, features and extras; operators differ in their weights and merged opacity."""
 
 import warp as wp
 
@@ -32,7 +35,7 @@ def write_gaussian(
     log_scales: wp.array(dtype=wp.vec3),
 ):
     """Stores N(mu, cov) as centre, rotation and log scales: Sigma = R diag(s^2) R^T with R the
-    eigenvector frame (eigenvalues decreasing, det R = +1)."""
+    eigenvector frame (eigenvalues decreasing, det R = +1). Returns the log scales stored."""
     values, frame = symmetric_eigen(cov)
     means[row] = wp.vec3(wp.float32(mu[0]), wp.float32(mu[1]), wp.float32(mu[2]))
     rotations[row] = quaternion_from_frame(frame)
@@ -40,6 +43,7 @@ def write_gaussian(
     for k in range(3):
         ls[k] = wp.max(wp.float32(wp.float64(0.5) * wp.log(wp.max(values[k], wp.float64(1e-300)))), LOG_SCALE_MIN)
     log_scales[row] = ls
+    return ls
 
 
 @wp.func
@@ -47,6 +51,62 @@ def blend_rows(values: wp.array2d(dtype=float), i: int, j: int, pi: wp.float64, 
     """out[row] = pi values[i] + (1 - pi) values[j]."""
     for c in range(values.shape[1]):
         out[row, c] = wp.float32(pi * wp.float64(values[i, c]) + (wp.float64(1.0) - pi) * wp.float64(values[j, c]))
+
+
+@wp.func
+def logit_of_log_alpha(log_alpha: wp.float64):
+    """logit(alpha) from log alpha, alpha clamped to (0, 1): |logit| <= LOGIT_LIMIT."""
+    limit = wp.float32(LOGIT_LIMIT)
+    logit = limit
+    if log_alpha < wp.float64(0.0):
+        logit = wp.float32(log_alpha - wp.log(wp.max(wp.float64(1.0) - wp.exp(log_alpha), wp.float64(1e-300))))
+    return wp.clamp(logit, -limit, limit)
+
+
+@wp.func
+def log_area(log_scale: wp.vec3):
+    """log(s0 s1 + s0 s2 + s1 s2): the ellipsoid's surface-area proxy, from log scales."""
+    a = wp.float64(log_scale[0]) + wp.float64(log_scale[1])
+    b = wp.float64(log_scale[0]) + wp.float64(log_scale[2])
+    c = wp.float64(log_scale[1]) + wp.float64(log_scale[2])
+    m = wp.max(a, wp.max(b, c))
+    return m + wp.log(wp.exp(a - m) + wp.exp(b - m) + wp.exp(c - m))
+
+
+@wp.func
+def log_area_mass(opacity_logit: float, log_scale: wp.vec3):
+    """log w = log alpha + log(s0 s1 + s0 s2 + s1 s2), the area operator's weight."""
+    return log_sigmoid(wp.float64(opacity_logit)) + log_area(log_scale)
+
+
+@wp.func
+def merge_weighted(
+    i: int,
+    j: int,
+    row: int,
+    pi: wp.float64,
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    features: wp.array2d(dtype=float),
+    extras: wp.array2d(dtype=float),
+    out_means: wp.array(dtype=wp.vec3),
+    out_rotations: wp.array(dtype=wp.quat),
+    out_log_scales: wp.array(dtype=wp.vec3),
+    out_features: wp.array2d(dtype=float),
+    out_extras: wp.array2d(dtype=float),
+):
+    """Weights (pi, 1 - pi): weighted mean, covariance (within-splat average + between-mean
+    dispersion, NanoGS eq. 7-8), features and extras, written at ``row``. Returns the log scales
+    written."""
+    mu_m, cov_m = moment_match(
+        pi,
+        to_vec3d(means[i]), covariance(rotations[i], log_scales[i]),
+        to_vec3d(means[j]), covariance(rotations[j], log_scales[j]),
+    )  # fmt: skip
+    blend_rows(features, i, j, pi, out_features, row)
+    blend_rows(extras, i, j, pi, out_extras, row)
+    return write_gaussian(row, mu_m, cov_m, out_means, out_rotations, out_log_scales)
 
 
 @wp.kernel
@@ -75,12 +135,45 @@ def mass_preserving_moment_matching(
     j = int(pair_j[p])
     row = int(destination[i])
     pi = first_weight(log_mass(opacities[i], log_scales[i]), log_mass(opacities[j], log_scales[j]))
-    mu_m, cov_m = moment_match(
-        pi,
-        to_vec3d(means[i]), covariance(rotations[i], log_scales[i]),
-        to_vec3d(means[j]), covariance(rotations[j], log_scales[j]),
+    merge_weighted(
+        i, j, row, pi, means, rotations, log_scales, features, extras,
+        out_means, out_rotations, out_log_scales, out_features, out_extras,
     )  # fmt: skip
     out_opacities[row] = over_opacity_logit(opacities[i], opacities[j])
-    blend_rows(features, i, j, pi, out_features, row)
-    blend_rows(extras, i, j, pi, out_extras, row)
-    write_gaussian(row, mu_m, cov_m, out_means, out_rotations, out_log_scales)
+
+
+@wp.kernel
+def area_weighted_moment_matching(
+    pair_i: wp.array(dtype=wp.int32),
+    pair_j: wp.array(dtype=wp.int32),
+    destination: wp.array(dtype=wp.int32),
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    features: wp.array2d(dtype=float),
+    extras: wp.array2d(dtype=float),
+    out_means: wp.array(dtype=wp.vec3),
+    out_rotations: wp.array(dtype=wp.quat),
+    out_log_scales: wp.array(dtype=wp.vec3),
+    out_opacities: wp.array(dtype=float),
+    out_features: wp.array2d(dtype=float),
+    out_extras: wp.array2d(dtype=float),
+):
+    """Area-weighted moment matching (as hierarchical 3DGS weights its merges): weights
+    w = alpha (s0 s1 + s0 s2 + s1 s2), opacity times the surface-area proxy; w-weighted mean,
+    covariance, features and extras; merged opacity alpha_m = (w_i + w_j) / area_m, so the
+    weighted mass is conserved, clamped to (0, 1)."""
+    p = wp.tid()
+    i = int(pair_i[p])
+    j = int(pair_j[p])
+    row = int(destination[i])
+    log_w_i = log_area_mass(opacities[i], log_scales[i])
+    log_w_j = log_area_mass(opacities[j], log_scales[j])
+    pi = first_weight(log_w_i, log_w_j)
+    log_scale_m = merge_weighted(
+        i, j, row, pi, means, rotations, log_scales, features, extras,
+        out_means, out_rotations, out_log_scales, out_features, out_extras,
+    )  # fmt: skip
+    log_w_m = log_w_i - log_sigmoid(log_w_i - log_w_j)  # log(w_i + w_j), as log w_i - log pi
+    out_opacities[row] = logit_of_log_alpha(log_w_m - log_area(log_scale_m))

@@ -15,6 +15,7 @@ import typer
 
 from . import __version__
 from .budgets import Budget, output_paths, parse_budgets
+from .cli_batch import batch_command
 from .cli_eval import eval_command
 from .errors import InputError
 
@@ -191,6 +192,7 @@ def info(
 
 
 app.command("eval")(user_errors(eval_command))
+app.command("batch")(user_errors(batch_command))
 
 
 def main() -> None:

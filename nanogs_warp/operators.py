@@ -30,4 +30,17 @@ class MassPreservingMomentMatching:
         )  # fmt: skip
 
 
-OPERATORS = {"mpmm": MassPreservingMomentMatching}
+@dataclass(frozen=True)
+class AreaWeightedMomentMatching:
+    """Area-weighted moment matching: weights opacity x surface-area proxy (as hierarchical 3DGS),
+    merged opacity conserving the weighted mass, clamped to (0, 1)."""
+
+    def __call__(self, source: SplatSet, pairs: Pairs, out: SplatSet, destination: wp.array) -> None:
+        wp.launch(
+            kernels.area_weighted_moment_matching, pairs.count,
+            inputs=[pairs.i, pairs.j, destination, *source.arrays()], outputs=[*out.arrays()],
+            device=source.device,
+        )  # fmt: skip
+
+
+OPERATORS = {"mpmm": MassPreservingMomentMatching, "area": AreaWeightedMomentMatching}

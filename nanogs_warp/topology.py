@@ -1,7 +1,7 @@
 """Candidate topology: the exact k-nearest-neighbour graph of the splat centres and its undirected edges.
 
-Everything runs on the device of the input; the host reads only a bounding box, two 22-bin level
-histograms and the edge count.
+Everything runs on the device of the input; the host reads only scalars: a bounding box, six
+coordinate quantiles, two 22-bin level histograms and the edge count.
 """
 
 from __future__ import annotations
@@ -21,6 +21,8 @@ _LEVELS = knn_kernels.LEVELS
 _GRID_CELLS = 1 << knn_kernels.GRID_BITS
 _BLOCK = knn_kernels.BLOCK
 _MIN_ROWS_PER_THREAD = 16384  # CPU: below this, splitting a launch over threads does not pay
+_QUANTILE_SAMPLES = 16384  # points sampled per axis for the quantisation cube
+_QUANTILE_TAIL = 0.001  # fraction of the sample left out at each end
 
 
 @dataclass
@@ -47,7 +49,7 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
     elif candidates.shape[0] != n:
         raise ValueError(f"candidates must have length {n}, got {candidates.shape[0]}")
 
-    lo, quantum, margin = _bounding_cube(means)
+    lo, quantum, margin = _quantisation_cube(means)
 
     # One Morton sort: every level's cells become contiguous ranges of the sorted points.
     codes = wp.empty(2 * n, dtype=wp.int64, device=device)
@@ -89,8 +91,10 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
     keys = wp.full(total, knn_kernels.EMPTY, dtype=wp.int64, device=device)
     starts = wp.empty(total, dtype=wp.int32, device=device)
     ends = wp.empty(total, dtype=wp.int32, device=device)
-    wp.launch(knn_kernels._insert_cells, n, inputs=[codes, level_base, level_mask], outputs=[keys, starts], device=device)
-    wp.launch(knn_kernels._close_cells, n, inputs=[codes, level_base, level_mask, keys], outputs=[ends], device=device)
+    used = np.flatnonzero(searched)
+    levels = [codes, int(used[0]), int(used[-1]), level_base, level_mask]
+    wp.launch(knn_kernels._insert_cells, n, inputs=levels, outputs=[keys, starts], device=device)
+    wp.launch(knn_kernels._close_cells, n, inputs=[*levels, keys], outputs=[ends], device=device)
 
     neighbours = wp.full((n, k), -1, dtype=wp.int32, device=device)
     tables = [level_base, level_mask, keys, starts, ends, box_lo, box_hi]
@@ -146,22 +150,42 @@ class KnnTopology:
         return candidate_edges(knn_graph(splats.means, min(self.k, splats.count - 1)))
 
 
-def _bounding_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
-    """Corner and level-0 cell side of the cube that quantises the points to 21 bits per axis, and a
-    margin that covers float32 rounding in cell assignment and cell-distance bounds."""
+def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
+    """Corner and level-0 cell side (quantum) of the cube that quantises the points to 21 bits per
+    axis, and the margin by which cell-distance lower bounds are lowered for float32 rounding.
+
+    The cube spans the bounding box, cut down to three times the width of the central 99.8% of the
+    points (per axis, from a sample): a few far outliers would otherwise stretch the cells until dense
+    clusters fall into one level-0 cell. Points outside the cube are clamped into its boundary cells.
+    """
     device = means.device
+    n = means.shape[0]
     box = wp.array([[np.inf] * 3, [-np.inf] * 3, [0.0] * 3], dtype=wp.vec3, device=device)
-    threads = min(means.shape[0], 4096)
+    threads = min(n, 4096)
     wp.launch(knn_kernels.bounding_box, threads, inputs=[means, threads], outputs=[box], device=device)
-    lo, hi, bad = box.numpy().astype(np.float64)
+    box_lo, box_hi, bad = box.numpy().astype(np.float64)
     if bad[0] > 0:
         raise ValueError(f"means contain {int(bad[0])} non-finite points")
+
+    lo, hi = box_lo.copy(), box_hi.copy()
+    stride = max(1, n // _QUANTILE_SAMPLES)
+    m = (n + stride - 1) // stride
+    keys = wp.empty(2 * m, dtype=wp.float32, device=device)
+    values = wp.zeros(2 * m, dtype=wp.int32, device=device)
+    tail = int(_QUANTILE_TAIL * (m - 1))
+    for axis in range(3):
+        wp.launch(knn_kernels._sample_axis, m, inputs=[means, stride, axis], outputs=[keys], device=device)
+        wp.utils.radix_sort_pairs(keys, values, m)
+        q_lo, q_hi = float(keys[tail : tail + 1].numpy()[0]), float(keys[m - 1 - tail : m - tail].numpy()[0])
+        width = q_hi - q_lo
+        lo[axis], hi[axis] = max(lo[axis], q_lo - width), min(hi[axis], q_hi + width)
     side = float(np.max(hi - lo))
-    if side <= 0.0:
-        side = 1.0
+    if side <= 0.0:  # the central points coincide: fall back to the whole box, or to a unit cube
+        lo, side = box_lo, float(np.max(box_hi - box_lo)) or 1.0
     quantum = side / _GRID_CELLS
-    margin = 2.0 * quantum + 8.0 * float(np.finfo(np.float32).eps) * float(np.max(np.abs([lo, hi])))
-    return wp.vec3(*lo), quantum, margin
+    # Positions are taken relative to `lo` (a correctly rounded float32 difference), so a point's
+    # computed cell and the cell's bounds err by well under a quantum; two quanta cover both.
+    return wp.vec3(*lo), quantum, 2.0 * quantum
 
 
 def _launch_rows(kernel, n: int, inputs: list, device) -> None:

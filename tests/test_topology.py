@@ -32,7 +32,7 @@ def uniform_points(n, seed):
 
 
 def clustered_points(n, seed, clusters=24, outliers=5):
-    """Gaussian clusters with sigma from 1e-4 to 1e-1 (log-uniform), plus a few far outliers."""
+    """Gaussian clusters with sigmas log-spaced from 1e-4 to 1e-1, plus a few far outliers."""
     rng = np.random.default_rng(seed)
     centres = rng.uniform(-1.0, 1.0, (clusters, 3))
     sigma = 10.0 ** np.linspace(-4.0, -1.0, clusters)
@@ -96,11 +96,26 @@ def test_knn_uniform(knn_device, k):
 
 
 def test_knn_clustered(knn_device):
-    points = clustered_points(20000, seed=2)
+    points = clustered_points(40000, seed=2)  # on the CPU, large enough to split over threads
     neighbours = run_knn(points, 16, knn_device)
     check_valid(neighbours)
     rows = np.concatenate([np.arange(5), np.random.default_rng(3).choice(points.shape[0], 1500, replace=False)])
     check_against_reference(points, neighbours, 16, rows=rows)
+
+
+def test_knn_far_outliers(knn_device):
+    """A dense blob 1e7 times smaller than the reach of a few outliers: exact, and the work per point
+    stays bounded (the quantisation cube ignores the outliers instead of stretching over them)."""
+    rng = np.random.default_rng(13)
+    points = rng.normal(size=(20000, 3)) * 1e-3
+    points[:10] = rng.uniform(-1e4, 1e4, (10, 3))
+    points = points.astype(np.float32)
+    candidates = wp.zeros(points.shape[0], dtype=wp.int32, device=knn_device)
+    neighbours = run_knn(points, 16, knn_device, candidates=candidates)
+    check_valid(neighbours)
+    rows = np.concatenate([np.arange(10), rng.choice(points.shape[0], 500, replace=False)])
+    check_against_reference(points, neighbours, 16, rows=rows)
+    assert np.median(candidates.numpy()) < 400
 
 
 @pytest.mark.parametrize("k", [4, 16])
@@ -159,7 +174,7 @@ def test_knn_tiny(knn_device, n, k):
 
 
 def test_knn_deterministic(knn_device):
-    points = clustered_points(20000, seed=8)
+    points = clustered_points(40000, seed=8)
     first = run_knn(points, 16, knn_device)
     second = run_knn(points, 16, knn_device)
     assert first.tobytes() == second.tobytes()

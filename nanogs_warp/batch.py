@@ -1,0 +1,151 @@
+"""``nanogs-warp batch``: many scenes, every budget each, on all local devices or a Ray cluster.
+
+The pieces: :mod:`.batch_scenes` finds the scenes and shards them, :mod:`.batch_work` runs one
+scene (resume records included), :mod:`.batch_local` schedules worker processes on this machine,
+:mod:`.batch_ray` Ray tasks. This module ties them together and reports: progress on stderr, the
+summary table or JSON.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from .batch_scenes import SceneJob, find_scenes, parse_shard, select_shard
+from .batch_work import SceneResult, process_scene
+
+__all__ = ["BatchProgress", "SceneJob", "SceneResult", "find_scenes", "format_summary", "parse_shard",
+           "process_scene", "run_batch", "select_shard", "summary_json"]  # fmt: skip
+
+
+def run_batch(
+    jobs: list[SceneJob],
+    devices: list[str] | None = None,
+    workers_per_device: int = 1,
+    ray_address: str | None = None,
+    ray_gpu: bool | None = None,
+    force: bool = False,
+    progress: BatchProgress | None = None,
+) -> list[SceneResult]:
+    """Simplifies every job, on local worker processes (``devices``, e.g. ``["cuda:0", "cuda:1"]``)
+    or as Ray tasks (``ray_address``); returns one result per job, sorted by scene name."""
+    progress = progress or BatchProgress(len(jobs), quiet=True)
+    try:
+        if not jobs:
+            results = []
+        elif ray_address is not None:
+            from .batch_ray import run_ray
+
+            results = run_ray(jobs, ray_address, ray_gpu, force, progress)
+        else:
+            from .batch_local import run_local
+
+            results = run_local(jobs, devices or ["cpu"], workers_per_device, force, progress)
+    finally:
+        progress.close()
+    return sorted(results, key=lambda r: r.relative)
+
+
+class BatchProgress:
+    """Progress on stderr. On a terminal: one overall line and a line per worker, redrawn in place
+    (failures stay above them); otherwise one plain line per scene started and finished."""
+
+    def __init__(self, total: int, stream=None, live: bool | None = None, quiet: bool = False):
+        self.stream = stream or sys.stderr
+        self.live = (self.stream.isatty() if live is None else live) and not quiet
+        self.quiet = quiet
+        self.total = total
+        self.counts = {"done": 0, "skipped": 0, "failed": 0}
+        self.workers: dict[str, str] = {}  # worker -> what it is doing
+        self.scenes: dict[str, tuple[str, str]] = {}  # worker -> (device, scene)
+        self.started_at = time.monotonic()
+        self._drawn = 0
+        self._drawn_at = 0.0
+
+    def started(self, worker: str, device: str, job: SceneJob) -> None:
+        self.scenes[worker] = (device, job.relative)
+        self.workers[worker] = f"{device}: {job.relative}: loading"
+        if self.live:
+            self._draw()
+        elif not self.quiet:
+            self._log(f"{job.relative}: started on {device}")
+
+    def advanced(self, worker: str, report: tuple[int, int, int]) -> None:
+        index, before, after = report
+        if worker in self.workers:
+            device, scene = self.scenes[worker]
+            self.workers[worker] = f"{device}: {scene}: pass {index + 1}, {before:,} -> {after:,}"
+        if self.live and time.monotonic() - self._drawn_at > 0.1:
+            self._draw()
+
+    def finished(self, worker: str, result: SceneResult) -> None:
+        self.counts[result.status] = self.counts.get(result.status, 0) + 1
+        self.workers.pop(worker, None)
+        line = f"{result.relative}: {_describe(result)}"
+        if self.live:
+            if result.status == "failed":
+                self._clear()
+                self.stream.write(f"nanogs-warp batch: {line}\n")
+            self._draw()
+        elif not self.quiet:
+            self._log(line)
+
+    def close(self) -> None:
+        if self.live:
+            self._clear()
+            self.stream.flush()
+
+    def _log(self, text: str) -> None:
+        self.stream.write(f"nanogs-warp batch: [{sum(self.counts.values())}/{self.total}] {text}\n")
+        self.stream.flush()
+
+    def _draw(self) -> None:
+        c = self.counts
+        lines = [f"batch: {sum(c.values())}/{self.total} scenes ({c['done']} done, {c['skipped']} skipped, "
+                 f"{c['failed']} failed), {time.monotonic() - self.started_at:.0f} s"]  # fmt: skip
+        lines += [f"  {name} {status}" for name, status in sorted(self.workers.items())]
+        self._clear()
+        self.stream.write("".join(f"{line[:200]}\033[K\n" for line in lines))
+        self.stream.flush()
+        self._drawn, self._drawn_at = len(lines), time.monotonic()
+
+    def _clear(self) -> None:
+        if self._drawn:
+            self.stream.write(f"\033[{self._drawn}F\033[J")
+            self._drawn = 0
+
+
+def _describe(result: SceneResult) -> str:
+    if result.status == "failed":
+        return f"FAILED on {result.device}: {result.error}"
+    counts = ", ".join(f"{o['count']:,}" for o in result.outputs)
+    if result.status == "skipped":
+        return f"skipped (up to date: {counts})"
+    return f"{result.input_count:,} -> {counts} splats in {result.seconds:.2f} s on {result.device}"
+
+
+def format_summary(results: list[SceneResult], seconds: float) -> str:
+    """The table printed at the end: scene, count in, counts out, seconds, device, status; then
+    one line per failure and the totals."""
+    header = ("scene", "in", "out", "seconds", "device", "status")
+    rows = [(r.relative, f"{r.input_count:,}" if r.input_count is not None else "-",
+             " / ".join(f"{o['count']:,}" for o in r.outputs) or "-",
+             f"{r.seconds:.2f}", r.device, r.status) for r in results]  # fmt: skip
+    widths = [max(len(h), *(len(row[i]) for row in rows)) if rows else len(h) for i, h in enumerate(header)]
+    right = {1, 2, 3}
+
+    def line(cells):
+        return "  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths))).rstrip()
+
+    out = [line(header), line(["-" * w for w in widths]), *(line(row) for row in rows)]
+    out += [f"failed: {r.relative}: {r.error}" for r in results if r.status == "failed"]
+    totals = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
+    out.append(f"{len(results)} scenes: {totals['done']} done, {totals['skipped']} skipped, "
+               f"{totals['failed']} failed, {seconds:.2f} s")  # fmt: skip
+    return "\n".join(out)
+
+
+def summary_json(results: list[SceneResult], seconds: float, shard: tuple[int, int] = (0, 1)) -> dict:
+    totals = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
+    return {"scenes": [r.to_json() for r in results], **totals, "shard": f"{shard[0]}/{shard[1]}",
+            "seconds": round(seconds, 4)}  # fmt: skip

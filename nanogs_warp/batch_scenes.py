@@ -1,0 +1,232 @@
+"""Which scenes a batch holds: a directory, a glob pattern or a manifest -> sorted :class:`SceneJob`s,
+each with its own output directory, budgets and options; ``--shard i/n`` picks every n-th of them.
+
+No Warp here: the batch's parent process plans with these, its workers (or Ray tasks) run them.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import os
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from .budgets import Budget, parse_budgets
+from .errors import InputError
+from .pipeline import SimplifyConfig
+
+RECORD_SUFFIX = ".nanogs.json"
+_GLOB_CHARS = set("*?[")
+# Per-scene keys of a JSON manifest besides "path" (kebab-case spellings are accepted too).
+_CONFIG_KEYS = {"k": int, "prune_opacity": float, "samples": int, "seed": int,
+                "lambda_geo": float, "lambda_app": float, "cost": str, "operator": str}  # fmt: skip
+_SCENE_KEYS = {"path", "ratio", "count", "drop_invalid", *_CONFIG_KEYS}
+
+
+@dataclass(frozen=True)
+class SceneJob:
+    """One scene of a batch, everything a worker needs to simplify it (picklable, no Warp)."""
+
+    input: Path  # the .ply file
+    relative: str  # its path below the batch's input root, "/"-separated; names the scene
+    out_dir: Path  # OUTDIR/<relative's directory>
+    budgets: tuple[Budget, ...]
+    config: SimplifyConfig
+    drop_invalid: bool
+    size: int  # bytes; -1 when the file is missing (the scene then fails in its worker)
+
+    @property
+    def stem(self) -> str:
+        return Path(self.relative).stem
+
+    def output_path(self, budget: Budget) -> Path:
+        return self.out_dir / f"{self.stem}_{budget.label}.ply"
+
+    @property
+    def record_path(self) -> Path:
+        return self.out_dir / f"{self.stem}{RECORD_SUFFIX}"
+
+    def options(self) -> dict:
+        """What the outputs depend on besides the input's bytes; kept in the scene's record."""
+        budgets = [{"ratio": b.ratio} if b.ratio is not None else {"count": b.count} for b in self.budgets]
+        return {"budgets": budgets, **vars(self.config), "drop_invalid": self.drop_invalid}
+
+
+def find_scenes(
+    input: str,
+    out_dir: Path,
+    budgets: list[Budget] | None,
+    config: SimplifyConfig,
+    drop_invalid: bool,
+) -> list[SceneJob]:
+    """The batch's scenes sorted by relative path. ``input`` is a directory (every ``*.ply`` below
+    it, leaving out ``out_dir`` if it lies inside), a glob pattern (``**`` recurses), a single
+    ``.ply`` file, or a manifest: one path per line (``#`` starts a comment line) or a JSON list
+    of paths or ``{"path": ..., "ratio"/"count"/<simplify option>: ...}`` objects. Relative
+    manifest paths start at the manifest's directory. Outputs go to ``out_dir/<relative>``, where
+    ``relative`` is the path below the root: the directory, the pattern's fixed leading directories,
+    or the deepest directory that holds every scene of a manifest."""
+    path = Path(input)
+    out_dir = Path(out_dir)
+    if path.is_dir():
+        if path.resolve() == out_dir.resolve():
+            raise InputError(f"the output directory {out_dir} is the input directory; choose another one")
+        root, entries = path, [(p, {}) for p in _walk_ply(path, skip=out_dir)]
+        what = f"no .ply files under {path}"
+    elif path.is_file() and path.suffix.lower() == ".ply":
+        root, entries, what = path.parent, [(path, {})], ""
+    elif path.is_file():
+        entries = _read_manifest(path)
+        root = _common_directory([p for p, _ in entries]) if entries else path.parent
+        what = f"{path.name}: the manifest lists no scenes"
+    elif _GLOB_CHARS & set(input):
+        root = _glob_root(input)
+        skip = out_dir.resolve()
+        entries = [(Path(p), {}) for p in glob.glob(input, recursive=True)
+                   if p.lower().endswith(".ply") and Path(p).is_file() and skip not in Path(p).resolve().parents]  # fmt: skip
+        what = f"no .ply files match {input!r}"
+    else:
+        raise InputError(f"{input}: no such file, directory or glob pattern")
+    if not entries:
+        raise InputError(what)
+
+    jobs = [_make_job(p, overrides, root, out_dir, budgets, config, drop_invalid) for p, overrides in entries]
+    jobs.sort(key=lambda j: j.relative)
+    _check_unique(jobs)
+    return jobs
+
+
+def parse_shard(text: str | None) -> tuple[int, int]:
+    """``i/n`` with 0 <= i < n (0-based, as Slurm's ``$SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT``
+    when the array starts at 0); None means the whole batch, ``0/1``."""
+    if text is None:
+        return 0, 1
+    parts = text.strip().split("/")
+    try:
+        i, n = (int(p) for p in parts) if len(parts) == 2 else (None, None)
+    except ValueError:
+        i, n = None, None
+    if i is None or n < 1 or not 0 <= i < n:
+        raise InputError(f"--shard {text!r}: expected i/n with 0 <= i < n, e.g. 0/4")
+    return i, n
+
+
+def select_shard(jobs: list[SceneJob], index: int, count: int) -> list[SceneJob]:
+    """Scene ``k`` of the sorted list belongs to shard ``k mod count``."""
+    return [job for k, job in enumerate(jobs) if k % count == index]
+
+
+def largest_first(jobs: list[SceneJob]) -> list[SceneJob]:
+    """The order in which workers take scenes: biggest file first (ties by name), so that one
+    large scene does not start last and hold up the end of the batch."""
+    return sorted(jobs, key=lambda j: (-j.size, j.relative))
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def _walk_ply(root: Path, skip: Path) -> list[Path]:
+    skip = skip.resolve()
+    found = []
+    for directory, subdirs, files in os.walk(root):
+        subdirs[:] = sorted(d for d in subdirs if (Path(directory) / d).resolve() != skip)
+        found += [Path(directory) / f for f in files if f.lower().endswith(".ply") and not f.startswith(".")]
+    return found
+
+
+def _glob_root(pattern: str) -> Path:
+    """The leading directories of ``pattern`` that hold no glob characters."""
+    fixed = []
+    for part in Path(pattern).parts[:-1]:
+        if _GLOB_CHARS & set(part):
+            break
+        fixed.append(part)
+    return Path(*fixed) if fixed else Path(".")
+
+
+def _common_directory(paths: list[Path]) -> Path:
+    return Path(os.path.commonpath([os.path.dirname(os.path.abspath(p)) for p in paths]))
+
+
+def _read_manifest(path: Path) -> list[tuple[Path, dict]]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"{path.name}: cannot read the manifest: {e}") from None
+    base = Path(os.path.abspath(path)).parent
+    if path.suffix.lower() == ".json" or text.lstrip().startswith("["):
+        try:
+            items = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise InputError(f"{path.name}: not valid JSON: {e}") from None
+        if not isinstance(items, list):
+            raise InputError(f"{path.name}: expected a JSON list of paths or {{\"path\": ...}} objects")
+        return [_manifest_entry(item, i, path.name, base) for i, item in enumerate(items)]
+    lines = (line.strip() for line in text.splitlines())
+    return [(base / line, {}) for line in lines if line and not line.startswith("#")]
+
+
+def _manifest_entry(item, i: int, name: str, base: Path) -> tuple[Path, dict]:
+    where = f"{name}: entry {i + 1}"
+    if isinstance(item, str):
+        item = {"path": item}
+    if not isinstance(item, dict) or not isinstance(item.get("path"), str) or not item["path"]:
+        raise InputError(f"{where}: expected a path or an object with a \"path\" string")
+    options = {key.replace("-", "_"): value for key, value in item.items()}
+    unknown = sorted(set(options) - _SCENE_KEYS)
+    if unknown:
+        raise InputError(f"{where}: unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(_SCENE_KEYS))}")
+    return base / options.pop("path"), options
+
+
+def _make_job(path, overrides, root, out_dir, budgets, config, drop_invalid) -> SceneJob:
+    relative = Path(os.path.relpath(os.path.abspath(path), os.path.abspath(root)))
+    where = relative.as_posix()
+    scene_budgets = budgets
+    if "ratio" in overrides or "count" in overrides:
+        try:
+            scene_budgets = parse_budgets(_budget_text(overrides.get("ratio"), where), _budget_text(overrides.get("count"), where))
+        except InputError as e:
+            raise InputError(f"{where}: {e}") from None
+    if scene_budgets is None:
+        raise InputError(f"{where}: no budget: give --ratio or --count (or per-scene \"ratio\"/\"count\" in a JSON manifest)")
+    changes = {}
+    for key, kind in _CONFIG_KEYS.items():
+        if key in overrides:
+            changes[key] = _typed(overrides[key], kind, f"{where}: {key}")
+    scene_config = replace(config, **changes)
+    scene_config.validate()
+    drop = _typed(overrides["drop_invalid"], bool, f"{where}: drop_invalid") if "drop_invalid" in overrides else drop_invalid
+    try:
+        size = path.stat().st_size
+    except OSError:
+        size = -1
+    return SceneJob(path, relative.as_posix(), out_dir / relative.parent, tuple(scene_budgets), scene_config, drop, size)
+
+
+def _budget_text(value, where: str) -> str | None:
+    """A JSON budget: a number, a list of numbers or the command line's "0.1,0.01"."""
+    if value is None or isinstance(value, str):
+        return value
+    values = value if isinstance(value, list) else [value]
+    if not values or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+        raise InputError(f"{where}: a budget must be a number, a list of numbers or a string like \"0.1,0.01\"")
+    return ",".join(repr(v) for v in values)
+
+
+def _typed(value, kind, where: str):
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise InputError(f"{where}: expected {kind.__name__}, got {value!r}")
+    return value
+
+
+def _check_unique(jobs: list[SceneJob]) -> None:
+    seen: dict[Path, str] = {}
+    for job in jobs:
+        key = job.record_path.resolve()
+        if key in seen:
+            raise InputError(f"{seen[key]} and {job.relative} would write the same outputs ({job.out_dir / job.stem}_*)")
+        seen[key] = job.relative

@@ -1,0 +1,108 @@
+"""``nanogs-warp batch``: simplify many scenes to several budgets each, on every local GPU, a
+Slurm array (``--shard``) or a Ray cluster (``--ray``), resumably.
+
+Registered in ``cli.py`` as ``app.command("batch")(user_errors(batch_command))``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from .errors import InputError
+
+
+def batch_command(
+    input: Annotated[str, typer.Argument(help="A directory (every .ply below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.ply, and <stem>.nanogs.json records for resuming.", show_default=False)],
+    ratio: Annotated[Optional[str], typer.Option(help="Fractions of each scene's splats to keep, in (0, 1]; several as 0.1,0.01,0.001.")] = None,
+    count: Annotated[Optional[str], typer.Option(help="Numbers of splats to keep; several as 100000,10000.")] = None,
+    devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.")] = "auto",
+    workers: Annotated[int, typer.Option(help="Worker processes per device (e.g. several on the CPU).")] = 1,
+    shard: Annotated[Optional[str], typer.Option(help="Only scenes i, i+n, i+2n, ... of the sorted list, as i/n (0-based), e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT.", show_default=False)] = None,
+    ray: Annotated[Optional[str], typer.Option("--ray", help="Run each scene as a Ray task: auto (the cluster this machine belongs to), local (a Ray instance started here) or the head's ADDRESS. Needs nanogs-warp[ray].", show_default=False)] = None,
+    force: Annotated[bool, typer.Option("--force", help="Redo every scene, even those whose outputs and record are up to date.")] = False,
+    k: Annotated[int, typer.Option("--k", help="Neighbours per splat in the candidate graph.")] = 16,
+    prune_opacity: Annotated[float, typer.Option(help="Prune splats with opacity below min(this, median opacity) first; 0 disables.")] = 0.1,
+    samples: Annotated[int, typer.Option(help="Monte Carlo samples per edge for the I-divergence.")] = 1,
+    seed: Annotated[int, typer.Option(help="Seed of the common random numbers.")] = 0,
+    lambda_geo: Annotated[float, typer.Option(help="Weight of the geometric (I-divergence) cost.")] = 1.0,
+    lambda_app: Annotated[float, typer.Option(help="Weight of the appearance cost ||f_i - f_j||^2.")] = 1.0,
+    cost: Annotated[str, typer.Option(help="Geometric cost: idiv (I-divergence) or mse (the paper's ablation surrogate).")] = "idiv",
+    operator: Annotated[str, typer.Option(help="Merge operator: mpmm (mass-preserving moment matching).")] = "mpmm",
+    drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing the scene.")] = False,
+    json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
+    quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
+) -> None:
+    """Simplify many scenes to every budget (one progressive run each) on all local GPUs, a shard
+    of a Slurm array, or a Ray cluster. Finished scenes are skipped when run again; one failing
+    scene is reported and the others go on (exit code 1 if any failed)."""
+    from .batch import BatchProgress, find_scenes, format_summary, parse_shard, run_batch, select_shard, summary_json
+    from .budgets import parse_budgets
+    from .pipeline import SimplifyConfig
+
+    started = time.perf_counter()
+    config = SimplifyConfig(k, prune_opacity, samples, seed, lambda_geo, lambda_app, cost, operator)
+    config.validate()
+    budgets = parse_budgets(ratio, count) if ratio is not None or count is not None else None
+    shard_index, shard_count = parse_shard(shard)
+    if workers < 1:
+        raise InputError(f"--workers must be at least 1, got {workers}")
+    if output.exists() and not output.is_dir():
+        raise InputError(f"--output {output} is not a directory")
+
+    jobs = find_scenes(input, output, budgets, config, drop_invalid)
+    selected = select_shard(jobs, shard_index, shard_count)
+    device_list, ray_gpu = None, None
+    if ray is not None:
+        from .batch_ray import import_ray
+
+        import_ray()  # fails here, with one line, when Ray is missing
+        ray_gpu = None if devices.strip().lower() == "auto" else devices.strip().lower() != "cpu"
+    else:
+        from .batch_local import parse_devices
+
+        device_list = parse_devices(devices)
+    _make_output_dir(output)
+
+    progress = BatchProgress(len(selected), quiet=quiet)
+    if shard_count > 1 and not quiet:
+        typer.echo(f"nanogs-warp batch: shard {shard_index}/{shard_count}: {len(selected)} of {len(jobs)} scenes", err=True)
+    results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress)
+    seconds = time.perf_counter() - started
+    if json_output:
+        typer.echo(json.dumps(summary_json(results, seconds, (shard_index, shard_count)), indent=2))
+    elif not quiet:
+        typer.echo(format_summary(results, seconds))
+    sys.stdout.flush()
+    if any(r.status == "failed" for r in results):
+        raise typer.Exit(1)
+
+
+def _make_output_dir(output: Path) -> None:
+    try:
+        output.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"--output {output}: cannot create the directory: {e.strerror or e}") from None
+    if not os.access(output, os.W_OK):
+        raise InputError(f"--output {output}: the directory is not writable")
+
+
+def main() -> None:
+    """``python -m nanogs_warp.cli_batch``: the batch command on its own (as ``nanogs-warp batch``)."""
+    from .cli import user_errors
+
+    app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None,
+                      context_settings={"help_option_names": ["-h", "--help"]})  # fmt: skip
+    app.command("batch")(user_errors(batch_command))
+    app(prog_name="nanogs-warp batch")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,305 @@
+"""``nanogs-warp batch``: every budget of every scene, resume after a kill, one bad scene failing
+alone, shards, manifests, Ray giving the same bytes as local workers."""
+
+import io
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import typer
+from scene_factory import random_splats_ply
+from typer.testing import CliRunner
+
+from nanogs_warp.batch import BatchProgress, SceneJob, SceneResult, find_scenes, select_shard
+from nanogs_warp.cli import user_errors
+from nanogs_warp.cli_batch import batch_command
+from nanogs_warp.pipeline import SimplifyConfig
+from nanogs_warp.ply import load_ply
+
+# As cli.py registers it: `nanogs-warp batch ...`.
+app = typer.Typer(pretty_exceptions_enable=False)
+app.callback()(lambda: None)
+app.command("batch")(user_errors(batch_command))
+runner = CliRunner()
+
+SCENES = {"room/a.ply": 2000, "room/sub/b.ply": 1200, "c.ply": 500, "d/d.ply": 200}
+RATIOS = (0.1, 0.01, 0.001)
+
+
+def run(*args):
+    return runner.invoke(app, ["batch", *(str(a) for a in args)])
+
+
+def run_json(*args, code=0):
+    result = run(*args, "--json", "--devices", "cpu")
+    assert result.exit_code == code, result.output
+    return {s["relative"]: s for s in json.loads(result.stdout)["scenes"]}
+
+
+@pytest.fixture
+def scenes(tmp_path):
+    root = tmp_path / "in"
+    for i, (rel, n) in enumerate(SCENES.items()):
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        random_splats_ply(root / rel, n, sh_degree=i % 2, seed=i)
+    return root
+
+
+def outputs(out: Path) -> dict[str, int]:
+    return {p.relative_to(out).as_posix(): p.stat().st_mtime_ns for p in sorted(out.rglob("*.ply"))}
+
+
+def test_every_budget_of_every_scene_with_exact_counts(scenes, tmp_path):
+    out = tmp_path / "out"
+    summary = run_json(scenes, "-o", out, "--ratio", ",".join(map(str, RATIOS)))
+    assert set(summary) == set(SCENES)
+    for rel, n in SCENES.items():
+        assert summary[rel]["status"] == "done" and summary[rel]["input_count"] == n
+        stem = out / Path(rel).with_suffix("")
+        for ratio, entry in zip(RATIOS, summary[rel]["outputs"]):
+            expected = max(1, math.ceil(ratio * n))
+            assert entry["budget"] == f"{ratio:g}" and entry["count"] == expected
+            assert load_ply(f"{stem}_{ratio:g}.ply").count == expected
+        record = json.loads(Path(f"{stem}.nanogs.json").read_text())
+        assert record["input_count"] == n and len(record["input"]["sha256"]) == 64
+    assert len(outputs(out)) == len(SCENES) * len(RATIOS)
+    assert not list(out.rglob(".*"))  # no temporary files left
+
+
+def test_table_and_progress_lines(scenes, tmp_path):
+    result = run(scenes, "-o", tmp_path / "out", "--count", "50", "--devices", "cpu")
+    assert result.exit_code == 0, result.output
+    table = result.stdout.splitlines()
+    assert table[0].split() == ["scene", "in", "out", "seconds", "device", "status"]
+    assert any(line.split()[:3] == ["room/a.ply", "2,000", "50"] and line.endswith("done") for line in table)
+    assert table[-1].startswith("4 scenes: 4 done, 0 skipped, 0 failed")
+    assert result.stderr.count("started on cpu") == 4  # plain log lines when stderr is no terminal
+
+
+def test_rerun_skips_finished_scenes_and_redoes_what_changed(scenes, tmp_path):
+    out = tmp_path / "out"
+    args = (scenes, "-o", out, "--ratio", "0.1,0.01")
+    run_json(*args)
+    first = outputs(out)
+    assert {s["status"] for s in run_json(*args).values()} == {"skipped"}
+    assert outputs(out) == first  # nothing rewritten
+
+    (out / "room/sub/b.nanogs.json").unlink()  # as if killed before its record was written
+    random_splats_ply(scenes / "c.ply", 500, seed=99)  # a changed input
+    summary = run_json(*args)
+    assert {rel: s["status"] for rel, s in summary.items()} == {
+        "room/a.ply": "skipped", "room/sub/b.ply": "done", "c.ply": "done", "d/d.ply": "skipped"}  # fmt: skip
+    again = outputs(out)
+    assert again["room/a_0.1.ply"] == first["room/a_0.1.ply"] and again["c_0.1.ply"] != first["c_0.1.ply"]
+
+    assert {s["status"] for s in run_json(*args, "--seed", "1").values()} == {"done"}  # other options
+    assert {s["status"] for s in run_json(*args, "--seed", "1", "--force").values()} == {"done"}
+
+
+def test_killed_run_resumes_without_redoing_finished_scenes(tmp_path):
+    """A real subprocess, killed (with its worker) as soon as its first scene's record appears."""
+    root, out = tmp_path / "in", tmp_path / "out"
+    root.mkdir()
+    for i in range(4):
+        random_splats_ply(root / f"s{i}.ply", 40000, seed=i)
+    command = [sys.executable, "-m", "nanogs_warp.cli_batch", str(root), "-o", str(out), "--ratio", "0.1,0.01",
+               "--devices", "cpu", "--json"]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while not list(out.glob("*.nanogs.json")) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    os.killpg(process.pid, signal.SIGKILL)
+    process.communicate()
+    finished = {p.name.removesuffix(".nanogs.json") for p in out.glob("*.nanogs.json")}
+    assert 1 <= len(finished) < 4, "the run should have been killed midway"
+    for path in out.glob("[!.]*.ply"):  # whatever is there under an output's name is whole
+        load_ply(path)
+    before = outputs(out)
+
+    resumed = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert resumed.returncode == 0, resumed.stderr
+    summary = {s["relative"]: s["status"] for s in json.loads(resumed.stdout)["scenes"]}
+    assert summary == {f"s{i}.ply": "skipped" if f"s{i}" in finished else "done" for i in range(4)}
+    after = outputs(out)
+    assert all(after[name] == before[name] for name in before if name.split("_")[0] in finished)
+    assert len(after) == 8 and not list(out.glob(".*"))  # the killed scene's temporary files are gone
+
+
+def test_corrupt_scene_fails_alone(scenes, tmp_path):
+    data = (scenes / "c.ply").read_bytes()
+    (scenes / "bad.ply").write_bytes(data[: len(data) // 2])  # truncated, sorted between others
+    (scenes / "room" / "zero.ply").write_bytes(b"")
+    out = tmp_path / "out"
+    summary = run_json(scenes, "-o", out, "--ratio", "0.1", code=1)
+    failed = {rel: s["error"] for rel, s in summary.items() if s["status"] == "failed"}
+    assert set(failed) == {"bad.ply", "room/zero.ply"}
+    assert "bad.ply" in failed["bad.ply"] and "\n" not in failed["bad.ply"]
+    assert all(summary[rel]["status"] == "done" for rel in SCENES)
+    assert not (out / "bad.nanogs.json").exists() and not (out / "bad_0.1.ply").exists()
+
+    result = run(scenes, "-o", out, "--ratio", "0.1", "--devices", "cpu")  # again: still fails, others skipped
+    assert result.exit_code == 1
+    assert "failed: bad.ply: " in result.stdout and "6 scenes: 0 done, 4 skipped, 2 failed" in result.stdout
+
+
+def test_two_shards_cover_the_batch_exactly_once(scenes, tmp_path):
+    out = tmp_path / "out"
+    parts = [run_json(scenes, "-o", out, "--count", "20", "--shard", f"{i}/2") for i in range(2)]
+    assert not set(parts[0]) & set(parts[1]) and set(parts[0]) | set(parts[1]) == set(SCENES)
+    assert sorted(parts[0]) == ["c.ply", "room/a.ply"]  # every other one of the sorted names
+    assert all(s["status"] == "done" for part in parts for s in part.values())
+    assert len(outputs(out)) == len(SCENES)
+
+    jobs = list(range(11))
+    for n in (1, 3, 4, 12):
+        shards = [select_shard(jobs, i, n) for i in range(n)]
+        assert sorted(sum(shards, [])) == jobs
+
+
+def test_same_bytes_from_any_worker(scenes, tmp_path):
+    run_json(scenes, "-o", tmp_path / "one", "--ratio", "0.05")
+    run_json(scenes, "-o", tmp_path / "two", "--ratio", "0.05", "--workers", "2")
+    for name in outputs(tmp_path / "one"):
+        assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "two" / name).read_bytes(), name
+
+
+def test_manifests(scenes, tmp_path):
+    (scenes / "list.txt").write_text("# scenes\nroom/a.ply\n\n  c.ply  \n")
+    summary = run_json(scenes / "list.txt", "-o", tmp_path / "text", "--count", "10")
+    assert sorted(summary) == ["c.ply", "room/a.ply"]  # relative to the deepest common directory
+
+    manifest = tmp_path / "scenes.json"
+    manifest.write_text(json.dumps([
+        {"path": "in/room/a.ply", "ratio": [0.5, 0.25]},
+        {"path": "in/c.ply", "count": 7, "k": 8, "prune-opacity": 0},
+        "in/d/d.ply",
+    ]))  # fmt: skip
+    out = tmp_path / "json"
+    summary = run_json(manifest, "-o", out, "--ratio", "0.1")
+    assert [o["count"] for o in summary["room/a.ply"]["outputs"]] == [1000, 500]
+    assert [o["count"] for o in summary["c.ply"]["outputs"]] == [7]
+    assert [o["count"] for o in summary["d/d.ply"]["outputs"]] == [20]
+    assert json.loads((out / "c.nanogs.json").read_text())["options"]["k"] == 8
+    assert (out / "room" / "a_0.25.ply").exists()
+
+    manifest.write_text(json.dumps([{"path": "in/c.ply", "ratios": 0.1}]))
+    result = run(manifest, "-o", out, "--ratio", "0.1", "--devices", "cpu")
+    assert result.exit_code == 2 and "unknown key(s) ratios" in result.stderr
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--shard", "2/2"], "--shard '2/2'"),
+        (["--shard", "x"], "--shard 'x'"),
+        (["--workers", "0"], "--workers"),
+        (["--devices", "tpu"], "--devices 'tpu'"),
+        (["--k", "0"], "--k"),
+        (["--count", "0"], "--count 0"),
+    ],
+)
+def test_bad_arguments_exit_2(scenes, tmp_path, args, message):
+    base = ["--ratio", "0.1"] if "--count" not in args else []
+    result = run(scenes, "-o", tmp_path / "out", *base, *args)
+    assert result.exit_code == 2, result.output
+    assert result.stderr.startswith("nanogs-warp: error: ") and message in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_bad_inputs_exit_2(scenes, tmp_path):
+    cases = [
+        ((tmp_path / "missing", "-o", tmp_path / "o", "--ratio", "0.1"), "no such file, directory or glob"),
+        ((f"{scenes}/*.nope", "-o", tmp_path / "o", "--ratio", "0.1"), "no .ply files match"),
+        ((scenes, "-o", scenes / "c.ply", "--ratio", "0.1"), "is not a directory"),
+        ((scenes, "-o", scenes, "--ratio", "0.1"), "is the input directory"),
+        ((scenes, "-o", tmp_path / "o"), "no budget"),
+    ]
+    for args, message in cases:
+        result = run(*args, "--devices", "cpu")
+        assert result.exit_code == 2 and message in result.stderr, (args, result.output)
+    (scenes / "room" / "A.PLY").write_bytes((scenes / "c.ply").read_bytes())
+    (scenes / "room" / "a.PLY").write_bytes((scenes / "c.ply").read_bytes())
+    result = run(scenes, "-o", tmp_path / "o", "--ratio", "0.1", "--devices", "cpu")
+    assert result.exit_code == 2 and "would write the same outputs" in result.stderr
+
+
+def test_output_inside_input_is_not_rescanned(scenes):
+    jobs = find_scenes(str(scenes), scenes / "simplified", [], SimplifyConfig(), False)
+    (scenes / "simplified").mkdir()
+    random_splats_ply(scenes / "simplified" / "x.ply", 10)
+    assert [j.relative for j in find_scenes(str(scenes), scenes / "simplified", [], SimplifyConfig(), False)] == [
+        j.relative for j in jobs]  # fmt: skip
+    globbed = find_scenes(f"{scenes}/**/*.ply", scenes / "simplified", [], SimplifyConfig(), False)
+    assert sorted(j.relative for j in globbed) == sorted(SCENES)
+
+
+def test_live_progress_redraws_in_place():
+    stream = io.StringIO()
+    progress = BatchProgress(2, stream=stream, live=True)
+    job = SceneJob(Path("a.ply"), "a.ply", Path("o"), (), SimplifyConfig(), False, 1)
+    progress.started("w0", "cuda:1", job)
+    progress.advanced("w0", (0, 1000, 500))
+    progress.finished("w0", SceneResult("a.ply", "a.ply", "failed", "cuda:1", error="boom"))
+    progress.close()
+    text = stream.getvalue()
+    assert "w0 cuda:1: a.ply: loading" in text and "\033[" in text
+    assert "a.ply: FAILED on cuda:1: boom\n" in text and "1/2 scenes (0 done, 0 skipped, 1 failed)" in text
+
+
+def test_missing_ray_is_one_line(scenes, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    result = run(scenes, "-o", tmp_path / "out", "--ratio", "0.1", "--ray", "auto")
+    assert result.exit_code == 2
+    assert result.stderr.strip() == "nanogs-warp: error: --ray needs Ray, which is not installed: pip install 'nanogs-warp[ray]'"
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, logging_level="WARNING", log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+def test_ray_tasks_write_the_same_bytes(local_ray, scenes, tmp_path):
+    local, on_ray = tmp_path / "local", tmp_path / "ray"
+    run_json(scenes, "-o", local, "--ratio", "0.1,0.01")
+    summary = run_json(scenes, "-o", on_ray, "--ratio", "0.1,0.01", "--ray", "auto")
+    assert {s["status"] for s in summary.values()} == {"done"}
+    assert all(s["device"].endswith("/cpu") for s in summary.values())
+    assert outputs(local).keys() == outputs(on_ray).keys()
+    for name in outputs(local):
+        assert (local / name).read_bytes() == (on_ray / name).read_bytes(), name
+    assert {s["status"] for s in run_json(scenes, "-o", on_ray, "--ratio", "0.1,0.01", "--ray", "auto").values()} == {"skipped"}
+
+
+def test_a_dead_worker_fails_its_scene_and_is_replaced(tmp_path):
+    """The worker blocks reading a FIFO scene; killing it fails that scene alone, and a new worker
+    takes the scene still waiting."""
+    root = tmp_path / "in"
+    root.mkdir()
+    random_splats_ply(root / "big.ply", 300)
+    os.mkfifo(root / "a_fifo.ply")  # size 0: after big.ply; before z_empty.ply by name
+    (root / "z_empty.ply").write_bytes(b"")
+    command = [sys.executable, "-m", "nanogs_warp.cli_batch", str(root), "-o", str(tmp_path / "out"),
+               "--count", "10", "--devices", "cpu", "--json"]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in process.stderr:
+        if "a_fifo.ply: started" in line:
+            break
+    workers = subprocess.run(["pgrep", "-P", str(process.pid), "-f", "spawn_main"], capture_output=True, text=True)
+    worker = [int(pid) for pid in workers.stdout.split()]
+    assert len(worker) == 1, workers.stdout
+    os.kill(worker[0], signal.SIGKILL)
+    out, _ = process.communicate(timeout=60)
+    assert process.returncode == 1
+    summary = {s["relative"]: s for s in json.loads(out)["scenes"]}
+    assert summary["big.ply"]["status"] == "done"
+    assert summary["a_fifo.ply"]["error"] == "the worker process died (killed by SIGKILL); out of memory?"
+    assert summary["z_empty.ply"]["status"] == "failed" and "died" not in summary["z_empty.ply"]["error"]
