@@ -13,11 +13,13 @@ from typing import Annotated, Optional
 
 import typer
 
+from . import cli_options as opts
 from . import __version__
 from .budgets import Budget, output_paths, parse_budgets
 from .cli_batch import batch_command
 from .cli_eval import eval_command
 from .errors import InputError
+from .pipeline import SimplifyConfig
 
 app = typer.Typer(
     name="nanogs-warp",
@@ -98,24 +100,24 @@ class _PassProgress:
 def simplify(
     input: Annotated[Path, typer.Argument(help="Input 3DGS .ply file.", show_default=False)],
     output: Annotated[Path, typer.Option("-o", "--output", help="Output .ply path. With several budgets, OUT_<budget>.ply is written for each.", show_default=False)],
-    ratio: Annotated[Optional[str], typer.Option(help="Fraction of the input's splats to keep, in (0, 1]; several as 0.1,0.01,0.001.")] = None,
-    count: Annotated[Optional[str], typer.Option(help="Number of splats to keep; several as 100000,10000.")] = None,
+    ratio: opts.Ratio = None,
+    count: opts.Count = None,
     device: Annotated[str, typer.Option(help="auto (first GPU, else CPU), cpu, cuda or cuda:N.")] = "auto",
-    k: Annotated[int, typer.Option("--k", help="Neighbours per splat in the candidate graph.")] = 16,
-    prune_opacity: Annotated[float, typer.Option(help="Prune splats with opacity below min(this, median opacity) first; 0 disables.")] = 0.1,
-    samples: Annotated[int, typer.Option(help="Monte Carlo samples per edge for the I-divergence.")] = 1,
-    seed: Annotated[int, typer.Option(help="Seed of the common random numbers.")] = 0,
-    lambda_geo: Annotated[float, typer.Option(help="Weight of the geometric (I-divergence) cost.")] = 1.0,
-    lambda_app: Annotated[float, typer.Option(help="Weight of the appearance cost ||f_i - f_j||^2.")] = 1.0,
-    cost: Annotated[str, typer.Option(help="Geometric cost: idiv (I-divergence) or mse (the paper's ablation surrogate).")] = "idiv",
-    operator: Annotated[str, typer.Option(help="Merge operator: mpmm (mass-preserving moment matching).")] = "mpmm",
-    drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing.")] = False,
-    json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")] = False,
-    quiet: Annotated[bool, typer.Option("-q", "--quiet", help="Print nothing but errors (and --json).")] = False,
+    k: opts.K = SimplifyConfig.k,
+    prune_opacity: opts.PruneOpacity = SimplifyConfig.prune_opacity,
+    samples: opts.Samples = SimplifyConfig.samples,
+    seed: opts.Seed = SimplifyConfig.seed,
+    lambda_geo: opts.LambdaGeo = SimplifyConfig.lambda_geo,
+    lambda_app: opts.LambdaApp = SimplifyConfig.lambda_app,
+    cost: opts.Cost = SimplifyConfig.cost,
+    operator: opts.Operator = SimplifyConfig.operator,
+    drop_invalid: opts.DropInvalid = False,
+    json_output: opts.Json = False,
+    quiet: opts.Quiet = False,
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
     from .device import resolve_device
-    from .pipeline import SimplifyConfig, simplify_progressively
+    from .pipeline import simplify_progressively
     from .ply import load_ply, save_ply
 
     config = SimplifyConfig(k, prune_opacity, samples, seed, lambda_geo, lambda_app, cost, operator)

@@ -15,27 +15,29 @@ from typing import Annotated, Optional
 
 import typer
 
+from . import cli_options as opts
 from .errors import InputError
+from .pipeline import SimplifyConfig
 
 
 def batch_command(
     input: Annotated[str, typer.Argument(help="A directory (every .ply below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
     output: Annotated[Path, typer.Option("-o", "--output", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.ply, and <stem>.nanogs.json records for resuming.", show_default=False)],
-    ratio: Annotated[Optional[str], typer.Option(help="Fractions of each scene's splats to keep, in (0, 1]; several as 0.1,0.01,0.001.")] = None,
-    count: Annotated[Optional[str], typer.Option(help="Numbers of splats to keep; several as 100000,10000.")] = None,
+    ratio: opts.Ratio = None,
+    count: opts.Count = None,
     devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.")] = "auto",
     workers: Annotated[int, typer.Option(help="Worker processes per device (e.g. several on the CPU).")] = 1,
     shard: Annotated[Optional[str], typer.Option(help="Only scenes i, i+n, i+2n, ... of the sorted list, as i/n (0-based), e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT.", show_default=False)] = None,
     ray: Annotated[Optional[str], typer.Option("--ray", help="Run each scene as a Ray task: auto (the cluster this machine belongs to), local (a Ray instance started here) or the head's ADDRESS. Needs nanogs-warp[ray].", show_default=False)] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo every scene, even those whose outputs and record are up to date.")] = False,
-    k: Annotated[int, typer.Option("--k", help="Neighbours per splat in the candidate graph.")] = 16,
-    prune_opacity: Annotated[float, typer.Option(help="Prune splats with opacity below min(this, median opacity) first; 0 disables.")] = 0.1,
-    samples: Annotated[int, typer.Option(help="Monte Carlo samples per edge for the I-divergence.")] = 1,
-    seed: Annotated[int, typer.Option(help="Seed of the common random numbers.")] = 0,
-    lambda_geo: Annotated[float, typer.Option(help="Weight of the geometric (I-divergence) cost.")] = 1.0,
-    lambda_app: Annotated[float, typer.Option(help="Weight of the appearance cost ||f_i - f_j||^2.")] = 1.0,
-    cost: Annotated[str, typer.Option(help="Geometric cost: idiv (I-divergence) or mse (the paper's ablation surrogate).")] = "idiv",
-    operator: Annotated[str, typer.Option(help="Merge operator: mpmm (mass-preserving moment matching).")] = "mpmm",
+    k: opts.K = SimplifyConfig.k,
+    prune_opacity: opts.PruneOpacity = SimplifyConfig.prune_opacity,
+    samples: opts.Samples = SimplifyConfig.samples,
+    seed: opts.Seed = SimplifyConfig.seed,
+    lambda_geo: opts.LambdaGeo = SimplifyConfig.lambda_geo,
+    lambda_app: opts.LambdaApp = SimplifyConfig.lambda_app,
+    cost: opts.Cost = SimplifyConfig.cost,
+    operator: opts.Operator = SimplifyConfig.operator,
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing the scene.")] = False,
     json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
@@ -45,7 +47,6 @@ def batch_command(
     scene is reported and the others go on (exit code 1 if any failed)."""
     from .batch import BatchProgress, find_scenes, format_summary, parse_shard, run_batch, select_shard, summary_json
     from .budgets import parse_budgets
-    from .pipeline import SimplifyConfig
 
     started = time.perf_counter()
     config = SimplifyConfig(k, prune_opacity, samples, seed, lambda_geo, lambda_app, cost, operator)

@@ -1,0 +1,21 @@
+"""Command-line options shared by ``simplify`` and ``batch``; defaults come from SimplifyConfig."""
+
+from __future__ import annotations
+
+from typing import Annotated, Optional
+
+import typer
+
+Ratio = Annotated[Optional[str], typer.Option(help="Fraction of the input's splats to keep, in (0, 1]; several as 0.1,0.01,0.001.")]
+Count = Annotated[Optional[str], typer.Option(help="Number of splats to keep; several as 100000,10000.")]
+K = Annotated[int, typer.Option("--k", help="Neighbours per splat in the candidate graph.")]
+PruneOpacity = Annotated[float, typer.Option(help="Prune splats with opacity below min(this, median opacity) first; 0 disables.")]
+Samples = Annotated[int, typer.Option(help="Monte Carlo samples per edge for the I-divergence.")]
+Seed = Annotated[int, typer.Option(help="Seed of the common random numbers.")]
+LambdaGeo = Annotated[float, typer.Option(help="Weight of the geometric (I-divergence) cost.")]
+LambdaApp = Annotated[float, typer.Option(help="Weight of the appearance cost ||f_i - f_j||^2.")]
+Cost = Annotated[str, typer.Option(help="Cost objective: idiv (I-divergence), mse (the paper's ablation surrogate), ...; see the README.")]
+Operator = Annotated[str, typer.Option(help="Merge operator: mpmm (mass-preserving moment matching), ...; see the README.")]
+DropInvalid = Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing.")]
+Json = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]
+Quiet = Annotated[bool, typer.Option("-q", "--quiet", help="Print nothing but errors (and --json).")]
