@@ -10,14 +10,16 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
-def _edge_keys(neighbours: wp.array2d(dtype=wp.int32), keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32)):
-    # undirected key min * n + max of directed edge (i, neighbours[i, t])
+def _edge_keys(
+    neighbours: wp.array2d(dtype=wp.int32), keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32)
+):
+    # undirected key min * n + max of the directed edge (i, neighbours[i, t])
     i, t = wp.tid()
     n = wp.int64(neighbours.shape[0])
     j = neighbours[i, t]
     e = i * neighbours.shape[1] + t
     keys[e] = wp.int64(wp.min(i, j)) * n + wp.int64(wp.max(i, j))
-    values[e] = 0
+    values[e] = 0  # unused: the sort carries values along
 
 
 @wp.kernel

@@ -259,6 +259,7 @@ def _insert_cells(
 
 @wp.kernel
 def _close_cells(
+    first: int,
     codes: wp.array(dtype=wp.int64),
     first_level: int,
     last_level: int,
@@ -267,8 +268,8 @@ def _close_cells(
     keys: wp.array(dtype=wp.int64),
     ends: wp.array(dtype=wp.int32),
 ):
-    # end of every cell's range, written by its last sorted point
-    i = wp.tid()
+    # end of every cell's range, written by its last sorted point (rows from `first` on)
+    i = first + wp.tid()
     n = codes.shape[0]
     code = codes[i]
     for level in range(first_level, last_level + 1):

@@ -50,58 +50,19 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
         raise ValueError(f"candidates must have length {n}, got {candidates.shape[0]}")
 
     lo, quantum, margin = _quantisation_cube(means)
-
-    # One Morton sort: every level's cells become contiguous ranges of the sorted points.
-    codes = wp.empty(2 * n, dtype=wp.int64, device=device)
-    order = wp.empty(2 * n, dtype=wp.int32, device=device)
-    wp.launch(knn_kernels.morton_codes, n, inputs=[means, lo, 1.0 / quantum], outputs=[codes, order], device=device)
-    wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
-    codes, order = codes[:n], order[:n]
-    points = wp.empty(n, dtype=wp.vec3, device=device)
-    wp.launch(knn_kernels._gather_points, n, inputs=[means, order], outputs=[points], device=device)
+    codes, order, points = _morton_sort(means, lo, quantum)
     blocks = (n + _BLOCK - 1) // _BLOCK
     box_lo = wp.empty(blocks, dtype=wp.vec3, device=device)
     box_hi = wp.empty(blocks, dtype=wp.vec3, device=device)
     wp.launch(knn_kernels._block_boxes, blocks, inputs=[points], outputs=[box_lo, box_hi], device=device)
-
-    # Per point, the level to search; per level, how many cells it has.
-    window_level = wp.empty(n - k, dtype=wp.int32, device=device)
-    split_histogram = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
-    wp.launch(knn_kernels._window_levels, n, inputs=[codes, k], outputs=[window_level, split_histogram], device=device)
-    search_level = wp.empty(n, dtype=wp.int32, device=device)
-    level_histogram = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
-    wp.launch(
-        knn_kernels._search_levels, n, inputs=[window_level, k], outputs=[search_level, level_histogram], device=device
-    )
-
-    # Hash tables cell -> sorted range for the levels searched, at most half full.
-    splits = split_histogram.numpy()
-    searched = level_histogram.numpy()
-    base = np.zeros(_LEVELS, dtype=np.int32)
-    mask = np.full(_LEVELS, -1, dtype=np.int32)
-    total = 0
-    for level in range(_LEVELS):
-        if searched[level] > 0:
-            cells = 1 + int(splits[level + 1 :].sum())  # consecutive points part below `level`
-            capacity = 1 << (2 * cells - 1).bit_length()
-            base[level], mask[level] = total, capacity - 1
-            total += capacity
-    level_base = wp.array(base, dtype=wp.int32, device=device)
-    level_mask = wp.array(mask, dtype=wp.int32, device=device)
-    keys = wp.full(total, knn_kernels.EMPTY, dtype=wp.int64, device=device)
-    starts = wp.empty(total, dtype=wp.int32, device=device)
-    ends = wp.empty(total, dtype=wp.int32, device=device)
-    used = np.flatnonzero(searched)
-    levels = [codes, int(used[0]), int(used[-1]), level_base, level_mask]
-    wp.launch(knn_kernels._insert_cells, n, inputs=levels, outputs=[keys, starts], device=device)
-    wp.launch(knn_kernels._close_cells, n, inputs=[*levels, keys], outputs=[ends], device=device)
+    search_level, tables = _cell_tables(codes, k)
 
     neighbours = wp.full((n, k), -1, dtype=wp.int32, device=device)
-    tables = [level_base, level_mask, keys, starts, ends, box_lo, box_hi]
     _launch_rows(
         knn_kernels._knn_query,
         n,
-        [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, neighbours, candidates],
+        [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, box_lo, box_hi]
+        + [neighbours, candidates],
         device,
     )
     return neighbours
@@ -188,10 +149,59 @@ def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     return wp.vec3(*lo), quantum, 2.0 * quantum
 
 
+def _morton_sort(means: wp.array, lo: wp.vec3, quantum: float) -> tuple[wp.array, wp.array, wp.array]:
+    """Sorted Morton codes, the sorting permutation and the points in that order. One sort serves
+    every level: a level's cells are contiguous ranges of the sorted points."""
+    n, device = means.shape[0], means.device
+    codes = wp.empty(2 * n, dtype=wp.int64, device=device)
+    order = wp.empty(2 * n, dtype=wp.int32, device=device)
+    wp.launch(knn_kernels.morton_codes, n, inputs=[means, lo, 1.0 / quantum], outputs=[codes, order], device=device)
+    wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
+    codes, order = codes[:n], order[:n]
+    points = wp.empty(n, dtype=wp.vec3, device=device)
+    wp.launch(knn_kernels._gather_points, n, inputs=[means, order], outputs=[points], device=device)
+    return codes, order, points
+
+
+def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list]:
+    """Each sorted point's search level, and hash tables cell -> sorted range for the levels searched
+    (at most half full): [level_base, level_mask, keys, starts, ends]."""
+    n, device = codes.shape[0], codes.device
+    window_level = wp.empty(n - k, dtype=wp.int32, device=device)
+    split_histogram = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
+    wp.launch(knn_kernels._window_levels, n, inputs=[codes, k], outputs=[window_level, split_histogram], device=device)
+    search_level = wp.empty(n, dtype=wp.int32, device=device)
+    level_histogram = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
+    wp.launch(
+        knn_kernels._search_levels, n, inputs=[window_level, k], outputs=[search_level, level_histogram], device=device
+    )
+
+    splits = split_histogram.numpy()
+    searched = level_histogram.numpy()
+    base = np.zeros(_LEVELS, dtype=np.int32)
+    mask = np.full(_LEVELS, -1, dtype=np.int32)
+    total = 0
+    for level in np.flatnonzero(searched):
+        cells = 1 + int(splits[level + 1 :].sum())  # consecutive points part below `level`
+        capacity = 1 << (2 * cells - 1).bit_length()
+        base[level], mask[level] = total, capacity - 1
+        total += capacity
+    level_base = wp.array(base, dtype=wp.int32, device=device)
+    level_mask = wp.array(mask, dtype=wp.int32, device=device)
+    keys = wp.full(total, knn_kernels.EMPTY, dtype=wp.int64, device=device)
+    starts = wp.empty(total, dtype=wp.int32, device=device)
+    ends = wp.empty(total, dtype=wp.int32, device=device)
+    used = np.flatnonzero(searched)
+    levels = [codes, int(used[0]), int(used[-1]), level_base, level_mask]
+    wp.launch(knn_kernels._insert_cells, n, inputs=levels, outputs=[keys, starts], device=device)
+    _launch_rows(knn_kernels._close_cells, n, [*levels, keys, ends], device)
+    return search_level, [level_base, level_mask, keys, starts, ends]
+
+
 def _launch_rows(kernel, n: int, inputs: list, device) -> None:
     """Launches `kernel(first, *inputs)` over rows 0..n-1. A CPU launch runs on one core, so on the
-    CPU the rows are cut into contiguous chunks launched from a thread per core (the kernel must
-    write only its own rows and use no atomics)."""
+    CPU the rows are cut into contiguous chunks launched from a thread per core (threads must write
+    disjoint outputs and use no atomics: CPU atomics are not atomic across launches)."""
     threads = 1
     if device.is_cpu:
         threads = max(1, min(len(os.sched_getaffinity(0)), n // _MIN_ROWS_PER_THREAD))
