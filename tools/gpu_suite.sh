@@ -2,13 +2,14 @@
 # Everything we measure on a GPU machine, in one go (see README "GPU checks"):
 #   tests on cuda:0, the CLI on every scene at three budgets, per-stage benchmarks of the real scenes
 #   and of tiled scenes, and agreement with CPU outputs made beforehand.
-# Usage: bash tools/gpu_suite.sh SCENES_DIR CPU_OUTPUTS_DIR LOG_DIR
+# Usage: bash tools/gpu_suite.sh SCENES_DIR CPU_OUTPUTS_DIR LOG_DIR [real|tiled|all]
 set -uo pipefail
-scenes=$1; cpu_out=$2; log=$3
+scenes=$1; cpu_out=$2; log=$3; part=${4:-all}
 mkdir -p "$log" /tmp/gpu_out
 export PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$log/gpu.txt"
 
+if [ "$part" != tiled ]; then
 echo "== tests on cuda:0"
 python3 -m pytest -q -p no:cacheprovider -k "cuda" tests 2>&1 | tail -n 25 | tee "$log/pytest_cuda.txt"
 
@@ -31,8 +32,11 @@ python3 tools/compare_outputs.py "$cpu_out" /tmp/gpu_out 2>&1 | tee "$log/agreem
 
 echo "== per-stage benchmarks, real scenes"
 python3 tools/bench.py "$scenes"/*.ply --device cuda:0 --ratio 0.1,0.01,0.001 --repeat 3 --log "$log/bench.jsonl" 2>&1 | tee "$log/bench_real.txt"
+fi
+if [ "$part" != real ]; then
 echo "== tiled scenes"
 for n in 1000000 6000000 20000000 50000000; do
   python3 tools/bench.py "$scenes"/playbot.ply --tile $n --device cuda:0 --ratio 0.1 --repeat 3 --log "$log/bench.jsonl" 2>&1 | tail -n 3
 done | tee "$log/bench_tiled.txt"
 python3 tools/bench.py "$scenes"/playbot.ply --tile 6000000 --device cuda:0 --ratio 0.001 --repeat 3 --log "$log/bench.jsonl" 2>&1 | tail -n 3 | tee -a "$log/bench_tiled.txt"
+fi
