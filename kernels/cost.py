@@ -10,7 +10,6 @@ wp.set_module_options({"enable_backward": False})
 # Finite stand-in for costs that cannot be evaluated (a degenerate merged covariance): such an edge
 # sorts after every real one.
 UNMERGEABLE = wp.constant(3.0e38)
-SH_C0 = wp.constant(0.28209479177387814)
 
 
 @wp.func
@@ -176,18 +175,33 @@ def idivergence_costs(
 
 
 @wp.func
-def rgb_distance(features: wp.array2d(dtype=float), i: int, j: int):
-    """||c_i - c_j||^2 of the view-independent colours c = max(C0 f_dc + 1/2, 0)."""
-    d = wp.float64(0.0)
-    for c in range(3):
-        ci = wp.max(wp.float64(SH_C0) * wp.float64(features[i, c]) + wp.float64(0.5), wp.float64(0.0))
-        cj = wp.max(wp.float64(SH_C0) * wp.float64(features[j, c]) + wp.float64(0.5), wp.float64(0.0))
-        d += (ci - cj) * (ci - cj)
-    return d
+def runnalls_bound(
+    pi: wp.float64,
+    i: int,
+    j: int,
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+):
+    """Runnalls' upper bound on KL(p~ || q_m) for the normalised pair p~ = pi N_i + (1 - pi) N_j and
+    its moment match q_m: 1/2 [log det Sigma_m - pi log det Sigma_i - (1 - pi) log det Sigma_j] >= 0
+    (Runnalls 2007, Kullback-Leibler approach to Gaussian mixture reduction), and whether Sigma_m
+    is positive definite."""
+    mu_m, cov_m = moment_match(
+        pi, to_vec3d(means[i]), covariance(rotations[i], log_scales[i]), to_vec3d(means[j]), covariance(rotations[j], log_scales[j])
+    )
+    l_m, ok = cholesky(cov_m)
+    bound = wp.float64(0.0)
+    if ok:
+        log_det_m = wp.float64(2.0) * (wp.log(l_m[0, 0]) + wp.log(l_m[1, 1]) + wp.log(l_m[2, 2]))
+        log_det_i = wp.float64(2.0) * (wp.float64(log_scales[i][0]) + wp.float64(log_scales[i][1]) + wp.float64(log_scales[i][2]))
+        log_det_j = wp.float64(2.0) * (wp.float64(log_scales[j][0]) + wp.float64(log_scales[j][1]) + wp.float64(log_scales[j][2]))
+        bound = wp.max(wp.float64(0.5) * (log_det_m - pi * log_det_i - (wp.float64(1.0) - pi) * log_det_j), wp.float64(0.0))
+    return bound, ok
 
 
 @wp.kernel
-def weighted_idivergence_costs(
+def runnalls_costs(
     edge_i: wp.array(dtype=wp.int32),
     edge_j: wp.array(dtype=wp.int32),
     means: wp.array(dtype=wp.vec3),
@@ -195,46 +209,30 @@ def weighted_idivergence_costs(
     log_scales: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
     features: wp.array2d(dtype=float),
-    samples: wp.array(dtype=wp.vec4),
     lambda_geo: float,
     lambda_app: float,
-    area_weights: int,
-    mass_scaled: int,
-    app_mode: int,
+    mass_exponent: float,
     costs: wp.array(dtype=float),
 ):
-    """Experimental family: weights volume mass (0) or opacity x area (1); geometric KL scaled by the
-    pair's weight W (mass_scaled 1) and appearance scaled by w_i w_j / W; appearance on raw SH (0)
-    or activated DC colour (1)."""
+    """W^gamma [lambda_geo B(i, j) + lambda_app 4 pi (1 - pi) ||f_i - f_j||^2], deterministic and >= 0:
+    weights w = alpha (s0 s1 + s0 s2 + s1 s2) (the area operator's), W = w_i + w_j,
+    pi = w_i / W, B Runnalls' bound on the pair's KL to its moment match; 4 pi (1 - pi) makes
+    absorbing a light splat into a heavy one cheap (the weighted colour variance of the pair,
+    scaled to D_app for equal weights); gamma = ``mass_exponent`` (0: scale-free as the paper's)."""
     e = wp.tid()
     i = int(edge_i[e])
     j = int(edge_j[e])
-    log_w_i = wp.float64(0.0)
-    log_w_j = wp.float64(0.0)
-    if area_weights == 1:
-        log_w_i = log_area_mass(opacities[i], log_scales[i])
-        log_w_j = log_area_mass(opacities[j], log_scales[j])
-    else:
-        log_w_i = log_mass(opacities[i], log_scales[i])
-        log_w_j = log_mass(opacities[j], log_scales[j])
+    log_w_i = log_area_mass(opacities[i], log_scales[i])
+    log_w_j = log_area_mass(opacities[j], log_scales[j])
     pi = first_weight(log_w_i, log_w_j)
-    divergence, ok = mixture_divergence(pi, i, j, means, rotations, log_scales, samples)
+    bound, ok = runnalls_bound(pi, i, j, means, rotations, log_scales)
     if not ok:
         costs[e] = wp.float32(UNMERGEABLE)
         return
-    app = wp.float64(0.0)
-    if app_mode == 1:
-        app = rgb_distance(features, i, j)
-    else:
-        app = appearance_distance(features, i, j)
-    geo_scale = wp.float64(1.0)
-    app_scale = wp.float64(1.0)
-    if mass_scaled == 1:
-        log_w = log_w_i - log_sigmoid(log_w_i - log_w_j)
-        geo_scale = wp.exp(log_w)
-        app_scale = wp.exp(log_w) * pi * (wp.float64(1.0) - pi)
+    app = wp.float64(4.0) * pi * (wp.float64(1.0) - pi) * appearance_distance(features, i, j)
+    log_w = log_w_i - log_sigmoid(log_w_i - log_w_j)  # log W = log w_i - log pi
     costs[e] = finite_cost(
-        wp.float64(lambda_geo) * geo_scale * divergence + wp.float64(lambda_app) * app_scale * app
+        wp.exp(wp.float64(mass_exponent) * log_w) * (wp.float64(lambda_geo) * bound + wp.float64(lambda_app) * app)
     )
 
 

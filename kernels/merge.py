@@ -1,8 +1,17 @@
 """Merge operators: fuse each chosen pair (i, j) of a source set into one splat of an output set,
 at row destination[i] (the row where i itself went when the absorbed rows j were removed).
 
-Every operator is a weighted moment match (``merge_weighted``): the pair's weights give the merged
-mean, covariance, features and extras; operators differ in their weights and merged opacity."""
+Every operator is a weighted moment match of the pair (``pair_moments``, ``blend_appearance``):
+weights (pi, 1 - pi) give the merged mean, covariance (within-splat average + between-mean
+dispersion), features and extras. Operators differ in their weights and in the merged opacity:
+
+- ``mpmm``: mass w = (2 pi)^{3/2} alpha prod s; opacity by the over rule (NanoGS eq. 6-9).
+- ``area``: w = alpha (s0 s1 + s0 s2 + s1 s2) (opacity x surface-area proxy, as hierarchical 3DGS);
+  opacity conserves the weighted mass, alpha_m = (w_i + w_j) / area_m, clamped to (0, 1).
+- ``coverage``: w = alpha s_a s_b (the two largest scales: the face-on footprint); opacity conserves
+  the pair's coverage alpha x footprint measured in the merged splat's own face plane; where that
+  would need alpha_m > 1, the face plane first grows by (coverage / footprint_m)^growth.
+"""
 
 import warp as wp
 
@@ -26,6 +35,27 @@ def over_opacity_logit(logit_i: float, logit_j: float):
 
 
 @wp.func
+def store_gaussian(
+    row: int,
+    mu: wp.vec3d,
+    values: wp.vec3d,
+    frame: wp.mat33d,
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+):
+    """Stores centre ``mu`` and the covariance frame diag(values) in ``frame`` (eigenvalues
+    decreasing, det frame = +1) as centre, rotation and log scales. Returns the log scales stored."""
+    means[row] = wp.vec3(wp.float32(mu[0]), wp.float32(mu[1]), wp.float32(mu[2]))
+    rotations[row] = quaternion_from_frame(frame)
+    ls = wp.vec3()
+    for k in range(3):
+        ls[k] = wp.max(wp.float32(wp.float64(0.5) * wp.log(wp.max(values[k], wp.float64(1e-300)))), LOG_SCALE_MIN)
+    log_scales[row] = ls
+    return ls
+
+
+@wp.func
 def write_gaussian(
     row: int,
     mu: wp.vec3d,
@@ -37,13 +67,7 @@ def write_gaussian(
     """Stores N(mu, cov) as centre, rotation and log scales: Sigma = R diag(s^2) R^T with R the
     eigenvector frame (eigenvalues decreasing, det R = +1). Returns the log scales stored."""
     values, frame = symmetric_eigen(cov)
-    means[row] = wp.vec3(wp.float32(mu[0]), wp.float32(mu[1]), wp.float32(mu[2]))
-    rotations[row] = quaternion_from_frame(frame)
-    ls = wp.vec3()
-    for k in range(3):
-        ls[k] = wp.max(wp.float32(wp.float64(0.5) * wp.log(wp.max(values[k], wp.float64(1e-300)))), LOG_SCALE_MIN)
-    log_scales[row] = ls
-    return ls
+    return store_gaussian(row, mu, values, frame, means, rotations, log_scales)
 
 
 @wp.func
@@ -51,6 +75,39 @@ def blend_rows(values: wp.array2d(dtype=float), i: int, j: int, pi: wp.float64, 
     """out[row] = pi values[i] + (1 - pi) values[j]."""
     for c in range(values.shape[1]):
         out[row, c] = wp.float32(pi * wp.float64(values[i, c]) + (wp.float64(1.0) - pi) * wp.float64(values[j, c]))
+
+
+@wp.func
+def blend_appearance(
+    i: int,
+    j: int,
+    pi: wp.float64,
+    row: int,
+    features: wp.array2d(dtype=float),
+    extras: wp.array2d(dtype=float),
+    out_features: wp.array2d(dtype=float),
+    out_extras: wp.array2d(dtype=float),
+):
+    """Weighted features (SH) and extras of the pair, written at ``row``."""
+    blend_rows(features, i, j, pi, out_features, row)
+    blend_rows(extras, i, j, pi, out_extras, row)
+
+
+@wp.func
+def pair_moments(
+    i: int,
+    j: int,
+    pi: wp.float64,
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+):
+    """Weighted mean and covariance of splats i and j (NanoGS eq. 7-8), float64."""
+    return moment_match(
+        pi,
+        to_vec3d(means[i]), covariance(rotations[i], log_scales[i]),
+        to_vec3d(means[j]), covariance(rotations[j], log_scales[j]),
+    )  # fmt: skip
 
 
 @wp.func
@@ -75,38 +132,33 @@ def log_area(log_scale: wp.vec3):
 
 @wp.func
 def log_area_mass(opacity_logit: float, log_scale: wp.vec3):
-    """log w = log alpha + log(s0 s1 + s0 s2 + s1 s2), the area operator's weight."""
+    """log w = log alpha + log(s0 s1 + s0 s2 + s1 s2): the area operator's weight."""
     return log_sigmoid(wp.float64(opacity_logit)) + log_area(log_scale)
 
 
 @wp.func
-def merge_weighted(
-    i: int,
-    j: int,
-    row: int,
-    pi: wp.float64,
-    means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    log_scales: wp.array(dtype=wp.vec3),
-    features: wp.array2d(dtype=float),
-    extras: wp.array2d(dtype=float),
-    out_means: wp.array(dtype=wp.vec3),
-    out_rotations: wp.array(dtype=wp.quat),
-    out_log_scales: wp.array(dtype=wp.vec3),
-    out_features: wp.array2d(dtype=float),
-    out_extras: wp.array2d(dtype=float),
-):
-    """Weights (pi, 1 - pi): weighted mean, covariance (within-splat average + between-mean
-    dispersion, NanoGS eq. 7-8), features and extras, written at ``row``. Returns the log scales
-    written."""
-    mu_m, cov_m = moment_match(
-        pi,
-        to_vec3d(means[i]), covariance(rotations[i], log_scales[i]),
-        to_vec3d(means[j]), covariance(rotations[j], log_scales[j]),
-    )  # fmt: skip
-    blend_rows(features, i, j, pi, out_features, row)
-    blend_rows(extras, i, j, pi, out_extras, row)
-    return write_gaussian(row, mu_m, cov_m, out_means, out_rotations, out_log_scales)
+def log_footprint(log_scale: wp.vec3):
+    """log(s_a s_b), the product of the two largest scales: the splat's face-on footprint."""
+    a = wp.float64(log_scale[0]) + wp.float64(log_scale[1])
+    b = wp.float64(log_scale[0]) + wp.float64(log_scale[2])
+    c = wp.float64(log_scale[1]) + wp.float64(log_scale[2])
+    return wp.max(a, wp.max(b, c))
+
+
+@wp.func
+def log_coverage_mass(opacity_logit: float, log_scale: wp.vec3):
+    """log w = log alpha + log(s_a s_b): the coverage operator's weight."""
+    return log_sigmoid(wp.float64(opacity_logit)) + log_footprint(log_scale)
+
+
+@wp.func
+def projected_footprint(cov: wp.mat33d, c0: wp.vec3d, c1: wp.vec3d):
+    """sqrt(det) of the covariance's 2x2 block in the plane spanned by the unit vectors c0, c1: the
+    footprint (up to 2 pi) of its splat seen along c0 x c1."""
+    a00 = wp.dot(c0, cov * c0)
+    a01 = wp.dot(c0, cov * c1)
+    a11 = wp.dot(c1, cov * c1)
+    return wp.sqrt(wp.max(a00 * a11 - a01 * a01, wp.float64(0.0)))
 
 
 @wp.kernel
@@ -135,11 +187,10 @@ def mass_preserving_moment_matching(
     j = int(pair_j[p])
     row = int(destination[i])
     pi = first_weight(log_mass(opacities[i], log_scales[i]), log_mass(opacities[j], log_scales[j]))
-    merge_weighted(
-        i, j, row, pi, means, rotations, log_scales, features, extras,
-        out_means, out_rotations, out_log_scales, out_features, out_extras,
-    )  # fmt: skip
+    mu_m, cov_m = pair_moments(i, j, pi, means, rotations, log_scales)
     out_opacities[row] = over_opacity_logit(opacities[i], opacities[j])
+    blend_appearance(i, j, pi, row, features, extras, out_features, out_extras)
+    write_gaussian(row, mu_m, cov_m, out_means, out_rotations, out_log_scales)
 
 
 @wp.kernel
@@ -161,9 +212,8 @@ def area_weighted_moment_matching(
     out_extras: wp.array2d(dtype=float),
 ):
     """Area-weighted moment matching (as hierarchical 3DGS weights its merges): weights
-    w = alpha (s0 s1 + s0 s2 + s1 s2), opacity times the surface-area proxy; w-weighted mean,
-    covariance, features and extras; merged opacity alpha_m = (w_i + w_j) / area_m, so the
-    weighted mass is conserved, clamped to (0, 1)."""
+    w = alpha (s0 s1 + s0 s2 + s1 s2); w-weighted mean, covariance, features and extras; merged
+    opacity alpha_m = (w_i + w_j) / area_m (the weighted mass conserved), clamped to (0, 1)."""
     p = wp.tid()
     i = int(pair_i[p])
     j = int(pair_j[p])
@@ -171,9 +221,55 @@ def area_weighted_moment_matching(
     log_w_i = log_area_mass(opacities[i], log_scales[i])
     log_w_j = log_area_mass(opacities[j], log_scales[j])
     pi = first_weight(log_w_i, log_w_j)
-    log_scale_m = merge_weighted(
-        i, j, row, pi, means, rotations, log_scales, features, extras,
-        out_means, out_rotations, out_log_scales, out_features, out_extras,
-    )  # fmt: skip
-    log_w_m = log_w_i - log_sigmoid(log_w_i - log_w_j)  # log(w_i + w_j), as log w_i - log pi
+    mu_m, cov_m = pair_moments(i, j, pi, means, rotations, log_scales)
+    blend_appearance(i, j, pi, row, features, extras, out_features, out_extras)
+    log_scale_m = write_gaussian(row, mu_m, cov_m, out_means, out_rotations, out_log_scales)
+    log_w_m = log_w_i - log_sigmoid(log_w_i - log_w_j)  # log(w_i + w_j) = log w_i - log pi
     out_opacities[row] = logit_of_log_alpha(log_w_m - log_area(log_scale_m))
+
+
+@wp.kernel
+def coverage_moment_matching(
+    pair_i: wp.array(dtype=wp.int32),
+    pair_j: wp.array(dtype=wp.int32),
+    destination: wp.array(dtype=wp.int32),
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    features: wp.array2d(dtype=float),
+    extras: wp.array2d(dtype=float),
+    out_means: wp.array(dtype=wp.vec3),
+    out_rotations: wp.array(dtype=wp.quat),
+    out_log_scales: wp.array(dtype=wp.vec3),
+    out_opacities: wp.array(dtype=float),
+    out_features: wp.array2d(dtype=float),
+    out_extras: wp.array2d(dtype=float),
+    growth: float,
+):
+    """Coverage-conserving moment matching: weights w = alpha s_a s_b (face-on footprint);
+    w-weighted mean, covariance, features and extras. With (c0, c1) the merged splat's two major
+    axes (its face plane) and F_k = sqrt(det) of splat k's covariance projected onto that plane,
+    the pair covers C = alpha_i F_i + alpha_j F_j there and the merged splat F_m = s0 s1. Where
+    r = C / F_m > 1, the variances along c0 and c1 grow by r^growth; then alpha_m = C / F_m,
+    clamped to (0, 1)."""
+    p = wp.tid()
+    i = int(pair_i[p])
+    j = int(pair_j[p])
+    row = int(destination[i])
+    pi = first_weight(log_coverage_mass(opacities[i], log_scales[i]), log_coverage_mass(opacities[j], log_scales[j]))
+    mu_m, cov_m = pair_moments(i, j, pi, means, rotations, log_scales)
+    blend_appearance(i, j, pi, row, features, extras, out_features, out_extras)
+    values, frame = symmetric_eigen(cov_m)
+    c0 = wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0])
+    c1 = wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
+    coverage = wp.exp(log_sigmoid(wp.float64(opacities[i]))) * projected_footprint(
+        covariance(rotations[i], log_scales[i]), c0, c1
+    ) + wp.exp(log_sigmoid(wp.float64(opacities[j]))) * projected_footprint(covariance(rotations[j], log_scales[j]), c0, c1)
+    ratio = coverage / wp.sqrt(wp.max(values[0] * values[1], wp.float64(1e-300)))
+    if ratio > wp.float64(1.0):
+        grow = wp.pow(ratio, wp.float64(growth))
+        values = wp.vec3d(values[0] * grow, values[1] * grow, values[2])  # the frame and the order stay
+        ratio = ratio / grow
+    store_gaussian(row, mu_m, values, frame, out_means, out_rotations, out_log_scales)
+    out_opacities[row] = logit_of_log_alpha(wp.log(wp.max(ratio, wp.float64(1e-300))))

@@ -65,46 +65,28 @@ class MeanSquaredCost:
 
 
 @dataclass(frozen=True)
-class WeightedIDivergenceCost:
+class RunnallsCost:
+    """Deterministic, non-negative and mass-aware: W^gamma [lambda_geo B + lambda_app 4 pi (1 - pi)
+    ||f_i - f_j||^2] with weights w = alpha x surface-area proxy, W = w_i + w_j, pi = w_i / W and
+    B Runnalls' bound on KL(p~_ij || q_m). ``samples`` and ``seed`` are unused (no sampling)."""
+
     lambda_geo: float = 1.0
     lambda_app: float = 1.0
     samples: int = 1
     seed: int = 0
-    area_weights: int = 1
-    mass_scaled: int = 1
-    app_mode: int = 0
+    mass_exponent: float = 0.25
 
     def __call__(self, splats: SplatSet, edges: Edges, pass_index: int) -> wp.array:
-        device = splats.device
-        common = wp.empty(self.samples, dtype=wp.vec4, device=device)
-        wp.launch(kernels.draw_common_samples, self.samples, inputs=[self.seed, pass_index], outputs=[common], device=device)
-        costs = wp.empty(edges.count, dtype=wp.float32, device=device)
+        costs = wp.empty(edges.count, dtype=wp.float32, device=splats.device)
         launch_rows(
-            kernels.weighted_idivergence_costs, edges.count,
+            kernels.runnalls_costs, edges.count,
             lambda rows: [
                 edges.i[rows], edges.j[rows], splats.means, splats.rotations, splats.log_scales,
-                splats.opacities, splats.features, common, self.lambda_geo, self.lambda_app,
-                self.area_weights, self.mass_scaled, self.app_mode, costs[rows],
+                splats.opacities, splats.features, self.lambda_geo, self.lambda_app, self.mass_exponent, costs[rows],
             ],
-            device,
+            splats.device,
         )  # fmt: skip
         return costs
 
 
-def _variant(name, **fixed):
-    def make(lambda_geo=1.0, lambda_app=1.0, samples=1, seed=0):
-        return WeightedIDivergenceCost(lambda_geo, lambda_app, samples, seed, **fixed)
-    make.__name__ = name
-    return make
-
-
-COSTS = {
-    "idiv": IDivergenceCost,
-    "mse": MeanSquaredCost,
-    "x-area": _variant("x-area", area_weights=1, mass_scaled=0, app_mode=0),
-    "x-areamass": _variant("x-areamass", area_weights=1, mass_scaled=1, app_mode=0),
-    "x-volmass": _variant("x-volmass", area_weights=0, mass_scaled=1, app_mode=0),
-    "x-rgb": _variant("x-rgb", area_weights=0, mass_scaled=0, app_mode=1),
-    "x-area-rgb": _variant("x-area-rgb", area_weights=1, mass_scaled=0, app_mode=1),
-    "x-areamass-rgb": _variant("x-areamass-rgb", area_weights=1, mass_scaled=1, app_mode=1),
-}
+COSTS = {"idiv": IDivergenceCost, "mse": MeanSquaredCost, "runnalls": RunnallsCost}

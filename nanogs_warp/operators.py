@@ -18,29 +18,41 @@ from .pairing import Pairs
 from .splats import SplatSet
 
 
+def _launch(kernel, source: SplatSet, pairs: Pairs, out: SplatSet, destination: wp.array, *parameters) -> None:
+    wp.launch(
+        kernel, pairs.count,
+        inputs=[pairs.i, pairs.j, destination, *source.arrays()], outputs=[*out.arrays(), *parameters],
+        device=source.device,
+    )  # fmt: skip
+
+
 @dataclass(frozen=True)
 class MassPreservingMomentMatching:
     """MPMM (NanoGS Sec. 3.3): mass-weighted moments, over-rule opacity."""
 
     def __call__(self, source: SplatSet, pairs: Pairs, out: SplatSet, destination: wp.array) -> None:
-        wp.launch(
-            kernels.mass_preserving_moment_matching, pairs.count,
-            inputs=[pairs.i, pairs.j, destination, *source.arrays()], outputs=[*out.arrays()],
-            device=source.device,
-        )  # fmt: skip
+        _launch(kernels.mass_preserving_moment_matching, source, pairs, out, destination)
 
 
 @dataclass(frozen=True)
 class AreaWeightedMomentMatching:
-    """Area-weighted moment matching: weights opacity x surface-area proxy (as hierarchical 3DGS),
-    merged opacity conserving the weighted mass, clamped to (0, 1)."""
+    """Weights opacity x surface-area proxy (s0 s1 + s0 s2 + s1 s2, as hierarchical 3DGS); merged
+    opacity conserving the weighted mass, clamped to (0, 1)."""
 
     def __call__(self, source: SplatSet, pairs: Pairs, out: SplatSet, destination: wp.array) -> None:
-        wp.launch(
-            kernels.area_weighted_moment_matching, pairs.count,
-            inputs=[pairs.i, pairs.j, destination, *source.arrays()], outputs=[*out.arrays()],
-            device=source.device,
-        )  # fmt: skip
+        _launch(kernels.area_weighted_moment_matching, source, pairs, out, destination)
 
 
-OPERATORS = {"mpmm": MassPreservingMomentMatching, "area": AreaWeightedMomentMatching}
+@dataclass(frozen=True)
+class CoverageMomentMatching:
+    """Weights opacity x face-on footprint; merged opacity conserving the pair's coverage in the
+    merged splat's face plane; where alpha would exceed 1, the face plane grows by
+    (coverage / footprint)^growth first (0: never grow, 1: always keep all coverage)."""
+
+    growth: float = 0.25
+
+    def __call__(self, source: SplatSet, pairs: Pairs, out: SplatSet, destination: wp.array) -> None:
+        _launch(kernels.coverage_moment_matching, source, pairs, out, destination, float(self.growth))
+
+
+OPERATORS = {"mpmm": MassPreservingMomentMatching, "area": AreaWeightedMomentMatching, "coverage": CoverageMomentMatching}

@@ -67,6 +67,89 @@ def mpmm(s: dict, i: int, j: int) -> dict:
     return out
 
 
+def _weighted_pair(s: dict, i: int, j: int, log_w: np.ndarray) -> dict:
+    """Moment match of rows i and j with weights exp(log_w) (2,), float64: pi, mean, cov,
+    features, extras."""
+    pi = 1.0 / (1.0 + np.exp(log_w[1] - log_w[0]))
+    mu = s["means"][[i, j]].astype(np.float64)
+    cov = covariances(s["rotations"][[i, j]], s["log_scales"][[i, j]])
+    mu_m = pi * mu[0] + (1 - pi) * mu[1]
+    d = mu - mu_m
+    out = {
+        "pi": pi,
+        "mean": mu_m,
+        "cov": pi * (cov[0] + np.outer(d[0], d[0])) + (1 - pi) * (cov[1] + np.outer(d[1], d[1])),
+        "features": pi * s["features"][i].astype(np.float64) + (1 - pi) * s["features"][j],
+    }
+    if s.get("extras") is not None:
+        out["extras"] = pi * s["extras"][i].astype(np.float64) + (1 - pi) * s["extras"][j]
+    return out
+
+
+def area_proxy(log_scales) -> np.ndarray:
+    """s0 s1 + s0 s2 + s1 s2 per row."""
+    sc = np.exp(np.asarray(log_scales, np.float64).reshape(-1, 3))
+    return sc[:, 0] * sc[:, 1] + sc[:, 0] * sc[:, 2] + sc[:, 1] * sc[:, 2]
+
+
+def footprint(log_scales) -> np.ndarray:
+    """Product of the two largest scales per row (the face-on footprint)."""
+    sc = np.sort(np.exp(np.asarray(log_scales, np.float64).reshape(-1, 3)), axis=1)
+    return sc[:, 1] * sc[:, 2]
+
+
+def area_merge(s: dict, i: int, j: int) -> dict:
+    """The area operator, float64: weights w = alpha (s0 s1 + s0 s2 + s1 s2); weighted moments,
+    features, extras; alpha_m = (w_i + w_j) / area(Sigma_m), clamped to 1. Also returns ``mass``
+    (w_i + w_j) and ``alpha_unclamped``."""
+    rows = [i, j]
+    w = sigmoid(s["opacities"][rows]) * area_proxy(s["log_scales"][rows])
+    out = _weighted_pair(s, i, j, np.log(w))
+    values = np.clip(np.linalg.eigvalsh(out["cov"]), 1e-300, None)
+    sc = np.sqrt(values)
+    area_m = sc[0] * sc[1] + sc[0] * sc[2] + sc[1] * sc[2]
+    out["mass"] = w.sum()
+    out["alpha_unclamped"] = w.sum() / area_m
+    out["alpha"] = min(out["alpha_unclamped"], 1.0)
+    return out
+
+
+def coverage_merge(s: dict, i: int, j: int, growth: float = 0.25) -> dict:
+    """The coverage operator, float64: weights w = alpha s_a s_b; weighted moments, features,
+    extras; with (c0, c1) the two major axes of Sigma_m, coverage C = sum_k alpha_k sqrt(det(P
+    Sigma_k P^T)), P = [c0 c1]^T, and ratio r = C / (s0 s1)_m; where r > 1 the variances along c0, c1
+    grow by r^growth; alpha_m = min(r / grow, 1). Also returns ``coverage`` and ``ratio`` (before growth)."""
+    rows = [i, j]
+    alpha = sigmoid(s["opacities"][rows])
+    out = _weighted_pair(s, i, j, np.log(alpha * footprint(s["log_scales"][rows])))
+    values, vectors = np.linalg.eigh(out["cov"])  # ascending
+    c0, c1 = vectors[:, 2], vectors[:, 1]
+    plane = np.stack([c0, c1])
+    cov = covariances(s["rotations"][rows], s["log_scales"][rows])
+    coverage = sum(a * np.sqrt(max(np.linalg.det(plane @ c @ plane.T), 0.0)) for a, c in zip(alpha, cov))
+    ratio = coverage / np.sqrt(values[2] * values[1])
+    grow = ratio**growth if ratio > 1 else 1.0
+    values = values * np.array([1.0, grow, grow])
+    out["cov"] = vectors @ np.diag(values) @ vectors.T
+    out["coverage"] = coverage
+    out["ratio"] = ratio
+    out["alpha"] = min(ratio / grow, 1.0)
+    return out
+
+
+def runnalls_cost(s: dict, i: int, j: int, lambda_geo=1.0, lambda_app=1.0, mass_exponent=0.25) -> float:
+    """W^gamma [lambda_geo B + lambda_app 4 pi (1 - pi) ||f_i - f_j||^2], w = alpha x area proxy,
+    B = 1/2 [log det Sigma_m - pi log det Sigma_i - (1 - pi) log det Sigma_j] (Runnalls' bound)."""
+    rows = [i, j]
+    w = sigmoid(s["opacities"][rows]) * area_proxy(s["log_scales"][rows])
+    m = _weighted_pair(s, i, j, np.log(w))
+    pi = m["pi"]
+    log_det = 2.0 * np.asarray(s["log_scales"][rows], np.float64).sum(-1)
+    bound = max(0.5 * (np.linalg.slogdet(m["cov"])[1] - pi * log_det[0] - (1 - pi) * log_det[1]), 0.0)
+    app = 4.0 * pi * (1 - pi) * appearance_distance(s, i, j)
+    return float(w.sum() ** mass_exponent * (lambda_geo * bound + lambda_app * app))
+
+
 def idivergence(s: dict, i: int, j: int, samples: np.ndarray) -> float:
     """Monte Carlo I(p~_ij || q_m) with the given common samples (z0, z1, z2, u) (Appendix A, eq. 12)."""
     m = mpmm(s, i, j)

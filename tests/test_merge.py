@@ -11,9 +11,9 @@ from nanogs_warp.pairing import Pairs
 from nanogs_warp.splats import SplatSet
 
 
-def merged(arrays, device, pairs_ij):
-    """Runs the operator with every row kept in place (identity destination); the rows it must
-    write are poisoned with NaN first."""
+def merged(arrays, device, pairs_ij, operator=None):
+    """Runs ``operator`` (default MPMM) with every row kept in place (identity destination); the
+    rows it must write are poisoned with NaN first."""
     n = len(arrays["means"])
     arrays = dict(arrays, extras=np.random.default_rng(3).normal(size=(n, 2)).astype(np.float32))
     source = SplatSet.from_numpy(**arrays, device=device)
@@ -24,7 +24,7 @@ def merged(arrays, device, pairs_ij):
     pi = wp.array(pairs_ij[:, 0].astype(np.int32), device=device)
     pj = wp.array(pairs_ij[:, 1].astype(np.int32), device=device)
     identity = wp.array(np.arange(n, dtype=np.int32), device=device)
-    MassPreservingMomentMatching()(source, Pairs(pi, pj, len(pairs_ij)), out, identity)
+    (operator or MassPreservingMomentMatching())(source, Pairs(pi, pj, len(pairs_ij)), out, identity)
     np.testing.assert_array_equal(source.means.numpy(), arrays["means"])  # the source is never changed
     return arrays, out.to_numpy()
 

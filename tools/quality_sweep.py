@@ -20,12 +20,13 @@ was reached (so the 0.001 row is the whole run); of a baseline row, the time to 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import functools
 import json
 import math
 import subprocess
 import sys
 import time
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from baselines import baseline  # noqa: E402
 
 from nanogs_warp.cameras import orbit_cameras  # noqa: E402
+from nanogs_warp.cost import COSTS  # noqa: E402
 from nanogs_warp.device import resolve_device  # noqa: E402
 from nanogs_warp.evaluate import compare_images, render_all  # noqa: E402
 from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively, target_count  # noqa: E402
@@ -50,27 +52,46 @@ def nanogs(**changes) -> dict:
     return {"kind": "nanogs", **PAPER, **changes}
 
 
+# The configuration recommended as the default (docs/quality.md): coverage operator, Runnalls cost
+# (mass exponent 0.25), no opacity pruning, k = 24.
+RECOMMENDED = {"operator": "coverage", "cost": "runnalls", "prune_opacity": 0.0, "k": 24}
+
 # name -> definition. "paper" is the paper's configuration (SimplifyConfig's defaults when this was written).
 CONFIGS: dict[str, dict] = {
     "paper": nanogs(),
+    # one change from the paper
     "area": nanogs(operator="area"),
+    "coverage": nanogs(operator="coverage"),
     "mse": nanogs(cost="mse"),
+    "runnalls": nanogs(cost="runnalls"),
     "s8": nanogs(samples=8),
     "app0.25": nanogs(lambda_app=0.25),
     "app4": nanogs(lambda_app=4.0),
     "prune0": nanogs(prune_opacity=0.0),
-    "area+x-area": nanogs(operator="area", cost="x-area"),
-    "area+x-areamass": nanogs(operator="area", cost="x-areamass"),
-    "mpmm+x-volmass": nanogs(cost="x-volmass"),
-    "x-rgb": nanogs(cost="x-rgb"),
-    "area+x-area-rgb": nanogs(operator="area", cost="x-area-rgb"),
-    "area+x-areamass-rgb": nanogs(operator="area", cost="x-areamass-rgb"),
-    "area+prune0": nanogs(operator="area", prune_opacity=0.0),
-    "area+x-areamass+prune0": nanogs(operator="area", cost="x-areamass", prune_opacity=0.0),
+    "k24": nanogs(k=24),
+    # combinations
+    "area+runnalls": nanogs(operator="area", cost="runnalls"),
+    "area+runnalls+prune0": nanogs(operator="area", cost="runnalls", prune_opacity=0.0),
+    "coverage+runnalls": nanogs(operator="coverage", cost="runnalls"),
+    "coverage+runnalls+prune0": nanogs(operator="coverage", cost="runnalls", prune_opacity=0.0),
+    "recommended": nanogs(**RECOMMENDED),
+    # the recommended configuration with one change back, or one neighbour
+    "rec-prune0.1": nanogs(**{**RECOMMENDED, "prune_opacity": 0.1}),
+    "rec-k16": nanogs(**{**RECOMMENDED, "k": 16}),
+    "rec-area": nanogs(**{**RECOMMENDED, "operator": "area"}),
+    "rec-mpmm": nanogs(**{**RECOMMENDED, "operator": "mpmm"}),
+    "rec-idiv": nanogs(**{**RECOMMENDED, "cost": "idiv"}),
+    "rec-app0.5": nanogs(**{**RECOMMENDED, "lambda_app": 0.5}),
+    "rec-app2": nanogs(**{**RECOMMENDED, "lambda_app": 2.0}),
+    # baselines
     "topk": {"kind": "baseline", "method": "topk", "seed": 0},
     "random": {"kind": "baseline", "method": "random", "seed": 0},
 }
 DEFAULT_CONFIGS = list(CONFIGS)
+
+
+def _with_params(base, params, lambda_geo, lambda_app, samples, seed):
+    return dataclasses.replace(base(lambda_geo, lambda_app, samples, seed), **params)
 
 
 def commit() -> str | None:
@@ -164,6 +185,19 @@ def markdown(rows: list[dict], moonshot: dict | None = None) -> str:
     if len(complete) < len(configs):
         out.append("")
         out.append("Configurations not run on every scene and budget (left out above): " + ", ".join(c for c in configs if c not in complete))
+    headline = [c for c in ("recommended", "paper", "topk", "random") if c in complete]
+    if "recommended" in headline and moonshot:
+        out += ["", "## Recommended vs the paper's configuration, the baselines and the moonshot: PSNR (dB)", ""]
+        out.append("| scene | ρ | " + " | ".join(headline) + " | moonshot | recommended - paper | recommended - best baseline |")
+        out.append("|---|---:|" + "---:|" * (len(headline) + 3))
+        for s_ in scenes:
+            for q in ratios:
+                cells = [_f(get[(s_, c, q)]["psnr"]) for c in headline]
+                rec = get[(s_, "recommended", q)]["psnr"]
+                gain = _f(rec - get[(s_, "paper", q)]["psnr"]) if "paper" in headline else "-"
+                base = [get[(s_, c, q)]["psnr"] for c in ("topk", "random") if c in headline]
+                margin = _f(rec - max(base)) if base else "-"
+                out.append(f"| {s_} | {q:g} | " + " | ".join(cells) + f" | {_f(moonshot.get(s_, {}).get(str(q)))} | {gain} | {margin} |")
     out += ["", "## PSNR (dB) per scene", ""]
     header = "| scene | ρ | " + " | ".join(configs) + (" | moonshot |" if moonshot else " |")
     out.append(header)
@@ -202,6 +236,10 @@ def main(argv=None) -> int:
     parser.add_argument("-o", "--out", type=Path, required=True, help="output folder (sweep.jsonl, sweep.md)")
     parser.add_argument("--configs", default=",".join(DEFAULT_CONFIGS), help=f"comma-separated, from: {', '.join(CONFIGS)}")
     parser.add_argument("--scenes", help="comma-separated scene names (file stems); default: every .ply in the folder")
+    parser.add_argument("--define", action="append", default=[], metavar="NAME=KEY:VALUE,...",
+                        help="an extra NanoGS configuration: the paper's with changes, e.g. "
+                        "'mine=operator:coverage,cost:runnalls,cost.mass_exponent:0.5' (cost.NAME sets a field of the "
+                        "cost object; repeatable); run it by naming it in --configs")
     parser.add_argument("--ratios", default=",".join(f"{q:g}" for q in RATIOS))
     parser.add_argument("--views", type=int, default=16)
     parser.add_argument("--size", type=int, default=256)
@@ -216,6 +254,24 @@ def main(argv=None) -> int:
     if not args.table_only:
         if args.scenes_dir is None:
             parser.error("give the scenes folder")
+        for definition in args.define:
+            name, _, body = definition.partition("=")
+            changes = {}
+            cost_params = {}
+            for item in filter(None, body.split(",")):
+                key, _, value = item.partition(":")
+                if key.startswith("cost."):  # experimental cost parameters (a cost class taking them)
+                    cost_params[key[5:]] = float(value) if "." in value else int(value)
+                    continue
+                if key not in PAPER:
+                    parser.error(f"--define {definition!r}: unknown key {key!r}")
+                changes[key] = type(PAPER[key])(value)
+            if cost_params:
+                base = COSTS[changes.get("cost", "idiv")]
+                cost_name = changes.get("cost", "idiv") + "(" + ",".join(f"{k}={v}" for k, v in sorted(cost_params.items())) + ")"
+                COSTS[cost_name] = functools.partial(_with_params, base, cost_params)
+                changes["cost"] = cost_name
+            CONFIGS[name.strip()] = nanogs(**changes)
         configs = [c.strip() for c in args.configs.split(",") if c.strip()]
         unknown = [c for c in configs if c not in CONFIGS]
         if unknown:
