@@ -34,27 +34,39 @@ def assert_valid(out: dict, input_means: np.ndarray):
     assert np.all(out["means"] >= lo - tol) and np.all(out["means"] <= hi + tol)
 
 
+CONFIGS = {
+    "default": SimplifyConfig(),
+    "paper": SimplifyConfig.paper(),
+    "area-mse": SimplifyConfig(operator="area", cost="mse", k=8),
+}
+
+
+@pytest.mark.parametrize("config", sorted(CONFIGS))
 @pytest.mark.parametrize("ratio", [0.5, 0.1, 0.01, 0.001])
-def test_exact_target_count(device, ratio):
+def test_exact_target_count(device, ratio, config):
     arrays = clustered_scene(3000, seed=1)
     splats = SplatSet.from_numpy(**arrays, device=device)
-    out = simplify(splats, ratio=ratio)
+    out = simplify(splats, ratio=ratio, config=CONFIGS[config])
     assert out.count == max(1, math.ceil(ratio * 3000))
     assert out.device == wp.get_device(device)
     assert_valid(out.to_numpy(), arrays["means"])
 
 
-def test_same_input_same_output(device):
+@pytest.mark.parametrize("config", sorted(CONFIGS))
+def test_same_input_same_output(device, config):
     arrays = clustered_scene(2000, seed=2, sh_degree=2)
-    runs = [simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.05).to_numpy() for _ in range(2)]
+    runs = [
+        simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.05, config=CONFIGS[config]).to_numpy()
+        for _ in range(2)
+    ]
     for key in runs[0]:
         assert runs[0][key].tobytes() == runs[1][key].tobytes(), key
 
 
 def test_seed_changes_the_monte_carlo_cost(device):
     arrays = clustered_scene(1500, seed=3)
-    a = simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.1, config=SimplifyConfig(seed=0))
-    b = simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.1, config=SimplifyConfig(seed=1))
+    a = simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.1, config=SimplifyConfig.paper(seed=0))
+    b = simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.1, config=SimplifyConfig.paper(seed=1))
     assert not np.array_equal(a.means.numpy(), b.means.numpy())
 
 
@@ -73,9 +85,9 @@ def test_pruning_keeps_the_most_opaque_when_short_of_target(device):
     """tau' = min(tau, median) drops the 300 least opaque; a 900 target keeps the 900 most opaque."""
     arrays = clustered_scene(1000, seed=5)
     arrays["opacities"][:] = np.repeat(np.float32([-10.0, -8.0, 4.0]), [300, 300, 400])
-    pruned = simplify(SplatSet.from_numpy(**arrays, device=device), count=700, config=SimplifyConfig(prune_opacity=0.5))
+    pruned = simplify(SplatSet.from_numpy(**arrays, device=device), count=700, config=SimplifyConfig.paper(prune_opacity=0.5))
     assert sorted(pruned.opacities.numpy().tolist()) == [-8.0] * 300 + [4.0] * 400
-    out = simplify(SplatSet.from_numpy(**arrays, device=device), count=900, config=SimplifyConfig(prune_opacity=0.5))
+    out = simplify(SplatSet.from_numpy(**arrays, device=device), count=900, config=SimplifyConfig.paper(prune_opacity=0.5))
     assert sorted(out.opacities.numpy().tolist()) == [-10.0] * 200 + [-8.0] * 300 + [4.0] * 400
 
 
@@ -100,14 +112,14 @@ def test_one_pass_matches_numpy(device):
     arrays = clustered_scene(n, seed=8)
     arrays["opacities"] = np.abs(arrays["opacities"]) + 1.0  # nothing pruned
     target = 300
-    config = SimplifyConfig(k=k, prune_opacity=0.0, seed=3)
+    config = SimplifyConfig.paper(k=k, prune_opacity=0.0, seed=3)
     out = simplify(SplatSet.from_numpy(**arrays, device=device), count=target, config=config).to_numpy()
 
     # reference: kNN graph -> edges -> costs with the same common samples -> greedy -> MPMM -> compaction
     from nanogs_warp.kernels import cost as cost_kernels
 
-    samples = wp.empty(1, dtype=wp.vec4, device="cpu")
-    wp.launch(cost_kernels.draw_common_samples, 1, inputs=[3, 0], outputs=[samples], device="cpu")
+    samples = wp.empty(1, dtype=wp.vec4, device=device)
+    wp.launch(cost_kernels.draw_common_samples, 1, inputs=[3, 0], outputs=[samples], device=device)
     means = arrays["means"].astype(np.float64)
     d2 = ((means[:, None] - means[None]) ** 2).sum(-1)
     np.fill_diagonal(d2, np.inf)
