@@ -50,52 +50,90 @@ def greedy_pairs_in_order(
 
 
 @wp.kernel
-def claim_endpoints(
+def ranked_endpoints(
     order: wp.array(dtype=wp.int32),
     edge_i: wp.array(dtype=wp.int32),
     edge_j: wp.array(dtype=wp.int32),
-    partner: wp.array(dtype=wp.int32),
-    best: wp.array(dtype=wp.int32),
+    rank_i: wp.array(dtype=wp.int32),
+    rank_j: wp.array(dtype=wp.int32),
+    active: wp.array(dtype=wp.int32),
 ):
-    """Every free edge offers its rank to both ends; each end keeps the smallest."""
+    """Endpoints of the edge of each rank, and the list of active ranks (all of them)."""
     r = wp.tid()
     e = order[r]
-    i = edge_i[e]
-    j = edge_j[e]
-    if partner[i] < 0 and partner[j] < 0:
-        wp.atomic_min(best, i, r)
-        wp.atomic_min(best, j, r)
+    rank_i[r] = edge_i[e]
+    rank_j[r] = edge_j[e]
+    active[r] = r
+
+
+@wp.kernel
+def claim_endpoints(
+    active: wp.array(dtype=wp.int32),
+    rank_i: wp.array(dtype=wp.int32),
+    rank_j: wp.array(dtype=wp.int32),
+    best: wp.array(dtype=wp.int32),
+):
+    """Every free edge (all active edges are free) offers its rank to both ends; each end keeps the smallest."""
+    r = active[wp.tid()]
+    wp.atomic_min(best, rank_i[r], r)
+    wp.atomic_min(best, rank_j[r], r)
 
 
 @wp.kernel
 def accept_mutual_claims(
-    order: wp.array(dtype=wp.int32),
-    edge_i: wp.array(dtype=wp.int32),
-    edge_j: wp.array(dtype=wp.int32),
+    active: wp.array(dtype=wp.int32),
+    rank_i: wp.array(dtype=wp.int32),
+    rank_j: wp.array(dtype=wp.int32),
     best: wp.array(dtype=wp.int32),
     partner: wp.array(dtype=wp.int32),
     matched: wp.array(dtype=wp.int32),
-    accepted: wp.array(dtype=wp.int32),
-    round_index: int,
 ):
-    """Edges that won at both ends are matched. Only the winner of an end writes its partner, so
-    the reads of partner by other edges in this launch cannot change their outcome."""
-    r = wp.tid()
-    e = order[r]
-    i = edge_i[e]
-    j = edge_j[e]
+    """Edges that won at both ends are matched. Only the winner of an end writes its partner."""
+    r = active[wp.tid()]
+    i = rank_i[r]
+    j = rank_j[r]
     if best[i] == r and best[j] == r:
         partner[i] = j
         partner[j] = i
         matched[r] = 1
-        wp.atomic_add(accepted, round_index, 1)
+
+
+@wp.kernel
+def still_free(
+    active: wp.array(dtype=wp.int32),
+    rank_i: wp.array(dtype=wp.int32),
+    rank_j: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    best: wp.array(dtype=wp.int32),
+    keep: wp.array(dtype=wp.int32),
+):
+    """An active edge stays active while both its ends are free; clears the claims of its ends."""
+    t = wp.tid()
+    r = active[t]
+    i = rank_i[r]
+    j = rank_j[r]
+    keep[t] = wp.where(partner[i] < 0 and partner[j] < 0, 1, 0)
+    best[i] = NO_CLAIM
+    best[j] = NO_CLAIM
+
+
+@wp.kernel
+def gather_active(
+    active: wp.array(dtype=wp.int32),
+    keep: wp.array(dtype=wp.int32),
+    position: wp.array(dtype=wp.int32),
+    next_active: wp.array(dtype=wp.int32),
+):
+    """Active edges that stay, in order (``position`` is the inclusive scan of ``keep``)."""
+    t = wp.tid()
+    if keep[t] == 1:
+        next_active[position[t] - 1] = active[t]
 
 
 @wp.kernel
 def first_matched_pairs(
-    order: wp.array(dtype=wp.int32),
-    edge_i: wp.array(dtype=wp.int32),
-    edge_j: wp.array(dtype=wp.int32),
+    rank_i: wp.array(dtype=wp.int32),
+    rank_j: wp.array(dtype=wp.int32),
     matched: wp.array(dtype=wp.int32),
     matched_before: wp.array(dtype=wp.int32),
     cap: int,
@@ -107,8 +145,7 @@ def first_matched_pairs(
     r = wp.tid()
     slot = matched_before[r]
     if matched[r] == 1 and slot < cap:
-        e = order[r]
-        pair_i[slot] = edge_i[e]
-        pair_j[slot] = edge_j[e]
-    if r == order.shape[0] - 1:
+        pair_i[slot] = rank_i[r]
+        pair_j[slot] = rank_j[r]
+    if r == matched.shape[0] - 1:
         pair_count[0] = wp.min(slot + matched[r], cap)

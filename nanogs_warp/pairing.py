@@ -12,10 +12,6 @@ from .kernels import pairing as kernels
 if TYPE_CHECKING:
     from .topology import Edges
 
-# Rounds of the parallel matching between two checks of its progress on the host.
-ROUNDS_PER_CHECK = 4
-
-
 @dataclass
 class Pairs:
     """``count`` disjoint pairs (i[p], j[p]) in the order they were chosen."""
@@ -62,29 +58,41 @@ def select_pairs(edges: Edges, costs: wp.array, vertex_count: int, cap: int, met
             outputs=[partner, pair_i, pair_j, pair_count], device=device,
         )  # fmt: skip
     elif method == "parallel":
-        matched = wp.zeros(e, dtype=wp.int32, device=device)
-        best = wp.empty(vertex_count, dtype=wp.int32, device=device)
-        accepted = wp.zeros(ROUNDS_PER_CHECK, dtype=wp.int32, device=device)
-        while True:
-            accepted.zero_()
-            for round_index in range(ROUNDS_PER_CHECK):
-                best.fill_(kernels.NO_CLAIM)
-                wp.launch(kernels.claim_endpoints, e, inputs=[order, edges.i, edges.j, partner], outputs=[best], device=device)
-                wp.launch(
-                    kernels.accept_mutual_claims, e,
-                    inputs=[order, edges.i, edges.j, best], outputs=[partner, matched, accepted, round_index],
-                    device=device,
-                )  # fmt: skip
-            if accepted.numpy()[-1] == 0:  # a round with no free edge left: the matching is maximal
-                break
-        matched_before = wp.empty(e, dtype=wp.int32, device=device)
-        wp.utils.array_scan(matched, matched_before, inclusive=False)
-        wp.launch(
-            kernels.first_matched_pairs, e,
-            inputs=[order, edges.i, edges.j, matched, matched_before, cap],
-            outputs=[pair_i, pair_j, pair_count], device=device,
-        )  # fmt: skip
+        _locally_dominant_pairs(order, edges, partner, cap, pair_i, pair_j, pair_count)
     else:
         raise ValueError(f"unknown pairing method {method!r}")
     count = int(pair_count.numpy()[0])
     return Pairs(pair_i[:count], pair_j[:count], count)
+
+
+def _locally_dominant_pairs(order, edges, partner, cap, pair_i, pair_j, pair_count) -> None:
+    """Rounds of: free edges claim both ends by rank, mutual winners match, edges with a matched
+    end leave the active list. Every round matches at least the lowest-ranked active edge, and the
+    active list shrinks fast, so the total work stays a small multiple of the edge count."""
+    device = order.device
+    e = edges.count
+    rank_i = wp.empty(e, dtype=wp.int32, device=device)
+    rank_j = wp.empty(e, dtype=wp.int32, device=device)
+    active = wp.empty(e, dtype=wp.int32, device=device)
+    wp.launch(kernels.ranked_endpoints, e, inputs=[order, edges.i, edges.j], outputs=[rank_i, rank_j, active], device=device)
+    spare = wp.empty(e, dtype=wp.int32, device=device)
+    keep = wp.empty(e, dtype=wp.int32, device=device)
+    position = wp.empty(e, dtype=wp.int32, device=device)
+    best = wp.full(partner.shape[0], kernels.NO_CLAIM, dtype=wp.int32, device=device)
+    matched = wp.zeros(e, dtype=wp.int32, device=device)
+    count = e
+    while count > 0:
+        now = active[:count]
+        wp.launch(kernels.claim_endpoints, count, inputs=[now, rank_i, rank_j], outputs=[best], device=device)
+        wp.launch(kernels.accept_mutual_claims, count, inputs=[now, rank_i, rank_j, best], outputs=[partner, matched], device=device)
+        wp.launch(kernels.still_free, count, inputs=[now, rank_i, rank_j, partner], outputs=[best, keep], device=device)
+        wp.utils.array_scan(keep[:count], position[:count], inclusive=True)
+        remaining = int(position[count - 1 : count].numpy()[0])
+        wp.launch(kernels.gather_active, count, inputs=[now, keep, position], outputs=[spare], device=device)
+        active, spare, count = spare, active, remaining
+    matched_before = wp.empty(e, dtype=wp.int32, device=device)
+    wp.utils.array_scan(matched, matched_before, inclusive=False)
+    wp.launch(
+        kernels.first_matched_pairs, e,
+        inputs=[rank_i, rank_j, matched, matched_before, cap], outputs=[pair_i, pair_j, pair_count], device=device,
+    )  # fmt: skip

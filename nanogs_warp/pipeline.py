@@ -119,9 +119,10 @@ def simplify_progressively(
                 merged, destination = remove_rows(current, pairs.j, pairs.count)
             with stage("merge"):
                 merge(current, pairs, merged, destination)
-            current = merged
             if on_pass is not None:
-                on_pass(PassReport(pass_index, n, current.count, edges.count))
+                on_pass(PassReport(pass_index, n, merged.count, edges.count))
+            current = merged
+            del edges, costs, pairs, destination, merged  # free this pass's scratch before the next kNN
             pass_index += 1
         yield target, current
 

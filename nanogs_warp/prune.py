@@ -17,6 +17,8 @@ def prune_low_opacity(splats: SplatSet, threshold: float, keep_at_least: int) ->
     """
     n = splats.count
     device = splats.device
+    if threshold <= 0.0:
+        return splats  # every opacity is >= 0: nothing to prune (splat sets are never changed in place)
     alpha = wp.empty(n, dtype=wp.float32, device=device)
     sorted_alpha = wp.empty(2 * n, dtype=wp.float32, device=device)
     order = wp.empty(2 * n, dtype=wp.int32, device=device)
@@ -32,5 +34,7 @@ def prune_low_opacity(splats: SplatSet, threshold: float, keep_at_least: int) ->
         keep.zero_()
         wp.launch(kernels.keep_rows, keep_at_least, inputs=[order, n - keep_at_least], outputs=[keep], device=device)
         kept = keep_at_least
+    if kept == n:
+        return splats
     pruned, _ = select_rows(splats, keep, kept)
     return pruned
