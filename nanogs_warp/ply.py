@@ -1,4 +1,4 @@
-"""INRIA 3DGS ``.ply`` files <-> :class:`SplatSet`: the only module that reads or writes splat files.
+"""INRIA 3DGS ``.ply`` files <-> :class:`SplatSet`: the public API for reading and writing splat files.
 
 Reading checks the header itself first (structure, 3DGS properties, sizes against the file length),
 then lets plyfile read the data (a memory map for binary files) and copies each group of columns
@@ -6,15 +6,12 @@ then lets plyfile read the data (a memory map for binary files) and copies each 
 in chunks of a few MB, block by block, behind a header made by plyfile, into a temporary file that
 then replaces the target. Every problem with the input becomes an :class:`InputError` with a
 one-line message; values are checked on load (NaN/Inf, zero quaternions), not on save.
+The header parser and structure checks live in :mod:`.ply_header`, the writer in :mod:`.ply_write`.
 """
 
 from __future__ import annotations
 
-import errno
-import io
 import os
-import re
-import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,35 +20,29 @@ import plyfile
 import warp as wp
 
 from .errors import InputError
+from .ply_header import (
+    DC_NAMES,
+    MAX_HEADER_BYTES,
+    MEAN_NAMES,
+    OPACITY_NAMES,
+    REQUIRED_NAMES,
+    REST_COUNTS,
+    ROT_NAMES,
+    SCALE_NAMES,
+    Element,
+    Header,
+    check_agreement,
+    check_sizes,
+    check_structure,
+    natural,
+    one_line,
+    parse_header,
+)
+from .ply_write import atomic_write, output_properties
+from .ply_write import write_ply_stream as _write_ply_stream  # by this name: the tests patch it here
 from .splats import PlyLayout, SplatSet
 
-# Required vertex properties, grouped as SplatSet stores them; f_rest_* follow f_dc_* in `features`.
-MEAN_NAMES = ("x", "y", "z")
-DC_NAMES = ("f_dc_0", "f_dc_1", "f_dc_2")
-OPACITY_NAMES = ("opacity",)
-SCALE_NAMES = ("scale_0", "scale_1", "scale_2")
-ROT_NAMES = ("rot_0", "rot_1", "rot_2", "rot_3")  # w, x, y, z
-REQUIRED_NAMES = MEAN_NAMES + DC_NAMES + OPACITY_NAMES + SCALE_NAMES + ROT_NAMES
-REST_COUNTS = {0: 0, 9: 1, 24: 2, 45: 3}  # f_rest_* count -> SH degree
-NORMAL_NAMES = ("nx", "ny", "nz")
-
-FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 DROP_HINT = "load with drop_invalid (CLI: --drop-invalid) to drop them"
-
-# Scalar type names plyfile accepts in a header (PLY names and numpy codes) -> numpy dtype.
-_TYPES = {
-    **dict.fromkeys(("int8", "char", "i1"), "i1"),
-    **dict.fromkeys(("uint8", "uchar", "u1", "b1"), "u1"),
-    **dict.fromkeys(("int16", "short", "i2"), "i2"),
-    **dict.fromkeys(("uint16", "ushort", "u2"), "u2"),
-    **dict.fromkeys(("int32", "int", "i4"), "i4"),
-    **dict.fromkeys(("uint32", "uint", "u4"), "u4"),
-    **dict.fromkeys(("float32", "float", "f4"), "f4"),
-    **dict.fromkeys(("float64", "double", "f8"), "f8"),
-}
-_MAX_HEADER_BYTES = 1 << 20
-_END_HEADER = re.compile(rb"(?:\r\n|\r|\n)end_header(?:\r\n|\r|\n)")
-_NEWLINE = re.compile(r"\r\n|\r|\n")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -94,8 +85,8 @@ def save_ply(splats: SplatSet, path) -> None:
     failure never leaves a partial file and never touches an existing one.
     """
     host = splats.to_numpy()
-    props = _output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1])
-    _atomic_write(Path(path), lambda stream: _write_ply_stream(stream, host, props, splats.layout))
+    props = output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1])
+    atomic_write(Path(path), lambda stream: _write_ply_stream(stream, host, props, splats.layout, _CHUNK_BYTES))
 
 
 def _to_splat_set(a: dict[str, np.ndarray], layout: PlyLayout, device) -> SplatSet:
@@ -162,11 +153,11 @@ def read_ply_arrays(path) -> PlyArrays:
             file_bytes = os.fstat(f.fileno()).st_size
             if file_bytes == 0:
                 raise InputError(f"{name}: the file is empty")
-            header = _parse_header(f.read(_MAX_HEADER_BYTES), name)
-        vertex_h = _check_structure(header, name)
-        _check_sizes(header, file_bytes, name)
+            header = parse_header(f.read(MAX_HEADER_BYTES), name)
+        vertex_h = check_structure(header, name)
+        check_sizes(header, file_bytes, name)
         ply = plyfile.PlyData.read(str(path), mmap="r")
-        _check_agreement(header, ply, name)
+        check_agreement(header, ply, name)
         with np.errstate(all="ignore"):
             return _extract(header, vertex_h, ply, path, file_bytes)
     except (InputError, MemoryError):
@@ -177,8 +168,8 @@ def read_ply_arrays(path) -> PlyArrays:
         if isinstance(e, UnicodeDecodeError):
             raise InputError(f"{name}: malformed PLY file: non-ASCII bytes in ASCII data") from e
         if isinstance(e, plyfile.PlyElementParseError) and _looks_truncated(e, header, path):
-            raise InputError(f"{name}: truncated file ({_one_line(e)})") from e
-        raise InputError(f"{name}: malformed PLY file: {_one_line(e)}") from e
+            raise InputError(f"{name}: truncated file ({one_line(e)})") from e
+        raise InputError(f"{name}: malformed PLY file: {one_line(e)}") from e
 
 
 def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = None) -> ValueCheck:
@@ -228,168 +219,7 @@ def sh_degree_for_rest_count(count: int) -> int:
     return REST_COUNTS[count]
 
 
-# ----------------------------------------------------------------------------------------------
-# Header: parsed here (strictly, mirroring plyfile's grammar) so that structure and sizes are
-# checked before plyfile allocates anything.
-
-
-@dataclass
-class _Prop:
-    name: str
-    dtype: np.dtype | None  # None for list properties
-    is_list: bool = False
-    len_dtype: np.dtype | None = None
-    type_name: str = ""
-
-
-@dataclass
-class _Element:
-    name: str
-    count: int
-    props: list[_Prop]
-
-
-@dataclass
-class _Header:
-    format: str
-    elements: list[_Element]
-    length: int  # bytes up to and including the end_header line
-
-    def element(self, name: str) -> _Element | None:
-        return next((e for e in self.elements if e.name == name), None)
-
-
-def _parse_header(head: bytes, name: str) -> _Header:
-    if not head.startswith(b"ply") or head[3:4] not in (b"\n", b"\r"):
-        raise InputError(f"{name}: not a PLY file (it does not start with 'ply')")
-    m = _END_HEADER.search(head)
-    if m is None:
-        if len(head) < _MAX_HEADER_BYTES:
-            raise InputError(f"{name}: truncated PLY header (no 'end_header' line)")
-        raise InputError(f"{name}: no 'end_header' line in the first {_MAX_HEADER_BYTES >> 20} MiB")
-    try:
-        text = head[: m.start()].decode("ascii")
-    except UnicodeDecodeError:
-        raise InputError(f"{name}: malformed PLY header (non-ASCII bytes)") from None
-
-    def fail(lineno: int, msg: str):
-        raise InputError(f"{name}: malformed PLY header (line {lineno}: {msg})")
-
-    fmt = None
-    elements: list[_Element] = []
-    lines = _NEWLINE.split(text)
-    for lineno, raw in enumerate(lines[1:], start=2):
-        line = raw.strip()
-        if not line:
-            continue
-        keyword, *fields = line.split()
-        rest = line[len(keyword) :]
-        if keyword in ("comment", "obj_info"):  # plyfile's reading keeps them
-            continue
-        if keyword == "format":
-            if fmt is not None or elements:
-                fail(lineno, "unexpected 'format' line")
-            if len(fields) != 2 or fields[0] not in FORMATS or fields[1] != "1.0":
-                fail(lineno, f"unsupported format {rest.strip()!r}")
-            fmt = fields[0]
-        elif fmt is None:
-            fail(lineno, "expected a 'format' line first")
-        elif keyword == "element":
-            if len(fields) != 2:
-                fail(lineno, "expected 'element NAME COUNT'")
-            try:
-                count = int(fields[1])
-            except ValueError:
-                fail(lineno, f"element count {fields[1]!r} is not an integer")
-            if count < 0:
-                fail(lineno, f"element {fields[0]!r} has a negative count")
-            if any(e.name == fields[0] for e in elements):
-                fail(lineno, f"element {fields[0]!r} appears twice")
-            elements.append(_Element(fields[0], count, []))
-        elif keyword == "property":
-            if not elements:
-                fail(lineno, "property before any element")
-            if fields and fields[0] == "list":
-                if len(fields) != 4 or fields[1] not in _TYPES or fields[2] not in _TYPES:
-                    fail(lineno, "expected 'property list LENTYPE TYPE NAME'")
-                prop = _Prop(fields[3], None, True, np.dtype(_TYPES[fields[1]]), "list")
-            else:
-                if len(fields) != 2:
-                    fail(lineno, "expected 'property TYPE NAME'")
-                if fields[0] not in _TYPES:
-                    fail(lineno, f"unknown property type {fields[0]!r}")
-                prop = _Prop(fields[1], np.dtype(_TYPES[fields[0]]), type_name=fields[0])
-            if any(p.name == prop.name for p in elements[-1].props):
-                fail(lineno, f"property {prop.name!r} appears twice in element {elements[-1].name!r}")
-            elements[-1].props.append(prop)
-        else:
-            fail(lineno, f"unexpected line {line[:40]!r}")
-    if fmt is None:
-        raise InputError(f"{name}: malformed PLY header (no 'format' line)")
-    return _Header(fmt, elements, m.end())
-
-
-def _check_structure(header: _Header, name: str) -> _Element:
-    vertex = header.element("vertex")
-    if vertex is None:
-        found = ", ".join(e.name for e in header.elements) or "none"
-        raise InputError(f"{name}: no 'vertex' element (elements: {found})")
-    if vertex.count == 0:
-        raise InputError(f"{name}: the 'vertex' element has 0 rows")
-    lists = [p.name for p in vertex.props if p.is_list]
-    if lists:
-        raise InputError(f"{name}: vertex list properties are not supported ({', '.join(lists)})")
-    props = {p.name: p for p in vertex.props}
-    missing = [n for n in REQUIRED_NAMES if n not in props]
-    if missing:
-        raise InputError(f"{name}: not a 3DGS splat file: missing vertex properties {', '.join(missing)}")
-    rest = [p.name for p in vertex.props if p.name.startswith("f_rest_")]
-    if len(rest) not in REST_COUNTS:
-        raise InputError(
-            f"{name}: {len(rest)} f_rest_* properties; 3DGS files have 0, 9, 24 or 45 (SH degree 0..3)"
-        )
-    expected = {f"f_rest_{i}" for i in range(len(rest))}
-    if set(rest) != expected:
-        odd = sorted(set(rest) - expected, key=_natural)
-        gone = sorted(expected - set(rest), key=_natural)
-        raise InputError(
-            f"{name}: f_rest_* properties are not numbered f_rest_0..f_rest_{len(rest) - 1} "
-            f"(missing {', '.join(gone)}; unexpected {', '.join(odd)})"
-        )
-    not_float = [f"{n} ({props[n].type_name})" for n in REQUIRED_NAMES + tuple(sorted(expected, key=_natural))
-                 if props[n].dtype.kind != "f"]
-    if not_float:
-        raise InputError(f"{name}: 3DGS properties must be float or double: {', '.join(not_float)}")
-    return vertex
-
-
-def _check_sizes(header: _Header, file_bytes: int, name: str) -> None:
-    """Rejects element counts that cannot fit in the file, before anything is allocated."""
-    body = file_bytes - header.length
-    needed = 0
-    for e in header.elements:
-        if header.format == "ascii":
-            # every value takes a character and a separator; every row at least a line break
-            row = max(2 * len(e.props), 1)
-        else:
-            row = max(sum((p.len_dtype if p.is_list else p.dtype).itemsize for p in e.props), 1)
-        needed += e.count * row
-        exact = header.format != "ascii" and not any(p.is_list for p in e.props)
-        if needed > body + (0 if exact else 1):
-            raise InputError(
-                f"{name}: truncated file: element {e.name!r} ({e.count} rows) needs {'' if exact else 'at least '}"
-                f"{needed} bytes after the header, but only {max(body, 0)} follow"
-            )
-
-
-def _check_agreement(header: _Header, ply: plyfile.PlyData, name: str) -> None:
-    ours = [(e.name, e.count, [p.name for p in e.props]) for e in header.elements]
-    theirs = [(e.name, e.count, [p.name for p in e.properties]) for e in ply.elements]
-    if ours != theirs:
-        raise InputError(f"{name}: malformed PLY header (it parses ambiguously)")
-
-
-def _extract(header: _Header, vertex_h: _Element, ply: plyfile.PlyData, path: Path, file_bytes: int) -> PlyArrays:
+def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path, file_bytes: int) -> PlyArrays:
     n = vertex_h.count
     data = ply["vertex"].data
     if data.shape != (n,):
@@ -431,7 +261,7 @@ def _extract(header: _Header, vertex_h: _Element, ply: plyfile.PlyData, path: Pa
     return PlyArrays(arrays, layout, header.format, file_bytes)
 
 
-_CHUNK_BYTES = 4 << 20  # rows are converted (and written) in chunks of about this size
+_CHUNK_BYTES = 4 << 20  # rows are converted (and written, by save_ply) in chunks of about this size
 
 
 def _runs(fields, names) -> list[tuple[int, int, np.dtype, int]]:
@@ -448,7 +278,7 @@ def _runs(fields, names) -> list[tuple[int, int, np.dtype, int]]:
     return runs
 
 
-def _vertex_chunks(header: _Header, data: np.ndarray, path: Path):
+def _vertex_chunks(header: Header, data: np.ndarray, path: Path):
     """(first row, (rows, itemsize) uint8 view) chunks of the vertex records. A binary vertex
     element at a known offset is read from the file into one reused cache-sized buffer (about
     twice as fast as touching plyfile's memory map); otherwise plyfile's array is sliced."""
@@ -475,7 +305,7 @@ def _vertex_chunks(header: _Header, data: np.ndarray, path: Path):
         yield start, rows[start : start + step]
 
 
-def _binary_offset(header: _Header, name: str) -> int | None:
+def _binary_offset(header: Header, name: str) -> int | None:
     """Byte offset of element ``name`` in a binary file, when no list property comes before it."""
     if header.format == "ascii":
         return None
@@ -489,7 +319,7 @@ def _binary_offset(header: _Header, name: str) -> int | None:
     return None
 
 
-def _looks_truncated(e: plyfile.PlyElementParseError, header: _Header | None, path: Path) -> bool:
+def _looks_truncated(e: plyfile.PlyElementParseError, header: Header | None, path: Path) -> bool:
     """plyfile's "early end-of-file", or an ASCII line cut short in a file without a final newline."""
     if "early end-of-file" in e.message:
         return True
@@ -526,150 +356,8 @@ def _open_for_reading(path: Path):
 
 
 # ----------------------------------------------------------------------------------------------
-# Writing
-
-
-_INRIA_HEAD = MEAN_NAMES + NORMAL_NAMES + DC_NAMES
-_INRIA_TAIL = OPACITY_NAMES + SCALE_NAMES + ROT_NAMES
-
-
-def _output_properties(layout: PlyLayout | None, n_rest: int, n_extra: int) -> list[tuple[str, str]]:
-    rest = [f"f_rest_{i}" for i in range(n_rest)]
-    if layout is None:
-        names = list(_INRIA_HEAD) + rest + list(_INRIA_TAIL) + [f"extra_{i}" for i in range(n_extra)]
-        return [(n, "f4") for n in names]
-    if len(layout.extra_names) != n_extra:
-        raise ValueError(f"layout names {len(layout.extra_names)} extras but the splats have {n_extra}")
-    props = list(layout.properties)
-    old_rest = [i for i, (n, _) in enumerate(props) if n.startswith("f_rest_")]
-    if len(old_rest) != n_rest:  # SH degree changed: new f_rest block where the old one began
-        if old_rest:
-            at, dtype = old_rest[0], props[old_rest[0]][1]
-        else:
-            at = max(i for i, (n, _) in enumerate(props) if n in DC_NAMES) + 1
-            dtype = dict(props)["f_dc_0"]
-        props = [p for i, p in enumerate(props) if i not in set(old_rest)]
-        props[at:at] = [(n, dtype) for n in rest]
-    names = {n for n, _ in props}
-    missing = [n for n in REQUIRED_NAMES + tuple(layout.extra_names) if n not in names]
-    if missing:
-        raise ValueError(f"layout lacks properties {missing}")
-    return props
-
-
-def _write_ply_stream(stream, host: dict[str, np.ndarray], props: list[tuple[str, str]], layout) -> None:
-    """Writes the header (via plyfile), the vertex rows in packed chunks, then the other elements
-    (serialised by plyfile) to a binary stream."""
-    n = host["means"].shape[0]
-    dtype = np.dtype([(nm, "<" + dt) for nm, dt in props])
-    others = list(layout.other_elements) if layout is not None else []
-    vertex = plyfile.PlyElement("vertex", [plyfile.PlyProperty(nm, dt) for nm, dt in props], n)
-    ply = plyfile.PlyData(
-        [vertex, *others],
-        text=False,
-        byte_order="<",
-        comments=list(layout.comments) if layout is not None else [],
-        obj_info=list(layout.obj_info) if layout is not None else [],
-    )
-    stream.write(ply.header.encode("ascii") + b"\n")
-    plan = _pack_plan(host, props, layout, dtype)
-    step = max(1, _CHUNK_BYTES // dtype.itemsize)
-    buffer = np.empty(min(step, n), dtype)
-    for start in range(0, n, step):
-        rows = buffer[: min(step, n - start)]
-        _pack_rows(plan, rows, start)
-        stream.write(memoryview(rows.view(np.uint8)))
-    if others:
-        tail = plyfile.PlyData(others, text=False, byte_order="<")
-        body = io.BytesIO()
-        tail.write(body)
-        stream.write(body.getbuffer()[len(tail.header) + 1 :])
-
-
-def _pack_plan(host, props, layout, dtype) -> list[tuple[int, np.dtype, int, np.ndarray | None]]:
-    """Runs of output properties that come from adjacent columns of one host array:
-    (byte offset, dtype, count, source columns (N, count) or None for zeros)."""
-    n = host["means"].shape[0]
-    where: dict[str, tuple[str, int]] = {}
-    for group, names in (("means", MEAN_NAMES), ("rotations", ROT_NAMES), ("log_scales", SCALE_NAMES),
-                         ("opacities", OPACITY_NAMES)):
-        where.update({nm: (group, i) for i, nm in enumerate(names)})
-    for i in range(host["features"].shape[1]):
-        where[DC_NAMES[i] if i < 3 else f"f_rest_{i - 3}"] = ("features", i)
-    extra_names = layout.extra_names if layout is not None else [f"extra_{i}" for i in range(host["extras"].shape[1])]
-    where.update({nm: ("extras", i) for i, nm in enumerate(extra_names)})
-    sources = {k: v.reshape(n, -1) for k, v in host.items()}
-    plan = []
-    i = 0
-    while i < len(props):
-        src = where.get(props[i][0])  # None: a normal written as zero (no layout)
-        dt, off = dtype.fields[props[i][0]][:2]
-        j = i + 1
-        while (src is not None and j < len(props) and where.get(props[j][0]) == (src[0], src[1] + j - i)
-               and dtype.fields[props[j][0]][0] == dt):
-            j += 1
-        columns = None if src is None else sources[src[0]][:, src[1] : src[1] + (j - i)]
-        plan.append((off, dt, j - i, columns))
-        i = j
-    return plan
-
-
-def _pack_rows(plan, rows: np.ndarray, start: int) -> None:
-    raw = rows.view(np.uint8).reshape(rows.shape[0], rows.dtype.itemsize)
-    stop = start + rows.shape[0]
-    for off, dt, k, columns in plan:
-        block = raw[:, off : off + k * dt.itemsize].view(dt)
-        if columns is None:
-            block[...] = 0
-            continue
-        values = columns[start:stop]
-        if dt.kind in "iu":  # integer extras: round and clip the float32 values to the type
-            info = np.iinfo(dt)
-            values = np.clip(np.rint(np.nan_to_num(values.astype(np.float64))), info.min, info.max)
-        block[...] = values
-
-
-def _atomic_write(path: Path, write) -> None:
-    """Calls ``write(stream)`` on a new temporary file beside ``path`` and moves it into place."""
-    name = path.name
-    directory = path.parent
-    if path.is_dir():
-        raise InputError(f"{name}: is a directory")
-    if not directory.is_dir():
-        raise InputError(f"{name}: cannot write: directory {str(directory)!r} does not exist")
-    tmp = directory / f".{name}.{secrets.token_hex(6)}.tmp"
-    created = False
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-        created = True
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-        created = False
-    except OSError as e:
-        if isinstance(e, PermissionError) or e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
-            raise InputError(f"{name}: cannot write to {str(directory)!r}: permission denied") from e
-        raise InputError(f"{name}: cannot write the file: {e.strerror or _one_line(e)}") from e
-    finally:
-        if created:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-
-
-# ----------------------------------------------------------------------------------------------
-
-
-def _one_line(e: BaseException) -> str:
-    text = " ".join(str(e).split())
-    return text or type(e).__name__
-
-
-def _natural(s: str):
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]
 
 
 def _natural_prop(s: str):
     order = {n: i for i, n in enumerate(REQUIRED_NAMES)}
-    return (order.get(s, len(order)), _natural(s))
+    return (order.get(s, len(order)), natural(s))

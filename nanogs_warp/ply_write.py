@@ -1,0 +1,159 @@
+"""Writing a :class:`SplatSet`'s host arrays as a binary little-endian 3DGS PLY file.
+
+Packs the vertex rows in chunks, block by block, behind a header made by plyfile, into a temporary
+file that then replaces the target (see :func:`nanogs_warp.ply.save_ply`, the public entry point).
+"""
+
+from __future__ import annotations
+
+import errno
+import io
+import os
+import secrets
+from pathlib import Path
+
+import numpy as np
+import plyfile
+
+from .errors import InputError
+from .ply_header import (
+    DC_NAMES,
+    MEAN_NAMES,
+    NORMAL_NAMES,
+    OPACITY_NAMES,
+    REQUIRED_NAMES,
+    ROT_NAMES,
+    SCALE_NAMES,
+    one_line,
+)
+from .splats import PlyLayout
+
+_INRIA_HEAD = MEAN_NAMES + NORMAL_NAMES + DC_NAMES
+_INRIA_TAIL = OPACITY_NAMES + SCALE_NAMES + ROT_NAMES
+
+
+def output_properties(layout: PlyLayout | None, n_rest: int, n_extra: int) -> list[tuple[str, str]]:
+    rest = [f"f_rest_{i}" for i in range(n_rest)]
+    if layout is None:
+        names = list(_INRIA_HEAD) + rest + list(_INRIA_TAIL) + [f"extra_{i}" for i in range(n_extra)]
+        return [(n, "f4") for n in names]
+    if len(layout.extra_names) != n_extra:
+        raise ValueError(f"layout names {len(layout.extra_names)} extras but the splats have {n_extra}")
+    props = list(layout.properties)
+    old_rest = [i for i, (n, _) in enumerate(props) if n.startswith("f_rest_")]
+    if len(old_rest) != n_rest:  # SH degree changed: new f_rest block where the old one began
+        if old_rest:
+            at, dtype = old_rest[0], props[old_rest[0]][1]
+        else:
+            at = max(i for i, (n, _) in enumerate(props) if n in DC_NAMES) + 1
+            dtype = dict(props)["f_dc_0"]
+        props = [p for i, p in enumerate(props) if i not in set(old_rest)]
+        props[at:at] = [(n, dtype) for n in rest]
+    names = {n for n, _ in props}
+    missing = [n for n in REQUIRED_NAMES + tuple(layout.extra_names) if n not in names]
+    if missing:
+        raise ValueError(f"layout lacks properties {missing}")
+    return props
+
+
+def write_ply_stream(stream, host: dict[str, np.ndarray], props: list[tuple[str, str]], layout,
+                     chunk_bytes: int) -> None:
+    """Writes the header (via plyfile), the vertex rows in packed chunks of about ``chunk_bytes``,
+    then the other elements (serialised by plyfile) to a binary stream."""
+    n = host["means"].shape[0]
+    dtype = np.dtype([(nm, "<" + dt) for nm, dt in props])
+    others = list(layout.other_elements) if layout is not None else []
+    vertex = plyfile.PlyElement("vertex", [plyfile.PlyProperty(nm, dt) for nm, dt in props], n)
+    ply = plyfile.PlyData(
+        [vertex, *others],
+        text=False,
+        byte_order="<",
+        comments=list(layout.comments) if layout is not None else [],
+        obj_info=list(layout.obj_info) if layout is not None else [],
+    )
+    stream.write(ply.header.encode("ascii") + b"\n")
+    plan = _pack_plan(host, props, layout, dtype)
+    step = max(1, chunk_bytes // dtype.itemsize)
+    buffer = np.empty(min(step, n), dtype)
+    for start in range(0, n, step):
+        rows = buffer[: min(step, n - start)]
+        _pack_rows(plan, rows, start)
+        stream.write(memoryview(rows.view(np.uint8)))
+    if others:
+        tail = plyfile.PlyData(others, text=False, byte_order="<")
+        body = io.BytesIO()
+        tail.write(body)
+        stream.write(body.getbuffer()[len(tail.header) + 1 :])
+
+
+def _pack_plan(host, props, layout, dtype) -> list[tuple[int, np.dtype, int, np.ndarray | None]]:
+    """Runs of output properties that come from adjacent columns of one host array:
+    (byte offset, dtype, count, source columns (N, count) or None for zeros)."""
+    n = host["means"].shape[0]
+    where: dict[str, tuple[str, int]] = {}
+    for group, names in (("means", MEAN_NAMES), ("rotations", ROT_NAMES), ("log_scales", SCALE_NAMES),
+                         ("opacities", OPACITY_NAMES)):
+        where.update({nm: (group, i) for i, nm in enumerate(names)})
+    for i in range(host["features"].shape[1]):
+        where[DC_NAMES[i] if i < 3 else f"f_rest_{i - 3}"] = ("features", i)
+    extra_names = layout.extra_names if layout is not None else [f"extra_{i}" for i in range(host["extras"].shape[1])]
+    where.update({nm: ("extras", i) for i, nm in enumerate(extra_names)})
+    sources = {k: v.reshape(n, -1) for k, v in host.items()}
+    plan = []
+    i = 0
+    while i < len(props):
+        src = where.get(props[i][0])  # None: a normal written as zero (no layout)
+        dt, off = dtype.fields[props[i][0]][:2]
+        j = i + 1
+        while (src is not None and j < len(props) and where.get(props[j][0]) == (src[0], src[1] + j - i)
+               and dtype.fields[props[j][0]][0] == dt):
+            j += 1
+        columns = None if src is None else sources[src[0]][:, src[1] : src[1] + (j - i)]
+        plan.append((off, dt, j - i, columns))
+        i = j
+    return plan
+
+
+def _pack_rows(plan, rows: np.ndarray, start: int) -> None:
+    raw = rows.view(np.uint8).reshape(rows.shape[0], rows.dtype.itemsize)
+    stop = start + rows.shape[0]
+    for off, dt, k, columns in plan:
+        block = raw[:, off : off + k * dt.itemsize].view(dt)
+        if columns is None:
+            block[...] = 0
+            continue
+        values = columns[start:stop]
+        if dt.kind in "iu":  # integer extras: round and clip the float32 values to the type
+            info = np.iinfo(dt)
+            values = np.clip(np.rint(np.nan_to_num(values.astype(np.float64))), info.min, info.max)
+        block[...] = values
+
+
+def atomic_write(path: Path, write) -> None:
+    """Calls ``write(stream)`` on a new temporary file beside ``path`` and moves it into place."""
+    name = path.name
+    directory = path.parent
+    if path.is_dir():
+        raise InputError(f"{name}: is a directory")
+    if not directory.is_dir():
+        raise InputError(f"{name}: cannot write: directory {str(directory)!r} does not exist")
+    tmp = directory / f".{name}.{secrets.token_hex(6)}.tmp"
+    created = False
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+        created = True
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+        created = False
+    except OSError as e:
+        if isinstance(e, PermissionError) or e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+            raise InputError(f"{name}: cannot write to {str(directory)!r}: permission denied") from e
+        raise InputError(f"{name}: cannot write the file: {e.strerror or one_line(e)}") from e
+    finally:
+        if created:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+
