@@ -1,51 +1,266 @@
-"""Unique undirected edges of a directed k-nearest-neighbour graph.
+"""Unique undirected edges of a directed k-nearest-neighbour graph, built without a global sort.
 
-Each directed edge (i, j) becomes the int64 key min(i, j) * n + max(i, j); after a radix sort of the
-keys, the first key of every run is a unique edge and a prefix sum gives its output position.
+The output is cut into one segment per point a: the edges (a, b) with b > a, sorted by b. Segment a
+holds
+  (a) every neighbour b > a of row a (the entries of a row are distinct), and
+  (b) every row b > a that lists a while row a does not list b.
+A pair listed by both rows is taken from (a) only, so every undirected edge appears exactly once.
+
+  _classify_rows    per row: how many entries go to (a), and a bit mask of the entries (i -> j),
+                    j < i, that go to part (b) of segment j ("foreign" entries)
+  _count_foreign    per row, atomic: adds each foreign entry to its segment's length
+  (scan)            segment offsets
+  _place_foreign    per row, atomic: writes each foreign entry into its segment's part (b)
+  _finish_segments  per row: sorts the segment (in registers up to MAX_K entries; else part (a) in
+                    registers and part (b) in place, then merged) and writes the segment's i
+
+Kernels without atomics may be split over CPU threads; the two atomic kernels must be single
+launches on the CPU (CPU atomics are plain read-modify-writes). Part (b) lands in an order that
+depends on the order the rows run in; sorting every segment makes the output independent of it.
+
+The rows are read through ``rows``: the (N, k) int32 table itself, or, where k is a multiple of 4,
+the same memory viewed as (N, k/4) vec4i (a quarter of the loads; CPU array accesses are costly).
 """
+
+from typing import Any
 
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
+MAX_K = wp.constant(32)  # foreign entries of a row are bits of a uint32
+# A segment longer than MAX_K (a point listed by many rows) has its part (b) insertion-sorted up to
+# this length, heap-sorted beyond it unless already in order: O(m log m) whatever order it arrives in.
+SMALL_PART = wp.constant(32)
+
+row_buffer = wp.types.vector(length=MAX_K, dtype=wp.int32)
+
+
+@wp.func
+def _lane(chunk: wp.int32, w: int) -> wp.int32:
+    return chunk
+
+
+@wp.func
+def _lane(chunk: wp.vec4i, w: int) -> wp.int32:
+    return chunk[w]
+
+
+@wp.func
+def _count_equal(chunk: wp.int32, value: wp.int32) -> int:
+    return wp.where(chunk == value, 1, 0)
+
+
+@wp.func
+def _count_equal(chunk: wp.vec4i, value: wp.int32) -> int:
+    return (
+        wp.where(chunk[0] == value, 1, 0)
+        + wp.where(chunk[1] == value, 1, 0)
+        + wp.where(chunk[2] == value, 1, 0)
+        + wp.where(chunk[3] == value, 1, 0)
+    )
+
 
 @wp.kernel
-def _edge_keys(
-    neighbours: wp.array2d(dtype=wp.int32), keys: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.int32)
+def _classify_rows(
+    first: int,
+    rows: wp.array2d(dtype=Any),
+    k: int,
+    foreign: wp.array(dtype=wp.uint32),
+    count: wp.array(dtype=wp.int32),
 ):
-    # undirected key min * n + max of the directed edge (i, neighbours[i, t])
-    i, t = wp.tid()
-    n = wp.int64(neighbours.shape[0])
-    j = neighbours[i, t]
-    e = i * neighbours.shape[1] + t
-    keys[e] = wp.int64(wp.min(i, j)) * n + wp.int64(wp.max(i, j))
-    values[e] = 0  # unused: the sort carries values along
+    # count[i] = entries of row i above i (part (a) of segment i); bit t of foreign[i] set where
+    # j = entry t < i and row j does not list i (part (b) of segment j)
+    i = first + wp.tid()
+    chunks = rows.shape[1]
+    width = k // chunks
+    above = int(0)
+    mask = wp.uint32(0)
+    t = int(0)
+    for u in range(chunks):
+        own = rows[i, u]
+        for w in range(4):  # unrolled; lanes past the chunk's width are skipped
+            if w < width:
+                j = _lane(own, w)
+                above += wp.where(j > i, 1, 0)
+                if j < i:
+                    listed = int(0)
+                    for c in range(chunks):
+                        listed += _count_equal(rows[j, c], i)
+                    mask = mask | (wp.uint32(wp.where(listed == 0, 1, 0)) << wp.uint32(t))
+                t += 1
+    foreign[i] = mask
+    count[i] = above
 
 
 @wp.kernel
-def _mark_unique(keys: wp.array(dtype=wp.int64), first: wp.array(dtype=wp.int32)):
-    # 1 where a sorted key starts a run of equal keys
-    e = wp.tid()
-    starts_run = int(1)
-    if e > 0:
-        if keys[e] == keys[e - 1]:
-            starts_run = 0
-    first[e] = starts_run
-
-
-@wp.kernel
-def _compact_edges(
-    keys: wp.array(dtype=wp.int64),
-    first: wp.array(dtype=wp.int32),
-    position: wp.array(dtype=wp.int32),
-    n: wp.int64,
-    i_out: wp.array(dtype=wp.int32),
-    j_out: wp.array(dtype=wp.int32),
+def _count_foreign(
+    neighbours: wp.array2d(dtype=wp.int32), foreign: wp.array(dtype=wp.uint32), count: wp.array(dtype=wp.int32)
 ):
-    # unique keys to (i, j) pairs at their inclusive-scan position - 1
-    e = wp.tid()
-    if first[e] == 1:
-        key = keys[e]
-        slot = position[e] - 1
-        i_out[slot] = wp.int32(key // n)
-        j_out[slot] = wp.int32(key % n)
+    # count[j] += foreign entries (i -> j): count becomes each segment's length
+    i = wp.tid()
+    mask = foreign[i]
+    while mask != wp.uint32(0):
+        low = mask & (wp.uint32(0) - mask)  # the lowest set bit: entry t
+        mask = mask ^ low
+        t = int(wp.bit_count(low - wp.uint32(1)))
+        wp.atomic_add(count, neighbours[i, t], 1)
+
+
+@wp.kernel
+def _place_foreign(
+    neighbours: wp.array2d(dtype=wp.int32),
+    foreign: wp.array(dtype=wp.uint32),
+    offsets: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    edge_j: wp.array(dtype=wp.int32),
+):
+    # foreign entry (i -> j): i goes to the highest free slot of segment j, counting count[j] down
+    # from the segment's length to the length of its part (a). Rows run from the last one so that,
+    # where threads run in order (the CPU), every part (b) comes out ascending.
+    i = neighbours.shape[0] - 1 - wp.tid()
+    mask = foreign[i]
+    while mask != wp.uint32(0):
+        low = mask & (wp.uint32(0) - mask)
+        mask = mask ^ low
+        t = int(wp.bit_count(low - wp.uint32(1)))
+        j = neighbours[i, t]
+        slot = wp.atomic_sub(count, j, 1) - 1
+        edge_j[offsets[j] + slot] = i
+
+
+@wp.func
+def _sift_down(values: wp.array(dtype=wp.int32), base: int, root: int, size: int):
+    # max-heap of values[base : base + size]: moves values[base + root] down to its place
+    r = int(root)
+    v = values[base + r]
+    while 2 * r + 1 < size:
+        c = 2 * r + 1
+        if c + 1 < size:
+            if values[base + c + 1] > values[base + c]:
+                c += 1
+        w = values[base + c]
+        if w <= v:
+            break
+        values[base + r] = w
+        r = c
+    values[base + r] = v
+
+
+@wp.func
+def _sort_part(values: wp.array(dtype=wp.int32), start: int, stop: int):
+    # ascending sort of the distinct values[start:stop], in place
+    size = stop - start
+    if size <= SMALL_PART:
+        for e in range(start + 1, stop):
+            v = values[e]
+            f = int(e)
+            while f > start:
+                w = values[f - 1]
+                if w <= v:
+                    break
+                values[f] = w
+                f -= 1
+            values[f] = v
+    else:
+        ordered = bool(True)
+        for e in range(start + 1, stop):
+            if values[e - 1] > values[e]:
+                ordered = False
+                break
+        if not ordered:
+            r = size // 2
+            while r > 0:
+                r -= 1
+                _sift_down(values, start, r, size)
+            last = size - 1
+            while last > 0:
+                top = values[start]
+                values[start] = values[start + last]
+                values[start + last] = top
+                _sift_down(values, start, 0, last)
+                last -= 1
+
+
+@wp.func
+def _finish_long(edge_j: wp.array(dtype=wp.int32), part_a: row_buffer, a: int, start: int, stop: int):
+    # a segment longer than MAX_K: part (a) sorted in registers, part (b) = edge_j[start + a : stop]
+    # sorted in place, then the two merged from the front (writes never pass the unread part (b))
+    for x in range(1, a):
+        v = part_a[x]
+        y = int(x)
+        while y > 0:
+            w = part_a[y - 1]
+            if w <= v:
+                break
+            part_a[y] = w
+            y -= 1
+        part_a[y] = v
+    b = start + a
+    _sort_part(edge_j, b, stop)
+    p = int(start)
+    x = int(0)
+    while x < a:
+        v = part_a[x]
+        take_b = bool(False)
+        if b < stop:
+            take_b = edge_j[b] < v
+        if take_b:
+            edge_j[p] = edge_j[b]
+            b += 1
+        else:
+            edge_j[p] = v
+            x += 1
+        p += 1
+
+
+@wp.kernel
+def _finish_segments(
+    first: int,
+    rows: wp.array2d(dtype=Any),
+    k: int,
+    offsets: wp.array(dtype=wp.int32),
+    edge_i: wp.array(dtype=wp.int32),
+    edge_j: wp.array(dtype=wp.int32),
+):
+    # segment i: part (a) from row i joins part (b) (already in place behind it), sorted; i throughout
+    i = first + wp.tid()
+    start = offsets[i]
+    stop = offsets[i + 1]
+    chunks = rows.shape[1]
+    width = k // chunks
+    buffer = row_buffer()
+    a = int(0)
+    for u in range(chunks):
+        own = rows[i, u]
+        for w in range(4):  # unrolled; lanes past the chunk's width are skipped
+            if w < width:
+                j = _lane(own, w)
+                buffer[a] = j  # kept only where j > i
+                a += wp.where(j > i, 1, 0)
+    b = start + a  # part (b): edge_j[b:stop]
+    size = stop - start
+    if size <= MAX_K:  # the usual case: the whole segment sorted in registers
+        for e in range(b, stop):
+            buffer[e - start] = edge_j[e]
+        for x in range(1, size):  # insertion sort
+            v = buffer[x]
+            y = int(x)
+            while y > 0:
+                w = buffer[y - 1]
+                if w <= v:
+                    break
+                buffer[y] = w
+                y -= 1
+            buffer[y] = v
+        for x in range(size):
+            edge_j[start + x] = buffer[x]
+    else:  # a point listed by many rows
+        _finish_long(edge_j, buffer, a, start, stop)
+    for e in range(start, stop):
+        edge_i[e] = i
+
+
+for _rows in (wp.array2d(dtype=wp.int32), wp.array2d(dtype=wp.vec4i)):
+    wp.overload(_classify_rows, {"rows": _rows})
+    wp.overload(_finish_segments, {"rows": _rows})

@@ -1,9 +1,16 @@
 """Row-parallel launches that use every CPU core.
 
 A Warp launch on the CPU runs on one core. A kernel whose thread t touches only row t of its
-per-row arrays (and reads shared arrays, with no atomics) can be split into contiguous chunks of
-rows, each launched from its own Python thread (Warp releases the GIL during a launch). On a GPU
-this is one ordinary launch.
+per-row arrays (and reads shared arrays, with no atomics: CPU atomics are not atomic across
+concurrent launches) can be split into contiguous chunks of rows, each launched from its own Python
+thread (Warp releases the GIL during a launch). On a GPU this is one ordinary launch.
+
+Two calling conventions:
+
+- ``launch_rows``: the kernel sees only its chunk; ``arguments(rows_slice)`` slices every per-row
+  array to the chunk.
+- ``launch_rows_from``: the kernel's first argument is the chunk's first row and thread t handles
+  row ``first + t``; the other arguments are passed whole.
 """
 
 from __future__ import annotations
@@ -14,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import warp as wp
 
-# Below this many rows, one launch is faster than starting threads.
+# Fewest rows per worker thread: below this, one launch is faster than starting threads.
 MIN_ROWS_TO_SPLIT = 16384
 
 
@@ -22,16 +29,44 @@ def cpu_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
-def launch_rows(kernel, rows: int, arguments: Callable[[slice], list], device) -> None:
+def row_chunks(rows: int, device, chunks_per_worker: int = 1) -> tuple[int, list[tuple[int, int]]]:
+    """(workers, [(first, stop), ...]): the contiguous row chunks a launch over ``rows`` rows is cut
+    into on ``device``. One chunk off the CPU or below ``2 * MIN_ROWS_TO_SPLIT`` rows."""
+    device = wp.get_device(device)
+    workers = max(1, min(cpu_workers(), rows // MIN_ROWS_TO_SPLIT)) if device.is_cpu else 1
+    if workers == 1:
+        return 1, [(0, rows)]
+    chunks = workers * max(1, chunks_per_worker)
+    bounds = [rows * c // chunks for c in range(chunks + 1)]
+    return workers, [(a, b) for a, b in zip(bounds, bounds[1:]) if b > a]
+
+
+def _launch_chunks(kernel, workers: int, chunks: list[tuple[int, int]], inputs_of: Callable, device) -> None:
+    if len(chunks) == 1:
+        first, stop = chunks[0]
+        wp.launch(kernel, stop - first, inputs=inputs_of(first, stop), device=device)
+        return
+    wp.load_module(kernel.module, device=device)  # compile once, before the threads race to it
+
+    def launch(chunk: tuple[int, int]) -> None:
+        first, stop = chunk
+        wp.launch(kernel, stop - first, inputs=inputs_of(first, stop), device=device)
+
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(launch, chunks))  # re-raises the first failure
+
+
+def launch_rows(kernel, rows: int, arguments: Callable[[slice], list], device, chunks_per_worker: int = 1) -> None:
     """Launches ``kernel`` over ``rows`` threads; ``arguments(rows_slice)`` returns the kernel's
     argument list with every per-row array sliced to ``rows_slice``."""
     device = wp.get_device(device)
-    workers = cpu_workers() if device.is_cpu else 1
-    if workers == 1 or rows < MIN_ROWS_TO_SPLIT:
-        wp.launch(kernel, rows, inputs=arguments(slice(0, rows)), device=device)
-        return
-    bounds = [rows * w // workers for w in range(workers + 1)]
-    chunks = [slice(a, b) for a, b in zip(bounds, bounds[1:]) if b > a]
-    with ThreadPoolExecutor(len(chunks)) as pool:
-        for future in [pool.submit(wp.launch, kernel, c.stop - c.start, inputs=arguments(c), device=device) for c in chunks]:
-            future.result()
+    workers, chunks = row_chunks(rows, device, chunks_per_worker)
+    _launch_chunks(kernel, workers, chunks, lambda first, stop: arguments(slice(first, stop)), device)
+
+
+def launch_rows_from(kernel, rows: int, inputs: list, device, chunks_per_worker: int = 4) -> None:
+    """Launches ``kernel(first, *inputs)`` over rows 0..rows-1: thread t of a chunk handles row
+    ``first + t``. Several chunks per worker (default 4) even out dense and sparse regions."""
+    device = wp.get_device(device)
+    workers, chunks = row_chunks(rows, device, chunks_per_worker)
+    _launch_chunks(kernel, workers, chunks, lambda first, stop: [first, *inputs], device)

@@ -6,8 +6,6 @@ coordinate quantiles, two 22-bin level histograms and the edge count.
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,12 +13,12 @@ import warp as wp
 
 from nanogs_warp.kernels import edges as edge_kernels
 from nanogs_warp.kernels import knn as knn_kernels
+from nanogs_warp.parallel import launch_rows_from
 
 KMAX = knn_kernels.KMAX
 _LEVELS = knn_kernels.LEVELS
 _GRID_CELLS = 1 << knn_kernels.GRID_BITS
 _BLOCK = knn_kernels.BLOCK
-_MIN_ROWS_PER_THREAD = 16384  # CPU: below this, splitting a launch over threads does not pay
 _QUANTILE_SAMPLES = 16384  # points sampled per axis for the quantisation cube
 _QUANTILE_TAIL = 0.001  # fraction of the sample left out at each end
 
@@ -58,7 +56,7 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
     search_level, tables = _cell_tables(codes, k)
 
     neighbours = wp.full((n, k), -1, dtype=wp.int32, device=device)
-    _launch_rows(
+    launch_rows_from(
         knn_kernels._knn_query,
         n,
         [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, box_lo, box_hi]
@@ -69,29 +67,42 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
 
 
 def candidate_edges(neighbours: wp.array) -> Edges:
-    """Union of directed kNN edges as undirected, deduplicated, i < j, sorted by (i, j)."""
+    """Union of directed kNN edges as undirected, deduplicated, i < j, sorted by (i, j).
+
+    ``neighbours`` is an (N, k) int32 table, k <= 32, whose row i lists k distinct points other than
+    i. No global sort: every edge (a, b), a < b, is counted into and written to the segment of a
+    (see ``nanogs_warp.kernels.edges``), and each segment is sorted on its own. Scratch memory is
+    12 bytes per point (a bit mask, a count and an offset) besides the output; the host reads one
+    scalar, the edge count.
+    """
     n, k = neighbours.shape
     device = neighbours.device
-    m = n * k
-    if m == 0:
+    if n * k == 0:
         empty = wp.empty(0, dtype=wp.int32, device=device)
         return Edges(i=empty, j=wp.empty(0, dtype=wp.int32, device=device), count=0)
-    keys = wp.empty(2 * m, dtype=wp.int64, device=device)
-    values = wp.empty(2 * m, dtype=wp.int32, device=device)
-    wp.launch(edge_kernels._edge_keys, (n, k), inputs=[neighbours], outputs=[keys, values], device=device)
-    wp.utils.radix_sort_pairs(keys, values, m, end_bit=max(1, (n * n - 1).bit_length()))
-    keys = keys[:m]
-    first = wp.empty(m, dtype=wp.int32, device=device)
-    wp.launch(edge_kernels._mark_unique, m, inputs=[keys], outputs=[first], device=device)
-    position = wp.empty(m, dtype=wp.int32, device=device)
-    wp.utils.array_scan(first, position, inclusive=True)
-    count = int(position[m - 1 :].numpy()[0])
-    i = wp.full(count, -1, dtype=wp.int32, device=device)
-    j = wp.full(count, -1, dtype=wp.int32, device=device)
+    if k > edge_kernels.MAX_K:
+        raise ValueError(f"candidate_edges takes at most {edge_kernels.MAX_K} neighbours per row, got {k}")
+    if n * k >= 2**31:
+        raise ValueError(f"{n} x {k} neighbours overflow the int32 edge offsets")
+    rows = neighbours
+    if k % 4 == 0 and neighbours.is_contiguous and neighbours.ptr % 16 == 0:
+        rows = neighbours.reshape((n, k // 4, 4)).view(wp.vec4i)  # the same memory, a quarter of the loads
+    foreign = wp.empty(n, dtype=wp.uint32, device=device)
+    count = wp.empty(n, dtype=wp.int32, device=device)
+    launch_rows_from(edge_kernels._classify_rows, n, [rows, k, foreign, count], device)
+    # the kernels with atomics: one launch each, never split over CPU threads
+    wp.launch(edge_kernels._count_foreign, n, inputs=[neighbours, foreign], outputs=[count], device=device)
+    offsets = wp.empty(n + 1, dtype=wp.int32, device=device)
+    offsets[:1].zero_()
+    wp.utils.array_scan(count, offsets[1:], inclusive=True)
+    total = int(offsets[n:].numpy()[0])
+    i = wp.full(total, -1, dtype=wp.int32, device=device)
+    j = wp.full(total, -1, dtype=wp.int32, device=device)
     wp.launch(
-        edge_kernels._compact_edges, m, inputs=[keys, first, position, wp.int64(n)], outputs=[i, j], device=device
+        edge_kernels._place_foreign, n, inputs=[neighbours, foreign, offsets], outputs=[count, j], device=device
     )
-    return Edges(i=i, j=j, count=count)
+    launch_rows_from(edge_kernels._finish_segments, n, [rows, k, offsets, i, j], device)
+    return Edges(i=i, j=j, count=total)
 
 
 class KnnTopology:
@@ -194,26 +205,5 @@ def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list]:
     used = np.flatnonzero(searched)
     levels = [codes, int(used[0]), int(used[-1]), level_base, level_mask]
     wp.launch(knn_kernels._insert_cells, n, inputs=levels, outputs=[keys, starts], device=device)
-    _launch_rows(knn_kernels._close_cells, n, [*levels, keys, ends], device)
+    launch_rows_from(knn_kernels._close_cells, n, [*levels, keys, ends], device)
     return search_level, [level_base, level_mask, keys, starts, ends]
-
-
-def _launch_rows(kernel, n: int, inputs: list, device) -> None:
-    """Launches `kernel(first, *inputs)` over rows 0..n-1. A CPU launch runs on one core, so on the
-    CPU the rows are cut into contiguous chunks launched from a thread per core (threads must write
-    disjoint outputs and use no atomics: CPU atomics are not atomic across launches)."""
-    threads = 1
-    if device.is_cpu:
-        threads = max(1, min(len(os.sched_getaffinity(0)), n // _MIN_ROWS_PER_THREAD))
-    if threads == 1:
-        wp.launch(kernel, n, inputs=[0, *inputs], device=device)
-        return
-    chunks = 4 * threads  # several chunks per thread even out dense and sparse regions
-    bounds = [n * c // chunks for c in range(chunks + 1)]
-    wp.load_module(kernel.module, device=device)  # compile once, before the threads race to it
-
-    def launch(c: int) -> None:
-        wp.launch(kernel, bounds[c + 1] - bounds[c], inputs=[bounds[c], *inputs], device=device)
-
-    with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(launch, range(chunks)))

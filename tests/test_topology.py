@@ -13,6 +13,8 @@ import pytest
 import warp as wp
 from reference_topology import edges_reference, knn_reference
 
+from nanogs_warp.kernels import edges as edge_kernels
+from nanogs_warp.parallel import launch_rows_from
 from nanogs_warp.topology import KMAX, Edges, KnnTopology, candidate_edges, knn_graph
 
 wp.config.log_level = wp.LOG_WARNING
@@ -245,3 +247,208 @@ def test_knn_topology_stage(knn_device):
     splats = types.SimpleNamespace(means=wp.array(points, dtype=wp.vec3, device=knn_device), count=10)
     edges = KnnTopology(16)(splats)  # k shrinks to N-1: the complete graph
     assert edges.count == 45
+
+
+# Candidate edges on hand-built neighbour tables: the sort-free construction against numpy.
+
+
+def random_neighbours(n, k, rng):
+    """Row i: k distinct random points other than i."""
+    if n <= 2000:
+        offsets = np.argpartition(rng.random((n, n - 1)), k - 1, axis=1)[:, :k] + 1
+    else:
+        offsets = rng.integers(1, n, (n, k))
+        while True:
+            ordered = np.sort(offsets, axis=1)
+            bad = np.flatnonzero(np.any(ordered[:, 1:] == ordered[:, :-1], axis=1))
+            if bad.size == 0:
+                break
+            offsets[bad] = rng.integers(1, n, (bad.size, k))
+    return ((np.arange(n)[:, None] + offsets) % n).astype(np.int32)
+
+
+def local_neighbours(n, k, rng):
+    """Row i: k distinct random points within k of i (in index): most pairs are mutual, as in kNN."""
+    steps = np.r_[-k:0, 1 : k + 1]
+    targets = np.arange(n)[:, None] + steps
+    keys = np.where((targets >= 0) & (targets < n), rng.random(targets.shape), np.inf)
+    chosen = np.argsort(keys, axis=1)[:, :k]
+    return np.take_along_axis(targets, chosen, axis=1).astype(np.int32)
+
+
+def edges_of(neighbours, device):
+    edges = candidate_edges(wp.array(neighbours, dtype=wp.int32, device=device))
+    assert edges.i.device == wp.get_device(device) and edges.j.device == wp.get_device(device)
+    return edges
+
+
+@pytest.mark.parametrize(
+    "n, k", [(2, 1), (3, 2), (60, 1), (40, 32), (1000, 3), (1000, 4), (3000, 16), (3000, 24), (40000, 16)]
+)
+def test_edges_random_graphs(device, n, k, rng):
+    """Random tables (few mutual pairs) and local ones (mostly mutual), k = 1 to 32; 40,000 rows
+    split the CPU launches over threads; k = 32 fills segments past the in-register sort."""
+    for neighbours in (random_neighbours(n, k, rng), local_neighbours(n, k, rng)):
+        check_edges(edges_of(neighbours, device), neighbours)
+
+
+def test_edges_k1(device):
+    # mutual pairs, a chain pointing down, a chain pointing up, and a star
+    pairs = np.array([[1], [0], [3], [2]], dtype=np.int32)
+    down = np.r_[1, np.arange(0, 99)].astype(np.int32)[:, None]
+    up = np.r_[np.arange(1, 100), 98].astype(np.int32)[:, None]
+    star = np.r_[1, np.zeros(99)].astype(np.int32)[:, None]
+    for neighbours in (pairs, down, up, star):
+        check_edges(edges_of(neighbours, device), neighbours)
+    edges = edges_of(pairs, device)
+    assert edges.count == 2
+    np.testing.assert_array_equal(edges.i.numpy(), [0, 2])
+    np.testing.assert_array_equal(edges.j.numpy(), [1, 3])
+
+
+@pytest.mark.parametrize("k", [1, 4, 7, 16])
+def test_edges_all_mutual(device, k, rng):
+    """Cliques of k+1 points, their labels shuffled: every entry is listed by both rows."""
+    groups = 50
+    labels = rng.permutation(groups * (k + 1)).reshape(groups, k + 1)
+    neighbours = np.empty((groups * (k + 1), k), dtype=np.int32)
+    for members in labels:
+        for m, point in enumerate(members):
+            neighbours[point] = rng.permutation(np.delete(members, m))
+    edges = edges_of(neighbours, device)
+    assert edges.count == groups * (k + 1) * k // 2
+    check_edges(edges, neighbours)
+
+
+@pytest.mark.parametrize("k", [1, 4, 7, 16])
+def test_edges_none_mutual(device, k, rng):
+    """Row i lists i+1..i+k (or i-1..i-k), modulo n > 2k: no pair is listed by both rows."""
+    n = 1000
+    for sign in (1, -1):
+        neighbours = ((np.arange(n)[:, None] + sign * np.arange(1, k + 1)) % n).astype(np.int32)
+        neighbours = rng.permuted(neighbours, axis=1)
+        edges = edges_of(neighbours, device)
+        assert edges.count == n * k
+        check_edges(edges, neighbours)
+
+
+def with_hub(neighbours, hub, rng):
+    """Every row but the hub's own lists the hub (one random entry replaced where it did not)."""
+    n, k = neighbours.shape
+    lacking = np.flatnonzero(~np.any(neighbours == hub, axis=1) & (np.arange(n) != hub))
+    neighbours[lacking, rng.integers(0, k, lacking.size)] = hub
+    check_valid(neighbours)
+    return neighbours
+
+
+@pytest.mark.parametrize("hub", ["first", "middle", "last"])
+@pytest.mark.parametrize("k", [4, 16])
+def test_edges_hub(device, hub, k, rng):
+    """One point listed by every other row (thousands): its segment is far longer than a row."""
+    n = 6000
+    h = {"first": 0, "middle": n // 2, "last": n - 1}[hub]
+    neighbours = with_hub(random_neighbours(n, k, rng), h, rng)
+    check_edges(edges_of(neighbours, device), neighbours)
+
+
+def staged_edges(neighbours, device, rng):
+    """candidate_edges stage by stage, with every segment's part (b) shuffled before the final sort,
+    as a GPU may leave it: the result must not depend on that order (the CPU always places it
+    ascending, so this is the only way the heap sort of a long part (b) runs there)."""
+    n, k = neighbours.shape
+    table = wp.array(neighbours, dtype=wp.int32, device=device)
+    rows = table.reshape((n, k // 4, 4)).view(wp.vec4i) if k % 4 == 0 else table
+    foreign = wp.empty(n, dtype=wp.uint32, device=device)
+    count = wp.empty(n, dtype=wp.int32, device=device)
+    wp.launch(edge_kernels._classify_rows, n, inputs=[0, rows, k, foreign, count], device=device)
+    wp.launch(edge_kernels._count_foreign, n, inputs=[table, foreign, count], device=device)
+    offsets = np.r_[0, np.cumsum(count.numpy())].astype(np.int32)
+    offsets_wp = wp.array(offsets, dtype=wp.int32, device=device)
+    j = wp.full(int(offsets[-1]), -1, dtype=wp.int32, device=device)
+    wp.launch(edge_kernels._place_foreign, n, inputs=[table, foreign, offsets_wp, count, j], device=device)
+    above, placed = count.numpy(), j.numpy()
+    for s in range(n):
+        part_b = placed[offsets[s] + above[s] : offsets[s + 1]]
+        part_b[:] = rng.permutation(part_b)
+    j = wp.array(placed, dtype=wp.int32, device=device)
+    i = wp.full(int(offsets[-1]), -1, dtype=wp.int32, device=device)
+    wp.launch(edge_kernels._finish_segments, n, inputs=[0, rows, k, offsets_wp, i, j], device=device)
+    return Edges(i=i, j=j, count=int(offsets[-1]))
+
+
+@pytest.mark.parametrize("k", [3, 16, 32])
+def test_edges_independent_of_part_b_order(device, k, rng):
+    n = 3000
+    neighbours = with_hub(random_neighbours(n, k, rng), 0, rng)
+    check_edges(staged_edges(neighbours, device, rng), neighbours)
+
+
+def test_edges_of_views(device, rng):
+    """A strided view and a view not aligned to 16 bytes read through the plain int32 path."""
+    n, k = 5000, 16
+    neighbours = local_neighbours(n, k, rng)
+    wide = wp.array(np.c_[neighbours, np.full((n, 3), -1, dtype=np.int32)], dtype=wp.int32, device=device)
+    strided = wide[:, :k]
+    assert not strided.is_contiguous
+    flat = wp.array(np.r_[np.int32(-1), neighbours.ravel()], dtype=wp.int32, device=device)
+    shifted = flat[1:].reshape((n, k))
+    assert shifted.ptr % 16 != 0
+    for view in (strided, shifted):
+        check_edges(candidate_edges(view), neighbours)
+
+
+def test_edges_deterministic(device, rng):
+    neighbours = with_hub(random_neighbours(40000, 16, rng), 7, rng)
+    table = wp.array(neighbours, dtype=wp.int32, device=device)
+    first, second = candidate_edges(table), candidate_edges(table)
+    assert first.count == second.count
+    assert first.i.numpy().tobytes() == second.i.numpy().tobytes()
+    assert first.j.numpy().tobytes() == second.j.numpy().tobytes()
+
+
+def test_edges_same_on_every_device(rng):
+    neighbours = random_neighbours(20000, 24, rng)
+    results = [edges_of(neighbours, d) for d in DEVICES]
+    for other in results[1:]:
+        np.testing.assert_array_equal(other.i.numpy(), results[0].i.numpy())
+        np.testing.assert_array_equal(other.j.numpy(), results[0].j.numpy())
+
+
+def test_edges_empty_and_too_wide(device):
+    for shape in ((0, 4), (5, 0)):
+        edges = candidate_edges(wp.empty(shape, dtype=wp.int32, device=device))
+        assert edges.count == 0 and edges.i.shape == (0,) and edges.j.shape == (0,)
+    with pytest.raises(ValueError):
+        candidate_edges(wp.zeros((40, 33), dtype=wp.int32, device=device))
+
+
+@wp.kernel
+def _sort_parts(values: wp.array(dtype=wp.int32), bounds: wp.array(dtype=wp.int32)):
+    s = wp.tid()
+    edge_kernels._sort_part(values, bounds[s], bounds[s + 1])
+
+
+def test_sort_part(device, rng):
+    """The segment sort: insertion up to SMALL_PART values, a heap sort beyond, any input order."""
+    sizes = [0, 1, 2, 31, 32, 33, 100, 5000, 5000, 5000]
+    parts = [rng.permutation(10**6)[:m] for m in sizes[:-2]]
+    parts += [np.arange(5000) * 3, np.arange(5000)[::-1] * 3]  # already sorted, reversed
+    values = np.concatenate(parts).astype(np.int32)
+    bounds = np.r_[0, np.cumsum(sizes)].astype(np.int32)
+    out = wp.array(values, dtype=wp.int32, device=device)
+    wp.launch(_sort_parts, len(sizes), inputs=[out, wp.array(bounds, dtype=wp.int32, device=device)], device=device)
+    expected = np.concatenate([np.sort(p) for p in parts])
+    np.testing.assert_array_equal(out.numpy(), expected)
+
+
+@wp.kernel
+def _mark_rows(first: int, marks: wp.array(dtype=wp.int32)):
+    r = first + wp.tid()
+    marks[r] = marks[r] + 1 + r
+
+
+def test_launch_rows_from_covers_every_row_once(device):
+    for rows in (0, 1, 1000, 100003):
+        marks = wp.zeros(rows, dtype=wp.int32, device=device)
+        launch_rows_from(_mark_rows, rows, [marks], device)
+        np.testing.assert_array_equal(marks.numpy(), np.arange(rows) + 1)
