@@ -39,4 +39,12 @@ for n in 1000000 6000000 20000000 50000000; do
   python3 tools/bench.py "$scenes"/playbot.ply --tile $n --device cuda:0 --ratio 0.1 --repeat 3 --log "$log/bench.jsonl" 2>&1 | tail -n 3
 done | tee "$log/bench_tiled.txt"
 python3 tools/bench.py "$scenes"/playbot.ply --tile 6000000 --device cuda:0 --ratio 0.001 --repeat 3 --log "$log/bench.jsonl" 2>&1 | tail -n 3 | tee -a "$log/bench_tiled.txt"
+python3 tools/bench.py "$scenes"/playbot.ply --tile 6000000 --device cuda:0 --ratio 0.1 --repeat 3 --k 16 --log "$log/bench.jsonl" 2>&1 | tail -n 3 | tee -a "$log/bench_tiled.txt"
+echo "== CLI end to end, 6M splats to 0.1 (PLY read and write included)"
+python3 tools/tile_scene.py "$scenes"/playbot.ply /tmp/playbot6m.ply --count 6000000
+ls -la /tmp/playbot6m.ply
+for run in first second; do
+  /usr/bin/time -f "$run: %e s wall, %M KB peak host" python3 -m nanogs_warp simplify /tmp/playbot6m.ply -o /tmp/playbot6m_small.ply --ratio 0.1 --device cuda:0 --json > "$log/cli_6m_$run.json"
+done 2>&1 | tee "$log/cli_6m.txt"
+python3 -c "import json,sys; d=json.load(open(sys.argv[1])); print('6M CLI:', d['seconds'], d['passes'], 'passes', d['outputs'][0]['count'], 'splats')" "$log/cli_6m_second.json" | tee -a "$log/cli_6m.txt"
 fi
