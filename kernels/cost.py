@@ -174,30 +174,24 @@ def idivergence_costs(
     )
 
 
-@wp.func
-def runnalls_bound(
-    pi: wp.float64,
-    i: int,
-    j: int,
-    means: wp.array(dtype=wp.vec3),
+@wp.kernel
+def runnalls_splat_terms(
     rotations: wp.array(dtype=wp.quat),
     log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    covariances: wp.array(dtype=wp.mat33d),
+    log_weights: wp.array(dtype=wp.float64),
 ):
-    """Runnalls' upper bound on KL(p~ || q_m) for the normalised pair p~ = pi N_i + (1 - pi) N_j and
-    its moment match q_m: 1/2 [log det Sigma_m - pi log det Sigma_i - (1 - pi) log det Sigma_j] >= 0
-    (Runnalls 2007, Kullback-Leibler approach to Gaussian mixture reduction), and whether Sigma_m
-    is positive definite."""
-    mu_m, cov_m = moment_match(
-        pi, to_vec3d(means[i]), covariance(rotations[i], log_scales[i]), to_vec3d(means[j]), covariance(rotations[j], log_scales[j])
-    )
-    l_m, ok = cholesky(cov_m)
-    bound = wp.float64(0.0)
-    if ok:
-        log_det_m = wp.float64(2.0) * (wp.log(l_m[0, 0]) + wp.log(l_m[1, 1]) + wp.log(l_m[2, 2]))
-        log_det_i = wp.float64(2.0) * (wp.float64(log_scales[i][0]) + wp.float64(log_scales[i][1]) + wp.float64(log_scales[i][2]))
-        log_det_j = wp.float64(2.0) * (wp.float64(log_scales[j][0]) + wp.float64(log_scales[j][1]) + wp.float64(log_scales[j][2]))
-        bound = wp.max(wp.float64(0.5) * (log_det_m - pi * log_det_i - (wp.float64(1.0) - pi) * log_det_j), wp.float64(0.0))
-    return bound, ok
+    """Per splat, once per pass (every edge reads two): Sigma and log w, w = alpha (s0 s1 + s0 s2 + s1 s2)."""
+    i = wp.tid()
+    covariances[i] = covariance(rotations[i], log_scales[i])
+    log_weights[i] = log_area_mass(opacities[i], log_scales[i])
+
+
+@wp.func
+def log_det_scales(log_scale: wp.vec3):
+    """log det Sigma = 2 sum_k log s_k."""
+    return wp.float64(2.0) * (wp.float64(log_scale[0]) + wp.float64(log_scale[1]) + wp.float64(log_scale[2]))
 
 
 @wp.kernel
@@ -205,9 +199,9 @@ def runnalls_costs(
     edge_i: wp.array(dtype=wp.int32),
     edge_j: wp.array(dtype=wp.int32),
     means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
     log_scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
+    covariances: wp.array(dtype=wp.mat33d),
+    log_weights: wp.array(dtype=wp.float64),
     features: wp.array2d(dtype=float),
     lambda_geo: float,
     lambda_app: float,
@@ -216,19 +210,27 @@ def runnalls_costs(
 ):
     """W^gamma [lambda_geo B(i, j) + lambda_app 4 pi (1 - pi) ||f_i - f_j||^2], deterministic and >= 0:
     weights w = alpha (s0 s1 + s0 s2 + s1 s2) (the area operator's), W = w_i + w_j,
-    pi = w_i / W, B Runnalls' bound on the pair's KL to its moment match; 4 pi (1 - pi) makes
+    pi = w_i / W, and B = 1/2 [log det Sigma_m - pi log det Sigma_i - (1 - pi) log det Sigma_j],
+    Runnalls' upper bound on KL(p~ || q_m) for the normalised pair and its moment match q_m
+    (Runnalls 2007, Kullback-Leibler approach to Gaussian mixture reduction). 4 pi (1 - pi) makes
     absorbing a light splat into a heavy one cheap (the weighted colour variance of the pair,
     scaled to D_app for equal weights); gamma = ``mass_exponent`` (0: scale-free as the paper's)."""
     e = wp.tid()
     i = int(edge_i[e])
     j = int(edge_j[e])
-    log_w_i = log_area_mass(opacities[i], log_scales[i])
-    log_w_j = log_area_mass(opacities[j], log_scales[j])
+    log_w_i = log_weights[i]
+    log_w_j = log_weights[j]
     pi = first_weight(log_w_i, log_w_j)
-    bound, ok = runnalls_bound(pi, i, j, means, rotations, log_scales)
+    mu_m, cov_m = moment_match(pi, to_vec3d(means[i]), covariances[i], to_vec3d(means[j]), covariances[j])
+    l_m, ok = cholesky(cov_m)
     if not ok:
         costs[e] = wp.float32(UNMERGEABLE)
         return
+    log_det_m = wp.float64(2.0) * (wp.log(l_m[0, 0]) + wp.log(l_m[1, 1]) + wp.log(l_m[2, 2]))
+    bound = wp.float64(0.5) * (
+        log_det_m - pi * log_det_scales(log_scales[i]) - (wp.float64(1.0) - pi) * log_det_scales(log_scales[j])
+    )
+    bound = wp.max(bound, wp.float64(0.0))
     app = wp.float64(4.0) * pi * (wp.float64(1.0) - pi) * appearance_distance(features, i, j)
     log_w = log_w_i - log_sigmoid(log_w_i - log_w_j)  # log W = log w_i - log pi
     costs[e] = finite_cost(

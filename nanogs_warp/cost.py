@@ -77,14 +77,25 @@ class RunnallsCost:
     mass_exponent: float = 0.25
 
     def __call__(self, splats: SplatSet, edges: Edges, pass_index: int) -> wp.array:
-        costs = wp.empty(edges.count, dtype=wp.float32, device=splats.device)
+        device = splats.device
+        covariances = wp.empty(splats.count, dtype=wp.mat33d, device=device)
+        log_weights = wp.empty(splats.count, dtype=wp.float64, device=device)
+        launch_rows(
+            kernels.runnalls_splat_terms, splats.count,
+            lambda rows: [
+                splats.rotations[rows], splats.log_scales[rows], splats.opacities[rows], covariances[rows],
+                log_weights[rows],
+            ],
+            device,
+        )  # fmt: skip
+        costs = wp.empty(edges.count, dtype=wp.float32, device=device)
         launch_rows(
             kernels.runnalls_costs, edges.count,
             lambda rows: [
-                edges.i[rows], edges.j[rows], splats.means, splats.rotations, splats.log_scales,
-                splats.opacities, splats.features, self.lambda_geo, self.lambda_app, self.mass_exponent, costs[rows],
+                edges.i[rows], edges.j[rows], splats.means, splats.log_scales, covariances, log_weights,
+                splats.features, self.lambda_geo, self.lambda_app, self.mass_exponent, costs[rows],
             ],
-            splats.device,
+            device,
         )  # fmt: skip
         return costs
 

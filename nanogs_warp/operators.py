@@ -3,8 +3,8 @@
 A merge operator is a callable ``operator(source, pairs, out, destination) -> None``. ``out`` is
 ``source`` without the rows ``pairs.j`` (row r of source is row destination[r] of out); the operator
 overwrites the row of each ``pairs.i[p]`` in ``out`` with the pair's merged splat. ``source`` is
-never changed. Add an operator
-by writing its kernel in ``nanogs_warp.kernels.merge`` and a class here, then naming it in ``OPERATORS``.
+never changed. Add an operator by writing its kernel in ``nanogs_warp.kernels.merge`` and a class
+here, then naming it in ``OPERATORS``.
 """
 
 from __future__ import annotations
@@ -15,14 +15,16 @@ import warp as wp
 
 from .kernels import merge as kernels
 from .pairing import Pairs
+from .parallel import launch_rows
 from .splats import SplatSet
 
 
 def _launch(kernel, source: SplatSet, pairs: Pairs, out: SplatSet, destination: wp.array, *parameters) -> None:
-    wp.launch(
+    """One thread per pair; pairs are disjoint and write distinct rows, so the CPU may split them."""
+    launch_rows(
         kernel, pairs.count,
-        inputs=[pairs.i, pairs.j, destination, *source.arrays()], outputs=[*out.arrays(), *parameters],
-        device=source.device,
+        lambda rows: [pairs.i[rows], pairs.j[rows], destination, *source.arrays(), *out.arrays(), *parameters],
+        source.device,
     )  # fmt: skip
 
 
