@@ -12,7 +12,6 @@ in chunks from one thread per core (they use no atomics, so the chunks are indep
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Sequence
 
@@ -22,16 +21,10 @@ import warp as wp
 from .cameras import Camera
 from .errors import InputError
 from .kernels import render as kernels
+from .parallel import cpu_workers
 from .splats import SplatSet
 
 TILE = 16
-
-
-def _cpu_workers() -> int:
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def camera_params(camera: Camera) -> kernels.CameraParams:
@@ -68,7 +61,7 @@ class _Rasteriser:
         self.n = splats.count
         self.degree = splats.sh_degree
         if workers is None:
-            workers = _cpu_workers() if self.device.is_cpu else 1
+            workers = cpu_workers() if self.device.is_cpu else 1
         self.workers = workers
         if method is None:
             method = "tiles" if self.device.is_cpu else "pixels"
