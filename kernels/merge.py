@@ -15,7 +15,7 @@ dispersion), features and extras. Operators differ in their weights and in the m
 
 import warp as wp
 
-from .splat_math import covariance, first_weight, log_mass, log_sigmoid, moment_match, quaternion_from_frame, symmetric_eigen, to_vec3d
+from .splat_math import Splats, covariance, first_weight, log_mass, log_sigmoid, moment_match, quaternion_from_frame, symmetric_eigen, to_vec3d
 
 wp.set_module_options({"enable_backward": False})
 
@@ -40,18 +40,16 @@ def store_gaussian(
     mu: wp.vec3d,
     values: wp.vec3d,
     frame: wp.mat33d,
-    means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    log_scales: wp.array(dtype=wp.vec3),
+    out: Splats,
 ):
     """Stores centre ``mu`` and the covariance frame diag(values) in ``frame`` (eigenvalues
     decreasing, det frame = +1) as centre, rotation and log scales. Returns the log scales stored."""
-    means[row] = wp.vec3(wp.float32(mu[0]), wp.float32(mu[1]), wp.float32(mu[2]))
-    rotations[row] = quaternion_from_frame(frame)
+    out.means[row] = wp.vec3(wp.float32(mu[0]), wp.float32(mu[1]), wp.float32(mu[2]))
+    out.rotations[row] = quaternion_from_frame(frame)
     ls = wp.vec3()
     for k in range(3):
         ls[k] = wp.max(wp.float32(wp.float64(0.5) * wp.log(wp.max(values[k], wp.float64(1e-300)))), LOG_SCALE_MIN)
-    log_scales[row] = ls
+    out.log_scales[row] = ls
     return ls
 
 
@@ -60,14 +58,12 @@ def write_gaussian(
     row: int,
     mu: wp.vec3d,
     cov: wp.mat33d,
-    means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    log_scales: wp.array(dtype=wp.vec3),
+    out: Splats,
 ):
     """Stores N(mu, cov) as centre, rotation and log scales: Sigma = R diag(s^2) R^T with R the
     eigenvector frame (eigenvalues decreasing, det R = +1). Returns the log scales stored."""
     values, frame = symmetric_eigen(cov)
-    return store_gaussian(row, mu, values, frame, means, rotations, log_scales)
+    return store_gaussian(row, mu, values, frame, out)
 
 
 @wp.func
@@ -83,14 +79,12 @@ def blend_appearance(
     j: int,
     pi: wp.float64,
     row: int,
-    features: wp.array2d(dtype=float),
-    extras: wp.array2d(dtype=float),
-    out_features: wp.array2d(dtype=float),
-    out_extras: wp.array2d(dtype=float),
+    src: Splats,
+    out: Splats,
 ):
     """Weighted features (SH) and extras of the pair, written at ``row``."""
-    blend_rows(features, i, j, pi, out_features, row)
-    blend_rows(extras, i, j, pi, out_extras, row)
+    blend_rows(src.features, i, j, pi, out.features, row)
+    blend_rows(src.extras, i, j, pi, out.extras, row)
 
 
 @wp.func
@@ -98,15 +92,13 @@ def pair_moments(
     i: int,
     j: int,
     pi: wp.float64,
-    means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    log_scales: wp.array(dtype=wp.vec3),
+    src: Splats,
 ):
     """Weighted mean and covariance of splats i and j (NanoGS eq. 7-8), float64."""
     return moment_match(
         pi,
-        to_vec3d(means[i]), covariance(rotations[i], log_scales[i]),
-        to_vec3d(means[j]), covariance(rotations[j], log_scales[j]),
+        to_vec3d(src.means[i]), covariance(src.rotations[i], src.log_scales[i]),
+        to_vec3d(src.means[j]), covariance(src.rotations[j], src.log_scales[j]),
     )  # fmt: skip
 
 
@@ -166,18 +158,8 @@ def mass_preserving_moment_matching(
     pair_i: wp.array(dtype=wp.int32),
     pair_j: wp.array(dtype=wp.int32),
     destination: wp.array(dtype=wp.int32),
-    means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    log_scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
-    features: wp.array2d(dtype=float),
-    extras: wp.array2d(dtype=float),
-    out_means: wp.array(dtype=wp.vec3),
-    out_rotations: wp.array(dtype=wp.quat),
-    out_log_scales: wp.array(dtype=wp.vec3),
-    out_opacities: wp.array(dtype=float),
-    out_features: wp.array2d(dtype=float),
-    out_extras: wp.array2d(dtype=float),
+    src: Splats,
+    out: Splats,
 ):
     """MPMM (NanoGS eq. 6-9): mass weights w = (2 pi)^{3/2} alpha prod s; mass-weighted mean,
     covariance (within-splat average + between-mean dispersion), features and extras; opacity by
@@ -186,11 +168,11 @@ def mass_preserving_moment_matching(
     i = int(pair_i[p])
     j = int(pair_j[p])
     row = int(destination[i])
-    pi = first_weight(log_mass(opacities[i], log_scales[i]), log_mass(opacities[j], log_scales[j]))
-    mu_m, cov_m = pair_moments(i, j, pi, means, rotations, log_scales)
-    out_opacities[row] = over_opacity_logit(opacities[i], opacities[j])
-    blend_appearance(i, j, pi, row, features, extras, out_features, out_extras)
-    write_gaussian(row, mu_m, cov_m, out_means, out_rotations, out_log_scales)
+    pi = first_weight(log_mass(src.opacities[i], src.log_scales[i]), log_mass(src.opacities[j], src.log_scales[j]))
+    mu_m, cov_m = pair_moments(i, j, pi, src)
+    out.opacities[row] = over_opacity_logit(src.opacities[i], src.opacities[j])
+    blend_appearance(i, j, pi, row, src, out)
+    write_gaussian(row, mu_m, cov_m, out)
 
 
 @wp.kernel
@@ -198,18 +180,8 @@ def area_weighted_moment_matching(
     pair_i: wp.array(dtype=wp.int32),
     pair_j: wp.array(dtype=wp.int32),
     destination: wp.array(dtype=wp.int32),
-    means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    log_scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
-    features: wp.array2d(dtype=float),
-    extras: wp.array2d(dtype=float),
-    out_means: wp.array(dtype=wp.vec3),
-    out_rotations: wp.array(dtype=wp.quat),
-    out_log_scales: wp.array(dtype=wp.vec3),
-    out_opacities: wp.array(dtype=float),
-    out_features: wp.array2d(dtype=float),
-    out_extras: wp.array2d(dtype=float),
+    src: Splats,
+    out: Splats,
 ):
     """Area-weighted moment matching (as hierarchical 3DGS weights its merges): weights
     w = alpha (s0 s1 + s0 s2 + s1 s2); w-weighted mean, covariance, features and extras; merged
@@ -218,14 +190,14 @@ def area_weighted_moment_matching(
     i = int(pair_i[p])
     j = int(pair_j[p])
     row = int(destination[i])
-    log_w_i = log_area_mass(opacities[i], log_scales[i])
-    log_w_j = log_area_mass(opacities[j], log_scales[j])
+    log_w_i = log_area_mass(src.opacities[i], src.log_scales[i])
+    log_w_j = log_area_mass(src.opacities[j], src.log_scales[j])
     pi = first_weight(log_w_i, log_w_j)
-    mu_m, cov_m = pair_moments(i, j, pi, means, rotations, log_scales)
-    blend_appearance(i, j, pi, row, features, extras, out_features, out_extras)
-    log_scale_m = write_gaussian(row, mu_m, cov_m, out_means, out_rotations, out_log_scales)
+    mu_m, cov_m = pair_moments(i, j, pi, src)
+    blend_appearance(i, j, pi, row, src, out)
+    log_scale_m = write_gaussian(row, mu_m, cov_m, out)
     log_w_m = log_w_i - log_sigmoid(log_w_i - log_w_j)  # log(w_i + w_j) = log w_i - log pi
-    out_opacities[row] = logit_of_log_alpha(log_w_m - log_area(log_scale_m))
+    out.opacities[row] = logit_of_log_alpha(log_w_m - log_area(log_scale_m))
 
 
 @wp.kernel
@@ -233,18 +205,8 @@ def coverage_moment_matching(
     pair_i: wp.array(dtype=wp.int32),
     pair_j: wp.array(dtype=wp.int32),
     destination: wp.array(dtype=wp.int32),
-    means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    log_scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
-    features: wp.array2d(dtype=float),
-    extras: wp.array2d(dtype=float),
-    out_means: wp.array(dtype=wp.vec3),
-    out_rotations: wp.array(dtype=wp.quat),
-    out_log_scales: wp.array(dtype=wp.vec3),
-    out_opacities: wp.array(dtype=float),
-    out_features: wp.array2d(dtype=float),
-    out_extras: wp.array2d(dtype=float),
+    src: Splats,
+    out: Splats,
     growth: float,
 ):
     """Coverage-conserving moment matching: weights w = alpha s_a s_b (face-on footprint);
@@ -257,19 +219,19 @@ def coverage_moment_matching(
     i = int(pair_i[p])
     j = int(pair_j[p])
     row = int(destination[i])
-    pi = first_weight(log_coverage_mass(opacities[i], log_scales[i]), log_coverage_mass(opacities[j], log_scales[j]))
-    mu_m, cov_m = pair_moments(i, j, pi, means, rotations, log_scales)
-    blend_appearance(i, j, pi, row, features, extras, out_features, out_extras)
+    pi = first_weight(log_coverage_mass(src.opacities[i], src.log_scales[i]), log_coverage_mass(src.opacities[j], src.log_scales[j]))
+    mu_m, cov_m = pair_moments(i, j, pi, src)
+    blend_appearance(i, j, pi, row, src, out)
     values, frame = symmetric_eigen(cov_m)
     c0 = wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0])
     c1 = wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
-    coverage = wp.exp(log_sigmoid(wp.float64(opacities[i]))) * projected_footprint(
-        covariance(rotations[i], log_scales[i]), c0, c1
-    ) + wp.exp(log_sigmoid(wp.float64(opacities[j]))) * projected_footprint(covariance(rotations[j], log_scales[j]), c0, c1)
+    coverage = wp.exp(log_sigmoid(wp.float64(src.opacities[i]))) * projected_footprint(
+        covariance(src.rotations[i], src.log_scales[i]), c0, c1
+    ) + wp.exp(log_sigmoid(wp.float64(src.opacities[j]))) * projected_footprint(covariance(src.rotations[j], src.log_scales[j]), c0, c1)
     ratio = coverage / wp.sqrt(wp.max(values[0] * values[1], wp.float64(1e-300)))
     if ratio > wp.float64(1.0):
         grow = wp.pow(ratio, wp.float64(growth))
         values = wp.vec3d(values[0] * grow, values[1] * grow, values[2])  # the frame and the order stay
         ratio = ratio / grow
-    store_gaussian(row, mu_m, values, frame, out_means, out_rotations, out_log_scales)
-    out_opacities[row] = logit_of_log_alpha(wp.log(wp.max(ratio, wp.float64(1e-300))))
+    store_gaussian(row, mu_m, values, frame, out)
+    out.opacities[row] = logit_of_log_alpha(wp.log(wp.max(ratio, wp.float64(1e-300))))

@@ -12,6 +12,18 @@ wp.set_module_options({"enable_backward": False})
 LOG_2PI = wp.constant(1.8378770664093453)
 
 
+@wp.struct
+class Splats:
+    """A splat set's arrays as kernels see them (``SplatSet.kernel_view()``)."""
+
+    means: wp.array(dtype=wp.vec3)
+    rotations: wp.array(dtype=wp.quat)
+    log_scales: wp.array(dtype=wp.vec3)
+    opacities: wp.array(dtype=float)
+    features: wp.array2d(dtype=float)
+    extras: wp.array2d(dtype=float)
+
+
 @wp.func
 def to_vec3d(v: wp.vec3):
     return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))

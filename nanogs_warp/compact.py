@@ -17,7 +17,7 @@ def select_rows(splats: SplatSet, keep: wp.array, kept_count: int) -> tuple[Spla
     out = SplatSet.empty(kept_count, splats.features.shape[1], splats.extras.shape[1], device, splats.layout)
     wp.launch(
         kernels.gather_rows, splats.count,
-        inputs=[keep, destination, *splats.arrays()], outputs=[*out.arrays()], device=device,
+        inputs=[keep, destination, splats.kernel_view(), out.kernel_view()], device=device,
     )  # fmt: skip
     return out, destination
 

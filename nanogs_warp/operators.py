@@ -23,7 +23,7 @@ def _launch(kernel, source: SplatSet, pairs: Pairs, out: SplatSet, destination: 
     """One thread per pair; pairs are disjoint and write distinct rows, so the CPU may split them."""
     launch_rows(
         kernel, pairs.count,
-        lambda rows: [pairs.i[rows], pairs.j[rows], destination, *source.arrays(), *out.arrays(), *parameters],
+        lambda rows: [pairs.i[rows], pairs.j[rows], destination, source.kernel_view(), out.kernel_view(), *parameters],
         source.device,
     )  # fmt: skip
 

@@ -112,6 +112,15 @@ class SplatSet:
             layout=self.layout,
         )
 
+    def kernel_view(self):
+        """The arrays bundled as the kernels' ``Splats`` struct."""
+        from .kernels.splat_math import Splats
+
+        view = Splats()
+        view.means, view.rotations, view.log_scales = self.means, self.rotations, self.log_scales
+        view.opacities, view.features, view.extras = self.opacities, self.features, self.extras
+        return view
+
     def arrays(self) -> tuple[wp.array, ...]:
         return (self.means, self.rotations, self.log_scales, self.opacities, self.features, self.extras)
 
