@@ -23,9 +23,8 @@ def edge_ids(keys: wp.array(dtype=float), costs: wp.array(dtype=float), ids: wp.
 
 @wp.kernel
 def greedy_pairs_in_order(
-    order: wp.array(dtype=wp.int32),
-    edge_i: wp.array(dtype=wp.int32),
-    edge_j: wp.array(dtype=wp.int32),
+    rank_i: wp.array(dtype=wp.int32),
+    rank_j: wp.array(dtype=wp.int32),
     cap: int,
     partner: wp.array(dtype=wp.int32),
     pair_i: wp.array(dtype=wp.int32),
@@ -34,12 +33,11 @@ def greedy_pairs_in_order(
 ):
     """Sequential greedy matching, launched as one thread (for the CPU, where a launch is one core)."""
     taken = int(0)
-    for r in range(order.shape[0]):
+    for r in range(rank_i.shape[0]):
         if taken >= cap:
             break
-        e = order[r]
-        i = edge_i[e]
-        j = edge_j[e]
+        i = rank_i[r]
+        j = rank_j[r]
         if partner[i] < 0 and partner[j] < 0:
             partner[i] = j
             partner[j] = i
@@ -56,13 +54,18 @@ def ranked_endpoints(
     edge_j: wp.array(dtype=wp.int32),
     rank_i: wp.array(dtype=wp.int32),
     rank_j: wp.array(dtype=wp.int32),
-    active: wp.array(dtype=wp.int32),
 ):
-    """Endpoints of the edge of each rank, and the list of active ranks (all of them)."""
+    """Endpoints of the edge of each rank."""
     r = wp.tid()
     e = order[r]
     rank_i[r] = edge_i[e]
     rank_j[r] = edge_j[e]
+
+
+@wp.kernel
+def all_ranks(active: wp.array(dtype=wp.int32)):
+    """The active list at the start: every rank."""
+    r = wp.tid()
     active[r] = r
 
 
@@ -86,7 +89,6 @@ def accept_mutual_claims(
     rank_j: wp.array(dtype=wp.int32),
     best: wp.array(dtype=wp.int32),
     partner: wp.array(dtype=wp.int32),
-    matched: wp.array(dtype=wp.int32),
 ):
     """Edges that won at both ends are matched. Only the winner of an end writes its partner."""
     r = active[wp.tid()]
@@ -95,7 +97,18 @@ def accept_mutual_claims(
     if best[i] == r and best[j] == r:
         partner[i] = j
         partner[j] = i
-        matched[r] = 1
+
+
+@wp.kernel
+def matched_ranks(
+    rank_i: wp.array(dtype=wp.int32),
+    rank_j: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    matched: wp.array(dtype=wp.int32),
+):
+    """matched[r] = 1 where the edge of rank r joined its ends."""
+    r = wp.tid()
+    matched[r] = wp.where(partner[rank_i[r]] == rank_j[r], 1, 0)
 
 
 @wp.kernel

@@ -13,7 +13,7 @@ from .compact import remove_rows
 from .cost import COSTS
 from .errors import InputError
 from .operators import OPERATORS
-from .pairing import select_pairs
+from .pairing import rank_edges, select_pairs
 from .prune import prune_low_opacity
 from .splats import SplatSet
 from .timing import StageClock, no_clock
@@ -111,8 +111,12 @@ def simplify_progressively(
                 edges = topology(current)
             with stage("cost"):
                 costs = cost(current, edges, pass_index)
+            edge_count = edges.count
             with stage("pairing"):
-                pairs = select_pairs(edges, costs, n, cap=n - target)
+                ranked = rank_edges(edges, costs)
+                del edges, costs  # the ranked copy is all the matching needs
+                pairs = select_pairs(ranked, n, cap=n - target)
+                del ranked
             if pairs.count == 0:  # cannot happen with n >= 2 (a kNN graph has edges); guards the loop
                 raise RuntimeError(f"no merge possible at {n} splats")
             with stage("compaction"):
@@ -120,9 +124,9 @@ def simplify_progressively(
             with stage("merge"):
                 merge(current, pairs, merged, destination)
             if on_pass is not None:
-                on_pass(PassReport(pass_index, n, merged.count, edges.count))
+                on_pass(PassReport(pass_index, n, merged.count, edge_count))
             current = merged
-            del edges, costs, pairs, destination, merged  # free this pass's scratch before the next kNN
+            del pairs, destination, merged  # free this pass's scratch before the next kNN
             pass_index += 1
         yield target, current
 
