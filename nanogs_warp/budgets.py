@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import InputError
+from .pipeline import target_count
 
 
 @dataclass(frozen=True)
@@ -23,7 +24,7 @@ class Budget:
     def target(self, input_count: int) -> int:
         """max(1, ceil(ratio * N0)), or the count itself; checked against the input's size."""
         if self.ratio is not None:
-            return max(1, math.ceil(self.ratio * input_count))
+            return target_count(input_count, self.ratio)
         if self.count > input_count:
             raise InputError(f"--count {self.count} is more than the input's {input_count} splats")
         return self.count
