@@ -183,19 +183,26 @@ def _sort_part(values: wp.array(dtype=wp.int32), start: int, stop: int):
 
 
 @wp.func
+def _sorted_prefix(buffer: row_buffer, size: int):
+    """``buffer`` with its first ``size`` entries in ascending order (insertion sort in registers)."""
+    for x in range(1, size):
+        v = buffer[x]
+        y = int(x)
+        while y > 0:
+            w = buffer[y - 1]
+            if w <= v:
+                break
+            buffer[y] = w
+            y -= 1
+        buffer[y] = v
+    return buffer
+
+
+@wp.func
 def _finish_long(edge_j: wp.array(dtype=wp.int32), part_a: row_buffer, a: int, start: int, stop: int):
     # a segment longer than MAX_K: part (a) sorted in registers, part (b) = edge_j[start + a : stop]
     # sorted in place, then the two merged from the front (writes never pass the unread part (b))
-    for x in range(1, a):
-        v = part_a[x]
-        y = int(x)
-        while y > 0:
-            w = part_a[y - 1]
-            if w <= v:
-                break
-            part_a[y] = w
-            y -= 1
-        part_a[y] = v
+    part_a = _sorted_prefix(part_a, a)
     b = start + a
     _sort_part(edge_j, b, stop)
     p = int(start)
@@ -243,16 +250,7 @@ def _finish_segments(
     if size <= MAX_K:  # the usual case: the whole segment sorted in registers
         for e in range(b, stop):
             buffer[e - start] = edge_j[e]
-        for x in range(1, size):  # insertion sort
-            v = buffer[x]
-            y = int(x)
-            while y > 0:
-                w = buffer[y - 1]
-                if w <= v:
-                    break
-                buffer[y] = w
-                y -= 1
-            buffer[y] = v
+        buffer = _sorted_prefix(buffer, size)
         for x in range(size):
             edge_j[start + x] = buffer[x]
     else:  # a point listed by many rows
