@@ -1,13 +1,16 @@
-"""Choose disjoint low-cost pairs: exactly the sequential greedy matching on (cost, i, j) order."""
+"""Choose disjoint low-cost pairs: exactly the sequential greedy matching over the edges in rank
+order (by cost, then by edge index, which is (i, j) order)."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import warp as wp
 
 from .kernels import pairing as kernels
+from .parallel import MIN_ROWS_TO_SPLIT, cpu_workers, launch_rows_from
 
 if TYPE_CHECKING:
     from .topology import Edges
@@ -15,96 +18,110 @@ if TYPE_CHECKING:
 
 @dataclass
 class Pairs:
-    """``count`` disjoint pairs (i[p], j[p]) in the order they were chosen."""
+    """``count`` disjoint pairs (i[p], j[p]) in rank order."""
 
     i: wp.array
     j: wp.array
     count: int
 
 
-@dataclass
-class RankedEdges:
-    """Candidate edges in rank order, by cost and then (i, j): the r-th cheapest joins i[r] and j[r]."""
-
-    i: wp.array
-    j: wp.array
-    count: int
-
-
-def rank_edges(edges: Edges, costs: wp.array) -> RankedEdges:
-    """Sorts the edges by cost; equal costs keep edge order, which is (i, j) order. The sort's
-    double buffers are freed on return, so the caller may drop ``edges`` and ``costs`` next."""
-    n = edges.count
-    device = costs.device
-    keys = wp.empty(2 * n, dtype=wp.float32, device=device)
-    order = wp.empty(2 * n, dtype=wp.int32, device=device)
-    wp.launch(kernels.edge_ids, n, inputs=[keys, costs, order], device=device)
-    wp.utils.radix_sort_pairs(keys, order, n)
-    del keys  # before the ranked endpoints are allocated: the peak of a pass is here
-    rank_i = wp.empty(n, dtype=wp.int32, device=device)
-    rank_j = wp.empty(n, dtype=wp.int32, device=device)
-    wp.launch(kernels.ranked_endpoints, n, inputs=[order, edges.i, edges.j], outputs=[rank_i, rank_j], device=device)
-    return RankedEdges(rank_i, rank_j, n)
-
-
-def select_pairs(ranked: RankedEdges, vertex_count: int, cap: int, method: str = "auto") -> Pairs:
+def select_pairs(edges: Edges, costs: wp.array, vertex_count: int, cap: int, method: str = "auto") -> Pairs:
     """Up to ``cap`` disjoint edges, greedily in rank order.
 
-    ``method`` is "sequential" (one thread; fastest on the CPU), "parallel" (locally dominant
-    rounds; for GPUs) or "auto" (sequential on the CPU, parallel elsewhere). Both give the same pairs.
+    ``method`` is "sequential" (sorted runs scanned by one thread; fastest on the CPU), "parallel"
+    (locally dominant rounds, no sort of the edges; for GPUs) or "auto" (sequential on the CPU,
+    parallel elsewhere). Both give the same pairs.
     """
-    device = ranked.i.device
+    device = costs.device
     if method == "auto":
         method = "sequential" if device.is_cpu else "parallel"
+    if method not in ("sequential", "parallel"):
+        raise ValueError(f"unknown pairing method {method!r}")
     cap = max(0, min(cap, vertex_count // 2))
-    if ranked.count == 0 or cap == 0:
+    if edges.count == 0 or cap == 0:
         none = wp.zeros(0, dtype=wp.int32, device=device)
         return Pairs(none, none, 0)
-    partner = wp.full(vertex_count, -1, dtype=wp.int32, device=device)
     pair_i = wp.full(cap, -1, dtype=wp.int32, device=device)
     pair_j = wp.full(cap, -1, dtype=wp.int32, device=device)
-    pair_count = wp.zeros(1, dtype=wp.int32, device=device)
     if method == "sequential":
-        wp.launch(
-            kernels.greedy_pairs_in_order, 1,
-            inputs=[ranked.i, ranked.j, cap], outputs=[partner, pair_i, pair_j, pair_count], device=device,
-        )  # fmt: skip
-    elif method == "parallel":
-        _locally_dominant_pairs(ranked, partner, cap, pair_i, pair_j, pair_count)
+        count = _greedy_in_rank_order(edges, costs, vertex_count, cap, pair_i, pair_j)
     else:
-        raise ValueError(f"unknown pairing method {method!r}")
-    count = int(pair_count.numpy()[0])
+        count = _locally_dominant_pairs(edges, costs, vertex_count, cap, pair_i, pair_j)
     return Pairs(pair_i[:count], pair_j[:count], count)
 
 
-def _locally_dominant_pairs(ranked: RankedEdges, partner, cap, pair_i, pair_j, pair_count) -> None:
-    """Rounds of: free edges claim both ends by rank, mutual winners match, edges with a matched
-    end leave the active list. Every round matches at least the lowest-ranked active edge, and the
-    active list shrinks fast, so the total work stays a small multiple of the edge count."""
-    device = ranked.i.device
-    e = ranked.count
-    rank_i, rank_j = ranked.i, ranked.j
-    active = wp.empty(e, dtype=wp.int32, device=device)
-    wp.launch(kernels.all_ranks, e, outputs=[active], device=device)
-    spare = wp.empty(e, dtype=wp.int32, device=device)
-    keep = wp.empty(e, dtype=wp.int32, device=device)
-    position = wp.empty(e, dtype=wp.int32, device=device)
-    best = wp.full(partner.shape[0], kernels.NO_CLAIM, dtype=wp.int32, device=device)
-    count = e
-    while count > 0:
-        now = active[:count]
-        wp.launch(kernels.claim_endpoints, count, inputs=[now, rank_i, rank_j], outputs=[best], device=device)
-        wp.launch(kernels.accept_mutual_claims, count, inputs=[now, rank_i, rank_j, best], outputs=[partner], device=device)
-        wp.launch(kernels.still_free, count, inputs=[now, rank_i, rank_j, partner], outputs=[best, keep], device=device)
-        wp.utils.array_scan(keep[:count], position[:count], inclusive=True)
-        remaining = int(position[count - 1 : count].numpy()[0])
-        wp.launch(kernels.gather_active, count, inputs=[now, keep, position], outputs=[spare], device=device)
-        active, spare, count = spare, active, remaining
-    del active, spare
-    matched = keep
-    wp.launch(kernels.matched_ranks, e, inputs=[rank_i, rank_j, partner], outputs=[matched], device=device)
-    wp.utils.array_scan(matched, position, inclusive=False)
+def _greedy_in_rank_order(edges: Edges, costs, vertex_count, cap, pair_i, pair_j) -> int:
+    """Sorts the edges by cost in two runs, one per CPU core where there are two (stable radix sorts
+    of (cost, ends), each run keeping edge order on equal costs), then one thread merges the runs
+    and takes every edge whose ends are both free."""
+    device = costs.device
+    e = edges.count
+    two_runs = device.is_cpu and cpu_workers() >= 2 and e >= 2 * MIN_ROWS_TO_SPLIT
+    split = (e + 1) // 2 if two_runs else e
+    keys = wp.empty(2 * e, dtype=wp.uint32, device=device)
+    ends = wp.empty(2 * e, dtype=wp.vec2i, device=device)
+    launch_rows_from(kernels.runs_to_sort, e, [split, costs, edges.i, edges.j, keys, ends], device)
+    runs = [(0, split), (2 * split, 2 * split + e - split)]
+
+    def sort(run: tuple[int, int]) -> None:
+        begin, end = run
+        if end > begin:
+            wp.utils.radix_sort_pairs(keys[begin : begin + 2 * (end - begin)], ends[begin : begin + 2 * (end - begin)], end - begin)
+
+    if two_runs:
+        with ThreadPoolExecutor(2) as pool:  # the host sort releases the GIL
+            list(pool.map(sort, runs))
+    else:
+        sort(runs[0])
+    partner = wp.full(vertex_count, -1, dtype=wp.int32, device=device)
+    pair_count = wp.zeros(1, dtype=wp.int32, device=device)
     wp.launch(
-        kernels.first_matched_pairs, e,
-        inputs=[rank_i, rank_j, matched, position, cap], outputs=[pair_i, pair_j, pair_count], device=device,
+        kernels.greedy_pairs_in_rank_order, 1,
+        inputs=[keys, ends, *runs[0], *runs[1], cap], outputs=[partner, pair_i, pair_j, pair_count], device=device,
     )  # fmt: skip
+    return int(pair_count.numpy()[0])
+
+
+def _locally_dominant_pairs(edges: Edges, costs, vertex_count, cap, pair_i, pair_j) -> int:
+    """Rounds of: free edges claim both ends by priority, mutual winners match, edges with a
+    matched end leave the active list. Every round matches at least the smallest-priority active
+    edge, and the active list shrinks fast, so the total work stays a small multiple of the edge
+    count. The matched edges are then sorted by priority: the first ``cap`` are the pairs."""
+    device = costs.device
+    edge_i, edge_j = edges.i, edges.j
+    best = wp.full(vertex_count, kernels.NO_CLAIM, dtype=wp.uint64, device=device)
+    partner = wp.full(vertex_count, -1, dtype=wp.int32, device=device)
+    most = vertex_count // 2  # a matching has at most this many edges; the sort needs twice the room
+    matched_keys = wp.empty(2 * most, dtype=wp.uint64, device=device)
+    matched_edges = wp.empty(2 * most, dtype=wp.int32, device=device)
+    matched_count = wp.zeros(1, dtype=wp.int32, device=device)
+    counter = wp.zeros(1, dtype=wp.int32, device=device)
+    active = wp.empty(0, dtype=wp.int32, device=device)  # empty: every edge
+    count = edges.count
+    while count > 0:
+        wp.launch(kernels.claim_endpoints, count, inputs=[active, edge_i, edge_j, costs], outputs=[best], device=device)
+        wp.launch(
+            kernels.accept_mutual_claims, count,
+            inputs=[active, edge_i, edge_j, costs, best],
+            outputs=[partner, matched_keys, matched_edges, matched_count], device=device,
+        )  # fmt: skip
+        counter.zero_()
+        wp.launch(
+            kernels.count_still_free, count, inputs=[active, edge_i, edge_j, partner], outputs=[best, counter], device=device
+        )
+        remaining = int(counter.numpy()[0])
+        next_active = wp.empty(remaining, dtype=wp.int32, device=device)
+        if remaining > 0:
+            counter.zero_()
+            wp.launch(
+                kernels.gather_still_free, count,
+                inputs=[active, edge_i, edge_j, partner], outputs=[counter, next_active], device=device,
+            )  # fmt: skip
+        active, count = next_active, remaining
+    matched = int(matched_count.numpy()[0])
+    wp.utils.radix_sort_pairs(matched_keys, matched_edges, matched)
+    taken = min(matched, cap)
+    wp.launch(
+        kernels.first_pairs_by_rank, taken, inputs=[matched_edges, edge_i, edge_j], outputs=[pair_i, pair_j], device=device
+    )
+    return taken

@@ -13,7 +13,7 @@ from .compact import remove_rows
 from .cost import COSTS
 from .errors import InputError
 from .operators import OPERATORS
-from .pairing import rank_edges, select_pairs
+from .pairing import select_pairs
 from .prune import prune_low_opacity
 from .splats import SplatSet
 from .timing import StageClock, no_clock
@@ -113,10 +113,8 @@ def simplify_progressively(
                 costs = cost(current, edges, pass_index)
             edge_count = edges.count
             with stage("pairing"):
-                ranked = rank_edges(edges, costs)
-                del edges, costs  # the ranked copy is all the matching needs
-                pairs = select_pairs(ranked, n, cap=n - target)
-                del ranked
+                pairs = select_pairs(edges, costs, n, cap=n - target)
+                del edges, costs
             if pairs.count == 0:  # cannot happen with n >= 2 (a kNN graph has edges); guards the loop
                 raise RuntimeError(f"no merge possible at {n} splats")
             with stage("compaction"):
