@@ -180,12 +180,33 @@ def runnalls_splat_terms(
     log_scales: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
     covariances: wp.array(dtype=wp.mat33d),
-    log_weights: wp.array(dtype=wp.float64),
+    weights: wp.array(dtype=wp.float64),
 ):
-    """Per splat, once per pass (every edge reads two): Sigma and log w, w = alpha (s0 s1 + s0 s2 + s1 s2)."""
+    """Per splat, once per pass (every edge reads two): Sigma and w = alpha (s0 s1 + s0 s2 + s1 s2)."""
     i = wp.tid()
     covariances[i] = covariance(rotations[i], log_scales[i])
-    log_weights[i] = log_area_mass(opacities[i], log_scales[i])
+    weights[i] = wp.exp(log_area_mass(opacities[i], log_scales[i]))
+
+
+@wp.func
+def mass_power(w: wp.float64, exponent: float):
+    """w^exponent; the default exponent 1/4 as two square roots."""
+    if exponent == 0.25:
+        return wp.sqrt(wp.sqrt(w))
+    if exponent == 0.0:
+        return wp.float64(1.0)
+    return wp.exp(wp.float64(exponent) * wp.log(w))
+
+
+@wp.func
+def log_det_positive(a: wp.mat33d):
+    """log det of a symmetric matrix and whether it is positive definite (Sylvester: every leading
+    minor positive)."""
+    m1 = a[0, 0]
+    m2 = m1 * a[1, 1] - a[0, 1] * a[1, 0]
+    det = wp.determinant(a)
+    ok = m1 > wp.float64(0.0) and m2 > wp.float64(0.0) and det > wp.float64(0.0)
+    return wp.log(wp.max(det, wp.float64(1e-300))), ok
 
 
 @wp.func
@@ -201,7 +222,7 @@ def runnalls_costs(
     means: wp.array(dtype=wp.vec3),
     log_scales: wp.array(dtype=wp.vec3),
     covariances: wp.array(dtype=wp.mat33d),
-    log_weights: wp.array(dtype=wp.float64),
+    weights: wp.array(dtype=wp.float64),
     features: wp.array2d(dtype=float),
     lambda_geo: float,
     lambda_app: float,
@@ -218,24 +239,20 @@ def runnalls_costs(
     e = wp.tid()
     i = int(edge_i[e])
     j = int(edge_j[e])
-    log_w_i = log_weights[i]
-    log_w_j = log_weights[j]
-    pi = first_weight(log_w_i, log_w_j)
+    w_i = weights[i]
+    w_j = weights[j]
+    big_w = w_i + w_j
+    pi = w_i / big_w
     mu_m, cov_m = moment_match(pi, to_vec3d(means[i]), covariances[i], to_vec3d(means[j]), covariances[j])
-    l_m, ok = cholesky(cov_m)
+    log_det_m, ok = log_det_positive(cov_m)
     if not ok:
         costs[e] = wp.float32(UNMERGEABLE)
         return
-    log_det_m = wp.float64(2.0) * (wp.log(l_m[0, 0]) + wp.log(l_m[1, 1]) + wp.log(l_m[2, 2]))
-    bound = wp.float64(0.5) * (
-        log_det_m - pi * log_det_scales(log_scales[i]) - (wp.float64(1.0) - pi) * log_det_scales(log_scales[j])
-    )
+    one = wp.float64(1.0)
+    bound = wp.float64(0.5) * (log_det_m - pi * log_det_scales(log_scales[i]) - (one - pi) * log_det_scales(log_scales[j]))
     bound = wp.max(bound, wp.float64(0.0))
-    app = wp.float64(4.0) * pi * (wp.float64(1.0) - pi) * appearance_distance(features, i, j)
-    log_w = log_w_i - log_sigmoid(log_w_i - log_w_j)  # log W = log w_i - log pi
-    costs[e] = finite_cost(
-        wp.exp(wp.float64(mass_exponent) * log_w) * (wp.float64(lambda_geo) * bound + wp.float64(lambda_app) * app)
-    )
+    app = wp.float64(4.0) * pi * (one - pi) * appearance_distance(features, i, j)
+    costs[e] = finite_cost(mass_power(big_w, mass_exponent) * (wp.float64(lambda_geo) * bound + wp.float64(lambda_app) * app))
 
 
 @wp.kernel

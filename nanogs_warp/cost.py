@@ -79,12 +79,12 @@ class RunnallsCost:
     def __call__(self, splats: SplatSet, edges: Edges, pass_index: int) -> wp.array:
         device = splats.device
         covariances = wp.empty(splats.count, dtype=wp.mat33d, device=device)
-        log_weights = wp.empty(splats.count, dtype=wp.float64, device=device)
+        weights = wp.empty(splats.count, dtype=wp.float64, device=device)
         launch_rows(
             kernels.runnalls_splat_terms, splats.count,
             lambda rows: [
                 splats.rotations[rows], splats.log_scales[rows], splats.opacities[rows], covariances[rows],
-                log_weights[rows],
+                weights[rows],
             ],
             device,
         )  # fmt: skip
@@ -92,7 +92,7 @@ class RunnallsCost:
         launch_rows(
             kernels.runnalls_costs, edges.count,
             lambda rows: [
-                edges.i[rows], edges.j[rows], splats.means, splats.log_scales, covariances, log_weights,
+                edges.i[rows], edges.j[rows], splats.means, splats.log_scales, covariances, weights,
                 splats.features, self.lambda_geo, self.lambda_app, self.mass_exponent, costs[rows],
             ],
             device,
