@@ -93,43 +93,48 @@ def moment_match(pi: wp.float64, mu_i: wp.vec3d, cov_i: wp.mat33d, mu_j: wp.vec3
 
 
 @wp.func
-def _rotate_plane(a: wp.mat33d, v: wp.mat33d, p: int, q: int):
-    """One Jacobi rotation that zeroes a[p, q] (p < q): a <- J^T a J, v <- v J."""
-    apq = a[p, q]
-    if wp.abs(apq) <= wp.float64(1e-300):
-        return a, v
-    tau = (a[q, q] - a[p, p]) / (wp.float64(2.0) * apq)
-    t = wp.float64(1.0) / (wp.abs(tau) + wp.sqrt(wp.float64(1.0) + tau * tau))
-    if tau < wp.float64(0.0):
-        t = -t
-    c = wp.float64(1.0) / wp.sqrt(wp.float64(1.0) + t * t)
-    s = t * c
-    j = wp.identity(n=3, dtype=wp.float64)
-    j[p, p] = c
-    j[q, q] = c
-    j[p, q] = s
-    j[q, p] = -s
-    a = wp.transpose(j) * a * j
-    a[p, q] = wp.float64(0.0)
-    a[q, p] = wp.float64(0.0)
-    return a, v * j
-
-
-@wp.func
 def symmetric_eigen(a: wp.mat33d):
     """Eigen-decomposition of a symmetric 3x3 matrix by cyclic Jacobi in float64.
 
     Returns (eigenvalues, eigenvectors as columns) sorted by decreasing eigenvalue, the frame
     right-handed (det = +1)."""
     v = wp.identity(n=3, dtype=wp.float64)
+    one = wp.float64(1.0)
     for _sweep in range(12):
         off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
         diag = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
         if off <= wp.float64(1e-36) * diag:
             break
-        a, v = _rotate_plane(a, v, 0, 1)
-        a, v = _rotate_plane(a, v, 0, 2)
-        a, v = _rotate_plane(a, v, 1, 2)
+        for plane in range(3):
+            # the rotation in plane (p, q) that zeroes a[p, q]; r is the third axis
+            p = wp.where(plane == 2, 1, 0)
+            q = wp.where(plane == 0, 1, 2)
+            r = 2 - plane
+            apq = a[p, q]
+            if wp.abs(apq) > wp.float64(1e-300):
+                tau = (a[q, q] - a[p, p]) / (wp.float64(2.0) * apq)
+                t = one / (wp.abs(tau) + wp.sqrt(one + tau * tau))
+                if tau < wp.float64(0.0):
+                    t = -t
+                c = one / wp.sqrt(one + t * t)
+                s = t * c
+                # a <- J^T a J with J = I + (c - 1)(e_p e_p^T + e_q e_q^T) + s (e_p e_q^T - e_q e_p^T)
+                arp = a[r, p]
+                arq = a[r, q]
+                a[p, p] = a[p, p] - t * apq
+                a[q, q] = a[q, q] + t * apq
+                a[p, q] = wp.float64(0.0)
+                a[q, p] = wp.float64(0.0)
+                a[r, p] = c * arp - s * arq
+                a[p, r] = a[r, p]
+                a[r, q] = s * arp + c * arq
+                a[q, r] = a[r, q]
+                # v <- v J
+                for row in range(3):
+                    vp = v[row, p]
+                    vq = v[row, q]
+                    v[row, p] = c * vp - s * vq
+                    v[row, q] = s * vp + c * vq
     e0 = a[0, 0]
     e1 = a[1, 1]
     e2 = a[2, 2]
