@@ -7,7 +7,8 @@ holds
 A pair listed by both rows is taken from (a) only, so every undirected edge appears exactly once.
 
   _classify_rows    per row: how many entries go to (a), and a bit mask of the entries (i -> j),
-                    j < i, that go to part (b) of segment j ("foreign" entries)
+                    j < i, that go to part (b) of segment j ("foreign" entries); whether row j
+                    lists i is one comparison for an exact kNN graph with its reach, else a scan
   _count_foreign    per row, atomic: adds each foreign entry to its segment's length
   (scan)            segment offsets
   _place_foreign    per row, atomic: writes each foreign entry into its segment's part (b)
@@ -61,11 +62,29 @@ def _count_equal(chunk: wp.vec4i, value: wp.int32) -> int:
     )
 
 
+@wp.func
+def row_lists(
+    rows: wp.array2d(dtype=Any), j: int, i: int, means: wp.array(dtype=wp.vec3), reach: wp.array(dtype=wp.int64)
+) -> bool:
+    """Whether row j lists i. Rows of an exact kNN graph with ``reach`` (row j's k-th neighbour as
+    (squared distance bits << 32 | index), the distance computed as the query computes it): one
+    comparison. Otherwise a scan of row j."""
+    if reach.shape[0] > 0:
+        d = wp.length_sq(means[i] - means[j])
+        return ((wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(i)) <= reach[j]
+    listed = int(0)
+    for c in range(rows.shape[1]):
+        listed += _count_equal(rows[j, c], i)
+    return listed > 0
+
+
 @wp.kernel
 def _classify_rows(
     first: int,
     rows: wp.array2d(dtype=Any),
     k: int,
+    means: wp.array(dtype=wp.vec3),
+    reach: wp.array(dtype=wp.int64),
     foreign: wp.array(dtype=wp.uint32),
     count: wp.array(dtype=wp.int32),
 ):
@@ -84,10 +103,8 @@ def _classify_rows(
                 j = _lane(own, w)
                 above += wp.where(j > i, 1, 0)
                 if j < i:
-                    listed = int(0)
-                    for c in range(chunks):
-                        listed += _count_equal(rows[j, c], i)
-                    mask = mask | (wp.uint32(wp.where(listed == 0, 1, 0)) << wp.uint32(t))
+                    if not row_lists(rows, j, i, means, reach):
+                        mask = mask | (wp.uint32(1) << wp.uint32(t))
                 t += 1
     foreign[i] = mask
     count[i] = above

@@ -303,10 +303,12 @@ def _knn_query(
     box_lo: wp.array(dtype=wp.vec3),
     box_hi: wp.array(dtype=wp.vec3),
     neighbours: wp.array2d(dtype=wp.int32),
+    reach: wp.array(dtype=wp.int64),
     candidates: wp.array(dtype=wp.int32),
 ):
     # exact k nearest neighbours of sorted point i (from `first` on): seed, then rings of cells
-    # around its own cell; the best k are kept as (distance bits << 32 | index) by insertion sort
+    # around its own cell; the best k are kept as (distance bits << 32 | index) by insertion sort;
+    # reach (if not empty) gets the k-th of them
     i = first + wp.tid()
     n = points.shape[0]
     p = points[i]
@@ -340,10 +342,10 @@ def _knn_query(
     while True:
         if ring > 0:
             # nothing unseen lies nearer than the nearest cell of this ring (inf: no cells left)
-            reach = wp.min(wp.min(_ring_gap(u[0], cx, ring, side, cells_per_axis),
+            gap = wp.min(wp.min(_ring_gap(u[0], cx, ring, side, cells_per_axis),
                                   _ring_gap(u[1], cy, ring, side, cells_per_axis)),
                            _ring_gap(u[2], cz, ring, side, cells_per_axis)) - margin_p
-            if reach > 0.0 and reach * reach > worst_d:
+            if gap > 0.0 and gap * gap > worst_d:
                 break
         r = wp.max(ring, 0)
         for dx in range(-r, r + 1):
@@ -404,5 +406,7 @@ def _knn_query(
     row = order[i]
     for t in range(k):
         neighbours[row, t] = wp.int32(best[t] & LOW_32)
+    if reach.shape[0] > 0:
+        reach[row] = best[k - 1]
     if candidates.shape[0] > 0:
         candidates[row] = visited

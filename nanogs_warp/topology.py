@@ -32,11 +32,13 @@ class Edges:
     count: int
 
 
-def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp.array:
+def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None, reach: wp.array | None = None) -> wp.array:
     """(N, k) int32 array on means.device: for each point its k nearest OTHER points (self excluded),
     sorted by (squared distance, index) ascending. Requires 1 <= k <= min(KMAX, N-1).
 
-    ``candidates``, if given (int32, length N), receives the number of points each query examined.
+    ``candidates``, if given (int32, length N), receives the number of points each query examined;
+    ``reach``, if given (int64, length N), each point's k-th neighbour as one key, its squared
+    distance's float32 bits << 32 | its index (``candidate_edges`` uses it).
     """
     n = means.shape[0]
     if not 1 <= k <= min(KMAX, n - 1):
@@ -46,6 +48,10 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
         candidates = wp.empty(0, dtype=wp.int32, device=device)
     elif candidates.shape[0] != n:
         raise ValueError(f"candidates must have length {n}, got {candidates.shape[0]}")
+    if reach is None:
+        reach = wp.empty(0, dtype=wp.int64, device=device)
+    elif reach.shape[0] != n:
+        raise ValueError(f"reach must have length {n}, got {reach.shape[0]}")
 
     lo, quantum, margin = _quantisation_cube(means)
     codes, order, points = _morton_sort(means, lo, quantum)
@@ -60,14 +66,17 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None) -> wp
         knn_kernels._knn_query,
         n,
         [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, box_lo, box_hi]
-        + [neighbours, candidates],
+        + [neighbours, reach, candidates],
         device,
     )
     return neighbours
 
 
-def candidate_edges(neighbours: wp.array) -> Edges:
+def candidate_edges(neighbours: wp.array, means: wp.array | None = None, reach: wp.array | None = None) -> Edges:
     """Union of directed kNN edges as undirected, deduplicated, i < j, sorted by (i, j).
+
+    For the exact kNN graph of ``means`` with its ``reach`` (from ``knn_graph``), whether row j
+    lists i is one comparison; for any other table of neighbours (no ``reach``), a scan of row j.
 
     ``neighbours`` is an (N, k) int32 table, k <= 32, whose row i lists k distinct points other than
     i. No global sort: every edge (a, b), a < b, is counted into and written to the segment of a
@@ -87,9 +96,12 @@ def candidate_edges(neighbours: wp.array) -> Edges:
     rows = neighbours
     if k % 4 == 0 and neighbours.is_contiguous and neighbours.ptr % 16 == 0:
         rows = neighbours.reshape((n, k // 4, 4)).view(wp.vec4i)  # the same memory, a quarter of the loads
+    if reach is None:
+        means = wp.empty(0, dtype=wp.vec3, device=device)
+        reach = wp.empty(0, dtype=wp.int64, device=device)
     foreign = wp.empty(n, dtype=wp.uint32, device=device)
     count = wp.empty(n, dtype=wp.int32, device=device)
-    launch_rows_from(edge_kernels._classify_rows, n, [rows, k, foreign, count], device)
+    launch_rows_from(edge_kernels._classify_rows, n, [rows, k, means, reach, foreign, count], device)
     # the kernels with atomics: one launch each, never split over CPU threads
     wp.launch(edge_kernels._count_foreign, n, inputs=[neighbours, foreign], outputs=[count], device=device)
     offsets = wp.empty(n + 1, dtype=wp.int32, device=device)
@@ -119,7 +131,9 @@ class KnnTopology:
         self.k = k
 
     def __call__(self, splats) -> Edges:
-        return candidate_edges(knn_graph(splats.means, min(self.k, splats.count - 1)))
+        reach = wp.empty(splats.count, dtype=wp.int64, device=splats.means.device)
+        neighbours = knn_graph(splats.means, min(self.k, splats.count - 1), reach=reach)
+        return candidate_edges(neighbours, splats.means, reach)
 
 
 def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:

@@ -232,9 +232,19 @@ def test_edges_hand_made(knn_device):
 @pytest.mark.parametrize("make", [clustered_points, lattice_points])
 def test_edges_of_knn_graph(knn_device, make):
     points = make(8000, seed=11)
-    neighbours = knn_graph(wp.array(points, dtype=wp.vec3, device=knn_device), 16)
+    means = wp.array(points, dtype=wp.vec3, device=knn_device)
+    reach = wp.full(len(points), -1, dtype=wp.int64, device=knn_device)
+    neighbours = knn_graph(means, 16, reach=reach)
+    table = neighbours.numpy()
+    # reach: the k-th neighbour's (float32 squared distance bits, index)
+    last = table[:, -1]
+    d = ((points[last] - points) ** 2).sum(axis=1, dtype=np.float32)
+    want = (d.view(np.int32).astype(np.int64) << 32) | last
+    np.testing.assert_array_equal(reach.numpy(), want)
+    # the one-comparison test of "row j lists i" gives the edges of the scan
+    check_edges(candidate_edges(neighbours, means, reach), table)
     first = candidate_edges(neighbours)
-    check_edges(first, neighbours.numpy())
+    check_edges(first, table)
     assert first.i.device == neighbours.device
     second = candidate_edges(neighbours)
     assert first.count == second.count
@@ -360,7 +370,8 @@ def staged_edges(neighbours, device, rng):
     rows = table.reshape((n, k // 4, 4)).view(wp.vec4i) if k % 4 == 0 else table
     foreign = wp.empty(n, dtype=wp.uint32, device=device)
     count = wp.empty(n, dtype=wp.int32, device=device)
-    wp.launch(edge_kernels._classify_rows, n, inputs=[0, rows, k, foreign, count], device=device)
+    no_reach = [wp.empty(0, dtype=wp.vec3, device=device), wp.empty(0, dtype=wp.int64, device=device)]
+    wp.launch(edge_kernels._classify_rows, n, inputs=[0, rows, k, *no_reach, foreign, count], device=device)
     wp.launch(edge_kernels._count_foreign, n, inputs=[table, foreign, count], device=device)
     offsets = np.r_[0, np.cumsum(count.numpy())].astype(np.int32)
     offsets_wp = wp.array(offsets, dtype=wp.int32, device=device)
