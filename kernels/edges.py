@@ -27,6 +27,8 @@ from typing import Any
 
 import warp as wp
 
+from .knn import squared_distance
+
 wp.set_module_options({"enable_backward": False})
 
 MAX_K = wp.constant(32)  # foreign entries of a row are bits of a uint32
@@ -70,7 +72,7 @@ def row_lists(
     (squared distance bits << 32 | index), the distance computed as the query computes it): one
     comparison. Otherwise a scan of row j."""
     if reach.shape[0] > 0:
-        d = wp.length_sq(means[i] - means[j])
+        d = squared_distance(means[j], means[i])  # row j's query, candidate i
         return ((wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(i)) <= reach[j]
     listed = int(0)
     for c in range(rows.shape[1]):

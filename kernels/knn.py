@@ -125,6 +125,13 @@ def _ring_gap(u: float, cell: int, ring: int, side: float, cells_per_axis: int) 
 
 
 @wp.func
+def squared_distance(query: wp.vec3, candidate: wp.vec3) -> float:
+    """|candidate - query|^2 as the query computes it: the one expression used wherever a
+    candidate's key must match the query's bit for bit (``nanogs_warp.kernels.edges``)."""
+    return wp.length_sq(candidate - query)
+
+
+@wp.func
 def _box_distance(p: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> float:
     """Squared distance from p to the box [lo, hi]."""
     g = wp.max(wp.max(lo - p, p - hi), wp.vec3(0.0))
@@ -386,7 +393,7 @@ def _knn_query(
                         block_end = wp.min(end, b * BLOCK + BLOCK)
                         visited += block_end - j
                         while j < block_end:
-                            d = wp.length_sq(points[j] - p)
+                            d = squared_distance(p, points[j])
                             if d <= worst_d and j != i:
                                 key = (wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(order[j])
                                 if key < worst:
