@@ -7,7 +7,9 @@ the prefix ``code >> 3l``, so one sort serves every level. Each level in use get
 hash table from cell prefix to its range: exact keys, so distant cells never share a bucket.
 
 Each point searches at the finest level whose own cell holds k+1 points (read off windows of k+1
-consecutive codes). It seeds its k best with the 2k points around it in Morton order, then visits
+consecutive codes). It seeds its k best with the ~1.5k points around it in Morton order: their
+distances are binned in eighth octaves, and only the bins up to the one holding the k-th smallest are
+inserted, nearest bin first (a counting sort), so the list fills almost in order. It then visits
 rings of cells around its own cell, skipping cells, and blocks of 8 sorted points inside them, that
 lie farther than its current k-th distance, and stops once the next ring cannot hold anything nearer.
 Candidates rank by (squared distance, original index), so the result is exact and independent of the
@@ -40,6 +42,17 @@ SPREAD_5 = wp.constant(wp.int64(0x1249249249249249))
 topk_keys = wp.types.vector(length=KMAX, dtype=wp.int64)
 NO_KEY = wp.constant(wp.int64(0x7F8000007FFFFFFF))  # (+inf, largest index)
 LOW_32 = wp.constant(wp.int64(0xFFFFFFFF))
+# The seed: the 2h+1 points around i in Morton order, h = k - k/4, and the whole blocks holding them.
+SEED_MAX = wp.constant(2 * (KMAX - KMAX // 4) + 2 * BLOCK)  # seed points, at most
+seed_dists = wp.types.vector(length=SEED_MAX, dtype=wp.float32)
+seed_slots = wp.types.vector(length=SEED_MAX, dtype=wp.int32)
+# Histogram of the seed's squared distances in eighth octaves: float bits >> 20 (exponent and three
+# mantissa bits) are monotonic in a non-negative float.
+BINS = wp.constant(64)
+BIN_SHIFT = wp.constant(20)
+bin_counts = wp.types.vector(length=BINS + 1, dtype=wp.int32)
+block_ints = wp.types.vector(length=BLOCK, dtype=wp.int32)
+block_floats = wp.types.vector(length=BLOCK, dtype=wp.float32)
 
 
 @wp.func
@@ -314,8 +327,8 @@ def _knn_query(
     candidates: wp.array(dtype=wp.int32),
 ):
     # exact k nearest neighbours of sorted point i (from `first` on): seed, then rings of cells
-    # around its own cell; the best k are kept as (distance bits << 32 | index) by insertion sort;
-    # reach (if not empty) gets the k-th of them
+    # around its own cell; the best k are kept as (distance bits << 32 | index) by insertion sort.
+    # Local arrays: best 256 B, seed 2 x 256 B + histogram 260 B, block filter 64 B.
     i = first + wp.tid()
     n = points.shape[0]
     p = points[i]
@@ -338,14 +351,66 @@ def _knn_query(
     worst = NO_KEY  # best[k - 1]
     worst_d = float(wp.inf)  # its squared distance
     visited = int(0)
-    # the seed: blocks holding the 2k+1 points around i in Morton order, scanned as ring -1
-    seed = wp.max(wp.min(i - k, n - 1 - 2 * k), 0)
+    filled = int(0)  # keys in best (seed only)
+    # the seed: blocks holding the 2h+1 points around i in Morton order (at least k besides i)
+    h = k - k / 4
+    seed = wp.max(wp.min(i - h, n - 1 - 2 * h), 0)
     seed_first = seed / BLOCK
-    seed_last = wp.min(seed + 2 * k, n - 1) / BLOCK
-    skip_first = int(-1)  # blocks already scanned
-    skip_last = int(-1)
-
-    ring = int(-1)
+    seed_last = wp.min(seed + 2 * h, n - 1) / BLOCK
+    seed_begin = seed_first * BLOCK
+    m = wp.min(seed_last * BLOCK + BLOCK, n) - seed_begin
+    visited += m
+    # seed distances, branch-free (i itself: inf), and the smallest positive one
+    sd = seed_dists()
+    d_min = float(wp.inf)
+    for t in range(m):
+        d = squared_distance(p, points[seed_begin + t])
+        d = wp.where(seed_begin + t == i, float(wp.inf), d)
+        sd[t] = d
+        d_min = wp.min(d_min, wp.where(d > 0.0, d, float(wp.inf)))
+    # histogram in eighth octaves from d_min's (first bin takes smaller, last bin larger distances)
+    hist = bin_counts()
+    bin0 = wp.cast(d_min, wp.int32) >> BIN_SHIFT
+    for t in range(m):
+        hist[wp.clamp((wp.cast(sd[t], wp.int32) >> BIN_SHIFT) - bin0, 0, BINS - 1)] += 1
+    # tighter start threshold: the bin `top` that holds the k-th smallest seed distance; the `cum` >= k
+    # seed points up to it bound the k-th neighbour, so no point of a later bin can be one
+    cum = int(0)
+    top = int(0)
+    while top < BINS - 1:
+        cum += hist[top]
+        if cum >= k:
+            break
+        top += 1
+    if top == BINS - 1:
+        cum = m  # not reached before the open last bin: keep every seed point
+    # counting sort of the seed by bin (bins past `top` pooled): inserted nearest bin first, the
+    # keys arrive almost sorted and the insertions shift little
+    start = int(0)
+    for b in range(top + 2):
+        c = hist[b]
+        hist[b] = start
+        start += c
+    perm = seed_slots()
+    for t in range(m):
+        b = wp.min(wp.clamp((wp.cast(sd[t], wp.int32) >> BIN_SHIFT) - bin0, 0, BINS - 1), top + 1)
+        perm[hist[b]] = t
+        hist[b] += 1
+    for r in range(cum):
+        t = perm[r]
+        key = (wp.int64(wp.cast(sd[t], wp.int32)) << wp.int64(32)) | wp.int64(order[seed_begin + t])
+        if key < worst and seed_begin + t != i:
+            s = wp.min(filled, k - 1)  # fill tracking: empty slots are never shifted
+            filled += 1
+            while s > 0 and best[s - 1] > key:
+                best[s] = best[s - 1]
+                s -= 1
+            best[s] = key
+            worst = best[k - 1]
+    worst_d = wp.cast(wp.int32(worst >> wp.int64(32)), wp.float32)
+    cj = block_ints()  # a block's points within worst_d
+    cd = block_floats()
+    ring = int(0)
     while True:
         if ring > 0:
             # nothing unseen lies nearer than the nearest cell of this ring (inf: no cells left)
@@ -354,7 +419,7 @@ def _knn_query(
                            _ring_gap(u[2], cz, ring, side, cells_per_axis)) - margin_p
             if gap > 0.0 and gap * gap > worst_d:
                 break
-        r = wp.max(ring, 0)
+        r = ring
         for dx in range(-r, r + 1):
             x = cx + dx
             gx = _gap(u[0], cx, dx, side, margin_p)
@@ -376,38 +441,38 @@ def _knn_query(
                     gz = _gap(u[2], cz, dz, side, margin_p)
                     if z < 0 or z >= cells_per_axis or gy + gz * gz > worst_d:
                         continue
-                    begin = seed_first * BLOCK
-                    end = wp.min(seed_last * BLOCK + BLOCK, n)
-                    if ring >= 0:
-                        slot = find_cell(keys, base, mask, morton_code(wp.vec3i(x, y, z)))
-                        if slot < 0:
-                            continue
-                        begin = starts[slot]
-                        end = ends[slot]
+                    slot = find_cell(keys, base, mask, morton_code(wp.vec3i(x, y, z)))
+                    if slot < 0:
+                        continue
+                    begin = starts[slot]
+                    end = ends[slot]
                     for b in range(begin / BLOCK, (end - 1) / BLOCK + 1):
-                        if b >= skip_first and b <= skip_last:
-                            continue
+                        if b >= seed_first and b <= seed_last:
+                            continue  # scanned with the seed
                         if _box_distance(p, box_lo[b], box_hi[b]) > worst_d * SLACK:
                             continue
                         j = wp.max(begin, b * BLOCK)
                         block_end = wp.min(end, b * BLOCK + BLOCK)
                         visited += block_end - j
+                        # branch-free filter of the block (i lies in the seed), then insertion of the few kept
+                        nc = int(0)
                         while j < block_end:
                             d = squared_distance(p, points[j])
-                            if d <= worst_d and j != i:
-                                key = (wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(order[j])
-                                if key < worst:
-                                    t = k - 1
-                                    while t > 0 and best[t - 1] > key:
-                                        best[t] = best[t - 1]
-                                        t -= 1
-                                    best[t] = key
-                                    worst = best[k - 1]
-                                    worst_d = wp.cast(wp.int32(worst >> wp.int64(32)), wp.float32)
+                            cj[nc] = j
+                            cd[nc] = d
+                            nc += wp.where(d <= worst_d, 1, 0)
                             j += 1
-        if ring < 0:
-            skip_first = seed_first
-            skip_last = seed_last
+                        for c in range(nc):
+                            d = cd[c]
+                            key = (wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(order[cj[c]])
+                            if key < worst:
+                                t = k - 1
+                                while t > 0 and best[t - 1] > key:
+                                    best[t] = best[t - 1]
+                                    t -= 1
+                                best[t] = key
+                                worst = best[k - 1]
+                                worst_d = wp.cast(wp.int32(worst >> wp.int64(32)), wp.float32)
         ring += 1
 
     row = order[i]

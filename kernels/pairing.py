@@ -3,9 +3,9 @@
 An edge's rank orders it by cost, then by edge index (edges come in (i, j) order). Two ways to the
 same matching:
 
-- Sequentially: scan the edges by rank, take an edge when both ends are free. The edges are sorted
-  in one or two runs (a stable radix sort of (cost, ends) each; one per CPU core), which the
-  matching thread merges as it scans.
+- Sequentially: scan the edges by rank, take an edge when both ends are free. The edges are split
+  stably into a lower and an upper bucket at a cost near the median, each bucket sorted on its own
+  CPU core (a stable radix sort of (cost, ends)); the matching thread scans one, then the other.
 - In parallel: an edge whose priority (cost, edge index), packed in one uint64, is the smallest
   among the free edges at both of its ends (locally dominant) is in the greedy matching; accept all
   of them, drop the edges with a matched end, repeat until no free edge is left. No sort of the
@@ -38,55 +38,65 @@ def priority(cost: float, e: int) -> wp.uint64:
     return (wp.uint64(cost_order(cost)) << wp.uint64(32)) | wp.uint64(e)
 
 
-# -- sequential: sorted runs, merged by the matching thread -------------------------------------
+# -- sequential: two buckets split by cost, each sorted, scanned one after the other -------------
 
 
 @wp.kernel
-def runs_to_sort(
+def bucket_of_edges(
     first: int,
-    split: int,
     costs: wp.array(dtype=float),
+    threshold: wp.uint32,
+    keys: wp.array(dtype=wp.uint32),
+    upper: wp.array(dtype=wp.int32),
+):
+    """Each edge's cost order, and whether it goes to the upper bucket (cost order >= threshold)."""
+    e = first + wp.tid()
+    key = cost_order(costs[e])
+    keys[e] = key
+    upper[e] = wp.where(key >= threshold, 1, 0)
+
+
+@wp.kernel
+def buckets_to_sort(
+    first: int,
+    keys: wp.array(dtype=wp.uint32),
+    upper: wp.array(dtype=wp.int32),
+    upper_before: wp.array(dtype=wp.int32),
+    lower_count: int,
     edge_i: wp.array(dtype=wp.int32),
     edge_j: wp.array(dtype=wp.int32),
-    keys: wp.array(dtype=wp.uint32),
-    ends: wp.array(dtype=wp.vec2i),
+    bucket_keys: wp.array(dtype=wp.uint32),
+    bucket_ends: wp.array(dtype=wp.vec2i),
 ):
-    """Sort input, (cost order, ends): edges before ``split`` go to run 0 at [0, 2 split), the
-    others to run 1 right after it (each run has room for the radix sort's second buffer)."""
+    """Sort input, (cost order, ends), split stably: the lower bucket at [0, 2 L), the upper one right
+    after it (each with room for the radix sort's second buffer); ``upper_before`` is the exclusive
+    scan of ``upper``."""
     e = first + wp.tid()
-    slot = e + wp.where(e < split, 0, split)
-    keys[slot] = cost_order(costs[e])
-    ends[slot] = wp.vec2i(edge_i[e], edge_j[e])
+    slot = e - upper_before[e]
+    if upper[e] == 1:
+        slot = 2 * lower_count + upper_before[e]
+    bucket_keys[slot] = keys[e]
+    bucket_ends[slot] = wp.vec2i(edge_i[e], edge_j[e])
 
 
 @wp.kernel
 def greedy_pairs_in_rank_order(
-    keys: wp.array(dtype=wp.uint32),
     ends: wp.array(dtype=wp.vec2i),
-    a_begin: int,
-    a_end: int,
-    b_begin: int,
-    b_end: int,
+    lower_count: int,
+    upper_count: int,
     cap: int,
     partner: wp.array(dtype=wp.int32),
     pair_i: wp.array(dtype=wp.int32),
     pair_j: wp.array(dtype=wp.int32),
     pair_count: wp.array(dtype=wp.int32),
 ):
-    """Sequential greedy matching, one thread: merges the sorted runs [a_begin, a_end) and
-    [b_begin, b_end) by (cost, run), run a holding the lower edge indices, and takes every edge
-    whose ends are both free. The merge step is branch-free (selects, not jumps)."""
+    """Sequential greedy matching, one thread: the sorted lower bucket [0, L), then the sorted upper
+    bucket [2 L, 2 L + U); takes every edge whose ends are both free."""
     taken = int(0)
-    a = a_begin
-    b = b_begin
-    steps = (a_end - a_begin) + (b_end - b_begin)
-    for _ in range(steps):
-        key_a = wp.where(a < a_end, keys[wp.min(a, a_end - 1)], wp.uint32(0xFFFFFFFF))
-        key_b = wp.where(b < b_end, keys[wp.max(wp.min(b, b_end - 1), b_begin)], wp.uint32(0xFFFFFFFF))
-        from_b = wp.where(a >= a_end, 1, wp.where(key_b < key_a, 1, 0))
-        r = wp.where(from_b == 1, b, a)
-        a += 1 - from_b
-        b += from_b
+    for t in range(lower_count + upper_count):
+        r = t
+        if t >= lower_count:
+            r = t + lower_count
         ij = ends[r]
         i = ij[0]
         j = ij[1]

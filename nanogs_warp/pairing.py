@@ -7,6 +7,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import numpy as np
 import warp as wp
 
 from .kernels import pairing as kernels
@@ -28,7 +29,7 @@ class Pairs:
 def select_pairs(edges: Edges, costs: wp.array, vertex_count: int, cap: int, method: str = "auto") -> Pairs:
     """Up to ``cap`` disjoint edges, greedily in rank order.
 
-    ``method`` is "sequential" (sorted runs scanned by one thread; fastest on the CPU), "parallel"
+    ``method`` is "sequential" (sorted buckets scanned by one thread; fastest on the CPU), "parallel"
     (locally dominant rounds, no sort of the edges; for GPUs) or "auto" (sequential on the CPU,
     parallel elsewhere). Both give the same pairs.
     """
@@ -51,35 +52,55 @@ def select_pairs(edges: Edges, costs: wp.array, vertex_count: int, cap: int, met
 
 
 def _greedy_in_rank_order(edges: Edges, costs, vertex_count, cap, pair_i, pair_j) -> int:
-    """Sorts the edges by cost in two runs, one per CPU core where there are two (stable radix sorts
-    of (cost, ends), each run keeping edge order on equal costs), then one thread merges the runs
-    and takes every edge whose ends are both free."""
+    """Splits the edges stably at a cost near the median into a lower and an upper bucket, sorts
+    each (stable radix sorts of (cost, ends); on two CPU cores at once where there are two), then
+    one thread scans the lower bucket and then the upper one and takes every edge whose ends are
+    both free. Edges of equal cost share a bucket and keep their order: this is rank order."""
     device = costs.device
     e = edges.count
-    two_runs = device.is_cpu and cpu_workers() >= 2 and e >= 2 * MIN_ROWS_TO_SPLIT
-    split = (e + 1) // 2 if two_runs else e
-    keys = wp.empty(2 * e, dtype=wp.uint32, device=device)
-    ends = wp.empty(2 * e, dtype=wp.vec2i, device=device)
-    launch_rows_from(kernels.runs_to_sort, e, [split, costs, edges.i, edges.j, keys, ends], device)
-    runs = [(0, split), (2 * split, 2 * split + e - split)]
+    two_buckets = device.is_cpu and cpu_workers() >= 2 and e >= 2 * MIN_ROWS_TO_SPLIT
+    keys = wp.empty(e, dtype=wp.uint32, device=device)
+    upper = wp.empty(e, dtype=wp.int32, device=device)
+    threshold = _median_cost_order(costs) if two_buckets else 0  # 0: everything in the upper bucket
+    launch_rows_from(kernels.bucket_of_edges, e, [costs, threshold, keys, upper], device)
+    upper_before = wp.empty(e, dtype=wp.int32, device=device)
+    wp.utils.array_scan(upper, upper_before, inclusive=False)
+    upper_count = int(upper_before[e - 1 : e].numpy()[0] + upper[e - 1 : e].numpy()[0])
+    lower_count = e - upper_count
+    bucket_keys = wp.empty(2 * e, dtype=wp.uint32, device=device)
+    bucket_ends = wp.empty(2 * e, dtype=wp.vec2i, device=device)
+    launch_rows_from(
+        kernels.buckets_to_sort, e,
+        [keys, upper, upper_before, lower_count, edges.i, edges.j, bucket_keys, bucket_ends], device,
+    )  # fmt: skip
+    del keys, upper, upper_before
 
-    def sort(run: tuple[int, int]) -> None:
-        begin, end = run
-        if end > begin:
-            wp.utils.radix_sort_pairs(keys[begin : begin + 2 * (end - begin)], ends[begin : begin + 2 * (end - begin)], end - begin)
+    def sort(bucket: tuple[int, int]) -> None:
+        begin, count = bucket
+        room = slice(begin, begin + 2 * count)
+        wp.utils.radix_sort_pairs(bucket_keys[room], bucket_ends[room], count)
 
-    if two_runs:
+    buckets = [(0, lower_count), (2 * lower_count, upper_count)]
+    if two_buckets and lower_count > 0:
         with ThreadPoolExecutor(2) as pool:  # the host sort releases the GIL
-            list(pool.map(sort, runs))
+            list(pool.map(sort, buckets))
     else:
-        sort(runs[0])
+        sort(buckets[1])
     partner = wp.full(vertex_count, -1, dtype=wp.int32, device=device)
     pair_count = wp.zeros(1, dtype=wp.int32, device=device)
     wp.launch(
         kernels.greedy_pairs_in_rank_order, 1,
-        inputs=[keys, ends, *runs[0], *runs[1], cap], outputs=[partner, pair_i, pair_j, pair_count], device=device,
+        inputs=[bucket_ends, lower_count, upper_count, cap], outputs=[partner, pair_i, pair_j, pair_count], device=device,
     )  # fmt: skip
     return int(pair_count.numpy()[0])
+
+
+def _median_cost_order(costs: wp.array) -> int:
+    """Median cost order of a sample of the costs (the CPU's own memory: no copy)."""
+    sample = costs.numpy()[:: max(1, costs.shape[0] // 4096)]
+    bits = sample.view(np.uint32)
+    order = np.where(bits >> 31 == 0, bits | np.uint32(0x80000000), ~bits)
+    return int(np.partition(order, len(order) // 2)[len(order) // 2])
 
 
 def _locally_dominant_pairs(edges: Edges, costs, vertex_count, cap, pair_i, pair_j) -> int:
