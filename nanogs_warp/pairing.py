@@ -3,7 +3,6 @@ order (by cost, then by edge index, which is (i, j) order)."""
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -11,7 +10,7 @@ import numpy as np
 import warp as wp
 
 from .kernels import pairing as kernels
-from .parallel import MIN_ROWS_TO_SPLIT, cpu_workers, launch_rows_from
+from .parallel import MIN_ROWS_TO_SPLIT, cpu_workers, launch_rows_from, worker_pool
 
 if TYPE_CHECKING:
     from .topology import Edges
@@ -82,8 +81,7 @@ def _greedy_in_rank_order(edges: Edges, costs, vertex_count, cap, pair_i, pair_j
 
     buckets = [(0, lower_count), (2 * lower_count, upper_count)]
     if two_buckets and lower_count > 0:
-        with ThreadPoolExecutor(2) as pool:  # the host sort releases the GIL
-            list(pool.map(sort, buckets))
+        list(worker_pool(2).map(sort, buckets))  # the host sort releases the GIL
     else:
         sort(buckets[1])
     partner = wp.full(vertex_count, -1, dtype=wp.int32, device=device)

@@ -25,6 +25,19 @@ import warp as wp
 MIN_ROWS_TO_SPLIT = 16384
 
 
+_pools: dict[tuple[int, int], ThreadPoolExecutor] = {}
+
+
+def worker_pool(workers: int) -> ThreadPoolExecutor:
+    """A pool of ``workers`` threads, started once per process and kept: starting threads costs
+    about as much as a small launch (keyed by process id, so a forked child starts its own)."""
+    key = (os.getpid(), workers)
+    pool = _pools.get(key)
+    if pool is None:
+        pool = _pools[key] = ThreadPoolExecutor(workers, thread_name_prefix="nanogs-warp")
+    return pool
+
+
 def cpu_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
@@ -52,8 +65,7 @@ def _launch_chunks(kernel, workers: int, chunks: list[tuple[int, int]], inputs_o
         first, stop = chunk
         wp.launch(kernel, stop - first, inputs=inputs_of(first, stop), device=device)
 
-    with ThreadPoolExecutor(workers) as pool:
-        list(pool.map(launch, chunks))  # re-raises the first failure
+    list(worker_pool(workers).map(launch, chunks))  # re-raises the first failure
 
 
 def launch_rows(kernel, rows: int, arguments: Callable[[slice], list], device, chunks_per_worker: int = 1) -> None:
