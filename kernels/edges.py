@@ -1,9 +1,8 @@
 """Unique undirected edges of a directed k-nearest-neighbour graph, built without a global sort.
 
-The output is cut into one segment per point a: the edges (a, b) with b > a, sorted by b. Segment a
-holds
-  (a) every neighbour b > a of row a (the entries of a row are distinct), and
-  (b) every row b > a that lists a while row a does not list b.
+The output is cut into one segment per point a: the edges (a, b) with b > a. Segment a holds
+  (a) every neighbour b > a of row a, in row order (the entries of a row are distinct), then
+  (b) every row b > a that lists a while row a does not list b, ascending.
 A pair listed by both rows is taken from (a) only, so every undirected edge appears exactly once.
 
   _classify_rows    per row: how many entries go to (a), and a bit mask of the entries (i -> j),
@@ -12,12 +11,12 @@ A pair listed by both rows is taken from (a) only, so every undirected edge appe
   _count_foreign    per row, atomic: adds each foreign entry to its segment's length
   (scan)            segment offsets
   _place_foreign    per row, atomic: writes each foreign entry into its segment's part (b)
-  _finish_segments  per row: sorts the segment (in registers up to MAX_K entries; else part (a) in
-                    registers and part (b) in place, then merged) and writes the segment's i
+  _finish_segments  per row: writes part (a) in front of part (b), sorts part (b) and writes the
+                    segment's i
 
 Kernels without atomics may be split over CPU threads; the two atomic kernels must be single
 launches on the CPU (CPU atomics are plain read-modify-writes). Part (b) lands in an order that
-depends on the order the rows run in; sorting every segment makes the output independent of it.
+depends on the order the rows run in; sorting it makes the output independent of that order.
 
 The rows are read through ``rows``: the (N, k) int32 table itself, or, where k is a multiple of 4,
 the same memory viewed as (N, k/4) vec4i (a quarter of the loads; CPU array accesses are costly).
@@ -32,11 +31,9 @@ from .knn import squared_distance
 wp.set_module_options({"enable_backward": False})
 
 MAX_K = wp.constant(32)  # foreign entries of a row are bits of a uint32
-# A segment longer than MAX_K (a point listed by many rows) has its part (b) insertion-sorted up to
-# this length, heap-sorted beyond it unless already in order: O(m log m) whatever order it arrives in.
+# Part (b) is insertion-sorted up to this length, heap-sorted beyond it (a point listed by many rows)
+# unless already in order: O(m log m) whatever order it arrives in.
 SMALL_PART = wp.constant(32)
-
-row_buffer = wp.types.vector(length=MAX_K, dtype=wp.int32)
 
 
 @wp.func
@@ -201,45 +198,6 @@ def _sort_part(values: wp.array(dtype=wp.int32), start: int, stop: int):
                 last -= 1
 
 
-@wp.func
-def _sorted_prefix(buffer: row_buffer, size: int):
-    """``buffer`` with its first ``size`` entries in ascending order (insertion sort in registers)."""
-    for x in range(1, size):
-        v = buffer[x]
-        y = int(x)
-        while y > 0:
-            w = buffer[y - 1]
-            if w <= v:
-                break
-            buffer[y] = w
-            y -= 1
-        buffer[y] = v
-    return buffer
-
-
-@wp.func
-def _finish_long(edge_j: wp.array(dtype=wp.int32), part_a: row_buffer, a: int, start: int, stop: int):
-    # a segment longer than MAX_K: part (a) sorted in registers, part (b) = edge_j[start + a : stop]
-    # sorted in place, then the two merged from the front (writes never pass the unread part (b))
-    part_a = _sorted_prefix(part_a, a)
-    b = start + a
-    _sort_part(edge_j, b, stop)
-    p = int(start)
-    x = int(0)
-    while x < a:
-        v = part_a[x]
-        take_b = bool(False)
-        if b < stop:
-            take_b = edge_j[b] < v
-        if take_b:
-            edge_j[p] = edge_j[b]
-            b += 1
-        else:
-            edge_j[p] = v
-            x += 1
-        p += 1
-
-
 @wp.kernel
 def _finish_segments(
     first: int,
@@ -249,31 +207,23 @@ def _finish_segments(
     edge_i: wp.array(dtype=wp.int32),
     edge_j: wp.array(dtype=wp.int32),
 ):
-    # segment i: part (a) from row i joins part (b) (already in place behind it), sorted; i throughout
+    # segment i: part (a), row i's entries above i in row order, written in front of part (b) (already
+    # in place behind it), which is sorted; i throughout
     i = first + wp.tid()
     start = offsets[i]
     stop = offsets[i + 1]
     chunks = rows.shape[1]
     width = k // chunks
-    buffer = row_buffer()
-    a = int(0)
+    a = start
     for u in range(chunks):
         own = rows[i, u]
         for w in range(4):  # unrolled; lanes past the chunk's width are skipped
             if w < width:
                 j = _lane(own, w)
-                buffer[a] = j  # kept only where j > i
-                a += wp.where(j > i, 1, 0)
-    b = start + a  # part (b): edge_j[b:stop]
-    size = stop - start
-    if size <= MAX_K:  # the usual case: the whole segment sorted in registers
-        for e in range(b, stop):
-            buffer[e - start] = edge_j[e]
-        buffer = _sorted_prefix(buffer, size)
-        for x in range(size):
-            edge_j[start + x] = buffer[x]
-    else:  # a point listed by many rows
-        _finish_long(edge_j, buffer, a, start, stop)
+                if j > i:
+                    edge_j[a] = j
+                    a += 1
+    _sort_part(edge_j, a, stop)
     for e in range(start, stop):
         edge_i[e] = i
 

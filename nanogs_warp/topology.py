@@ -25,7 +25,10 @@ _QUANTILE_TAIL = 0.001  # fraction of the sample left out at each end
 
 @dataclass
 class Edges:
-    """Unique undirected edges, i < j, sorted by (i, j)."""
+    """Unique undirected edges, i < j, grouped by i in ascending order. Within a group: i's own
+    neighbours above i in kNN order (nearest first), then the points above i that list i while i
+    does not list them, ascending. A canonical order, the same on every device; the pairing breaks
+    cost ties by it."""
 
     i: wp.array  # int32, length count
     j: wp.array  # int32
@@ -73,14 +76,14 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None, reach
 
 
 def candidate_edges(neighbours: wp.array, means: wp.array | None = None, reach: wp.array | None = None) -> Edges:
-    """Union of directed kNN edges as undirected, deduplicated, i < j, sorted by (i, j).
+    """Union of directed kNN edges as undirected, deduplicated, i < j, in the order ``Edges`` describes.
 
     For the exact kNN graph of ``means`` with its ``reach`` (from ``knn_graph``), whether row j
     lists i is one comparison; for any other table of neighbours (no ``reach``), a scan of row j.
 
     ``neighbours`` is an (N, k) int32 table, k <= 32, whose row i lists k distinct points other than
     i. No global sort: every edge (a, b), a < b, is counted into and written to the segment of a
-    (see ``nanogs_warp.kernels.edges``), and each segment is sorted on its own. Scratch memory is
+    (see ``nanogs_warp.kernels.edges``). Scratch memory is
     12 bytes per point (a bit mask, a count and an offset) besides the output; the host reads one
     scalar, the edge count.
     """

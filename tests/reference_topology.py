@@ -29,9 +29,19 @@ def knn_reference(
 
 
 def edges_reference(neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unique undirected edges (i < j, sorted by (i, j)) of a directed neighbour table."""
+    """Unique undirected edges (i < j) of a directed neighbour table in the canonical order: by i;
+    within i, first row i's entries above i in row order, then the points above i that list i
+    while row i does not list them, ascending."""
     n, k = neighbours.shape
     i = np.repeat(np.arange(n, dtype=np.int64), k)
     j = np.asarray(neighbours, dtype=np.int64).ravel()
-    pairs = np.unique(np.stack([np.minimum(i, j), np.maximum(i, j)], axis=1), axis=0)
-    return pairs[:, 0].astype(np.int32), pairs[:, 1].astype(np.int32)
+    column = np.tile(np.arange(k, dtype=np.int64), n)
+    listed = np.isin(j * n + i, i * n + j)  # row j lists i
+    own = j > i  # part (a) of segment i
+    foreign = (j < i) & ~listed  # part (b) of segment j
+    segment = np.r_[i[own], j[foreign]]
+    other = np.r_[j[own], i[foreign]]
+    part = np.r_[np.zeros(own.sum(), np.int64), np.ones(foreign.sum(), np.int64)]
+    secondary = np.r_[column[own], i[foreign]]
+    order = np.lexsort((secondary, part, segment))
+    return segment[order].astype(np.int32), other[order].astype(np.int32)
