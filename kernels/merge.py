@@ -220,14 +220,16 @@ def coverage_moment_matching(
     j = int(pair_j[p])
     row = int(destination[i])
     pi = first_weight(log_coverage_mass(src.opacities[i], src.log_scales[i]), log_coverage_mass(src.opacities[j], src.log_scales[j]))
-    mu_m, cov_m = pair_moments(i, j, pi, src)
+    cov_i = covariance(src.rotations[i], src.log_scales[i])
+    cov_j = covariance(src.rotations[j], src.log_scales[j])
+    mu_m, cov_m = moment_match(pi, to_vec3d(src.means[i]), cov_i, to_vec3d(src.means[j]), cov_j)
     blend_appearance(i, j, pi, row, src, out)
     values, frame = symmetric_eigen(cov_m)
     c0 = wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0])
     c1 = wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
-    coverage = wp.exp(log_sigmoid(wp.float64(src.opacities[i]))) * projected_footprint(
-        covariance(src.rotations[i], src.log_scales[i]), c0, c1
-    ) + wp.exp(log_sigmoid(wp.float64(src.opacities[j]))) * projected_footprint(covariance(src.rotations[j], src.log_scales[j]), c0, c1)
+    coverage = wp.exp(log_sigmoid(wp.float64(src.opacities[i]))) * projected_footprint(cov_i, c0, c1) + wp.exp(
+        log_sigmoid(wp.float64(src.opacities[j]))
+    ) * projected_footprint(cov_j, c0, c1)
     ratio = coverage / wp.sqrt(wp.max(values[0] * values[1], wp.float64(1e-300)))
     if ratio > wp.float64(1.0):
         grow = wp.pow(ratio, wp.float64(growth))
