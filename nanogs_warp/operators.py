@@ -25,6 +25,7 @@ def _launch(kernel, source: SplatSet, pairs: Pairs, out: SplatSet, destination: 
         kernel, pairs.count,
         lambda rows: [pairs.i[rows], pairs.j[rows], destination, source.kernel_view(), out.kernel_view(), *parameters],
         source.device,
+        min_rows=1024,  # about 1 us a merge on a CPU core
     )  # fmt: skip
 
 

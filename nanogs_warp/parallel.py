@@ -21,7 +21,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import warp as wp
 
-# Fewest rows per worker thread: below this, one launch is faster than starting threads.
+# Fewest rows per worker thread for a cheap kernel (tens of ns per row): below this, one launch is
+# faster than handing chunks to threads. Costly kernels pass a smaller ``min_rows``.
 MIN_ROWS_TO_SPLIT = 16384
 
 
@@ -42,11 +43,13 @@ def cpu_workers() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
-def row_chunks(rows: int, device, chunks_per_worker: int = 1) -> tuple[int, list[tuple[int, int]]]:
+def row_chunks(
+    rows: int, device, chunks_per_worker: int = 1, min_rows: int = MIN_ROWS_TO_SPLIT
+) -> tuple[int, list[tuple[int, int]]]:
     """(workers, [(first, stop), ...]): the contiguous row chunks a launch over ``rows`` rows is cut
-    into on ``device``. One chunk off the CPU or below ``2 * MIN_ROWS_TO_SPLIT`` rows."""
+    into on ``device``, at least ``min_rows`` rows per worker. One chunk off the CPU."""
     device = wp.get_device(device)
-    workers = max(1, min(cpu_workers(), rows // MIN_ROWS_TO_SPLIT)) if device.is_cpu else 1
+    workers = max(1, min(cpu_workers(), rows // max(1, min_rows))) if device.is_cpu else 1
     if workers == 1:
         return 1, [(0, rows)]
     chunks = workers * max(1, chunks_per_worker)
@@ -68,17 +71,21 @@ def _launch_chunks(kernel, workers: int, chunks: list[tuple[int, int]], inputs_o
     list(worker_pool(workers).map(launch, chunks))  # re-raises the first failure
 
 
-def launch_rows(kernel, rows: int, arguments: Callable[[slice], list], device, chunks_per_worker: int = 1) -> None:
+def launch_rows(
+    kernel, rows: int, arguments: Callable[[slice], list], device, chunks_per_worker: int = 1, min_rows: int = MIN_ROWS_TO_SPLIT
+) -> None:
     """Launches ``kernel`` over ``rows`` threads; ``arguments(rows_slice)`` returns the kernel's
     argument list with every per-row array sliced to ``rows_slice``."""
     device = wp.get_device(device)
-    workers, chunks = row_chunks(rows, device, chunks_per_worker)
+    workers, chunks = row_chunks(rows, device, chunks_per_worker, min_rows)
     _launch_chunks(kernel, workers, chunks, lambda first, stop: arguments(slice(first, stop)), device)
 
 
-def launch_rows_from(kernel, rows: int, inputs: list, device, chunks_per_worker: int = 4) -> None:
+def launch_rows_from(
+    kernel, rows: int, inputs: list, device, chunks_per_worker: int = 4, min_rows: int = MIN_ROWS_TO_SPLIT
+) -> None:
     """Launches ``kernel(first, *inputs)`` over rows 0..rows-1: thread t of a chunk handles row
     ``first + t``. Several chunks per worker (default 4) even out dense and sparse regions."""
     device = wp.get_device(device)
-    workers, chunks = row_chunks(rows, device, chunks_per_worker)
+    workers, chunks = row_chunks(rows, device, chunks_per_worker, min_rows)
     _launch_chunks(kernel, workers, chunks, lambda first, stop: [first, *inputs], device)
