@@ -181,9 +181,10 @@ def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bo
         try:
             import warp as wp
 
-            from .device import init_warp
+            from .device import init_warp, keep_freed_host_memory
 
             init_warp()
+            keep_freed_host_memory()
             warp_device = wp.get_device("cpu" if device == "cpu" else "cuda:0")
         except Exception as e:  # noqa: BLE001 - reported to the parent, which fails the scenes
             conn.send(("broken", f"cannot start Warp on {device}: {type(e).__name__}: {e}"))

@@ -70,9 +70,10 @@ def _scene_task(job: SceneJob, force: bool, gpu: bool) -> SceneResult:
     import warp as wp
 
     from .batch_work import process_scene
-    from .device import init_warp
+    from .device import init_warp, keep_freed_host_memory
 
     init_warp()
+    keep_freed_host_memory()
     host = socket.gethostname()
     if gpu:
         import ray

@@ -116,7 +116,7 @@ def simplify(
     quiet: opts.Quiet = False,
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
-    from .device import resolve_device
+    from .device import keep_freed_host_memory, resolve_device
     from .pipeline import simplify_progressively
     from .ply import load_ply, save_ply
 
@@ -126,6 +126,7 @@ def simplify(
     paths = output_paths(output, budgets)
     _check_outputs(input, list(paths.values()))
     target_device = resolve_device(device)
+    keep_freed_host_memory()
 
     started = time.perf_counter()
     splats = load_ply(input, device="cpu", drop_invalid=drop_invalid)

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from tile_scene import tile_splats  # noqa: E402
 
 from nanogs_warp.budgets import parse_budgets  # noqa: E402
-from nanogs_warp.device import resolve_device  # noqa: E402
+from nanogs_warp.device import keep_freed_host_memory, resolve_device  # noqa: E402
 from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively  # noqa: E402
 from nanogs_warp.ply import load_ply, save_ply  # noqa: E402
 from nanogs_warp.timing import StageClock  # noqa: E402
@@ -133,6 +133,7 @@ def main() -> None:
     parser.add_argument("--log", type=Path, default=Path(__file__).parent / "bench.jsonl")
     args = parser.parse_args()
     device = resolve_device(args.device)
+    keep_freed_host_memory()  # as the commands do
     records = []
     for path in args.scenes:
         record = bench_scene(path, args, device)
