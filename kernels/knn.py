@@ -232,20 +232,22 @@ def _window_levels(
 
 @wp.kernel
 def _search_levels(
+    first: int,
     window_level: wp.array(dtype=wp.int32),
     k: int,
     search_level: wp.array(dtype=wp.int32),
-    level_histogram: wp.array(dtype=wp.int32),
+    searched: wp.array(dtype=wp.int32),
 ):
-    # per point: the finest level whose own cell holds >= k+1 points (the best window of k+1
-    # consecutive points through it); histogram of the levels searched
-    i = wp.tid()
+    # per point (from `first` on): the finest level whose own cell holds >= k+1 points (the best
+    # window of k+1 consecutive points through it); searched[level] = 1 for the levels in use (the
+    # same value from every thread: no atomics needed)
+    i = first + wp.tid()
     n = search_level.shape[0]
     level = int(LEVELS - 1)
     for a in range(wp.max(i - k, 0), wp.min(i, n - 1 - k) + 1):
         level = wp.min(level, window_level[a])
     search_level[i] = level
-    wp.atomic_add(level_histogram, level, 1)
+    searched[level] = 1
 
 
 @wp.kernel

@@ -13,7 +13,7 @@ import warp as wp
 
 from nanogs_warp.kernels import edges as edge_kernels
 from nanogs_warp.kernels import knn as knn_kernels
-from nanogs_warp.parallel import launch_rows_from
+from nanogs_warp.parallel import cpu_workers, launch_rows_from, worker_pool
 
 KMAX = knn_kernels.KMAX
 _LEVELS = knn_kernels.LEVELS
@@ -140,6 +140,17 @@ class KnnTopology:
         return candidate_edges(neighbours, splats.means, reach)
 
 
+def _level_groups(used: np.ndarray, work: np.ndarray, workers: int) -> list[tuple[int, int]]:
+    """The searched levels cut into one or two contiguous ranges (first, last) of about equal
+    ``work`` (per level)."""
+    if workers < 2 or len(used) < 2:
+        return [(int(used[0]), int(used[-1]))]
+    weight = np.cumsum(work[used])
+    cut = int(np.searchsorted(weight, weight[-1] / 2))
+    cut = min(max(cut, 0), len(used) - 2)
+    return [(int(used[0]), int(used[cut])), (int(used[cut + 1]), int(used[-1]))]
+
+
 def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     """Corner and level-0 cell side (quantum) of the cube that quantises the points to 21 bits per
     axis, and the margin by which cell-distance lower bounds are lowered for float32 rounding.
@@ -200,19 +211,17 @@ def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list]:
     split_histogram = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
     wp.launch(knn_kernels._window_levels, n, inputs=[codes, k], outputs=[window_level, split_histogram], device=device)
     search_level = wp.empty(n, dtype=wp.int32, device=device)
-    level_histogram = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
-    wp.launch(
-        knn_kernels._search_levels, n, inputs=[window_level, k], outputs=[search_level, level_histogram], device=device
-    )
+    searched = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
+    launch_rows_from(knn_kernels._search_levels, n, [window_level, k, search_level, searched], device)
 
     splits = split_histogram.numpy()
-    searched = level_histogram.numpy()
+    used = np.flatnonzero(searched.numpy())
+    cells = np.array([1 + int(splits[level + 1 :].sum()) for level in range(_LEVELS)])  # points part below a level
     base = np.zeros(_LEVELS, dtype=np.int32)
     mask = np.full(_LEVELS, -1, dtype=np.int32)
     total = 0
-    for level in np.flatnonzero(searched):
-        cells = 1 + int(splits[level + 1 :].sum())  # consecutive points part below `level`
-        capacity = 1 << (2 * cells - 1).bit_length()
+    for level in used:
+        capacity = 1 << (2 * int(cells[level]) - 1).bit_length()
         base[level], mask[level] = total, capacity - 1
         total += capacity
     level_base = wp.array(base, dtype=wp.int32, device=device)
@@ -220,8 +229,17 @@ def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list]:
     keys = wp.full(total, knn_kernels.EMPTY, dtype=wp.int64, device=device)
     starts = wp.empty(total, dtype=wp.int32, device=device)
     ends = wp.empty(total, dtype=wp.int32, device=device)
-    used = np.flatnonzero(searched)
-    levels = [codes, int(used[0]), int(used[-1]), level_base, level_mask]
-    wp.launch(knn_kernels._insert_cells, n, inputs=levels, outputs=[keys, starts], device=device)
+    tables = [level_base, level_mask]
+    # inserting uses atomics: on the CPU, levels (separate tables) are shared out between cores instead of rows
+    def insert(levels: tuple[int, int]) -> None:
+        wp.launch(knn_kernels._insert_cells, n, inputs=[codes, *levels, *tables], outputs=[keys, starts], device=device)
+
+    groups = _level_groups(used, n + cells, cpu_workers() if device.is_cpu else 1)
+    if len(groups) > 1:
+        wp.load_module(knn_kernels._insert_cells.module, device=device)
+        list(worker_pool(len(groups)).map(insert, groups))
+    else:
+        insert(groups[0])
+    levels = [codes, int(used[0]), int(used[-1]), *tables]
     launch_rows_from(knn_kernels._close_cells, n, [*levels, keys, ends], device)
     return search_level, [level_base, level_mask, keys, starts, ends]
