@@ -15,11 +15,28 @@ UNMERGEABLE = wp.constant(3.0e38)
 @wp.func
 def appearance_distance(features: wp.array2d(dtype=float), i: int, j: int):
     """D_app = ||f_i - f_j||^2 over every SH coefficient (NanoGS eq. 6)."""
-    d = wp.float64(0.0)
-    for c in range(features.shape[1]):
-        diff = wp.float64(features[i, c] - features[j, c])
-        d += diff * diff
-    return d
+    # four running sums: a single one would chain every addition on the one before
+    d0 = wp.float64(0.0)
+    d1 = wp.float64(0.0)
+    d2 = wp.float64(0.0)
+    d3 = wp.float64(0.0)
+    count = features.shape[1]
+    c = int(0)
+    while c + 4 <= count:
+        x0 = wp.float64(features[i, c] - features[j, c])
+        x1 = wp.float64(features[i, c + 1] - features[j, c + 1])
+        x2 = wp.float64(features[i, c + 2] - features[j, c + 2])
+        x3 = wp.float64(features[i, c + 3] - features[j, c + 3])
+        d0 += x0 * x0
+        d1 += x1 * x1
+        d2 += x2 * x2
+        d3 += x3 * x3
+        c += 4
+    while c < count:
+        x = wp.float64(features[i, c] - features[j, c])
+        d0 += x * x
+        c += 1
+    return (d0 + d1) + (d2 + d3)
 
 
 @wp.func
