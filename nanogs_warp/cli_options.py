@@ -9,7 +9,10 @@ import typer
 
 Ratio = Annotated[Optional[str], typer.Option(help="Fraction of the input's splats to keep, in (0, 1]; several as 0.1,0.01,0.001.")]
 Count = Annotated[Optional[str], typer.Option(help="Number of splats to keep; several as 100000,10000.")]
-K = Annotated[int, typer.Option("--k", help="Neighbours per splat in the candidate graph.")]
+K = Annotated[
+    Optional[int],
+    typer.Option("--k", show_default=False, help="Neighbours per splat in the candidate graph [default: 24 below 65,536 splats, 16 from there on]."),
+]
 PruneOpacity = Annotated[float, typer.Option(help="Prune splats with opacity below min(this, median opacity) first; 0 disables.")]
 Samples = Annotated[int, typer.Option(help="Monte Carlo samples per edge for the I-divergence.")]
 Seed = Annotated[int, typer.Option(help="Seed of the common random numbers.")]

@@ -142,3 +142,23 @@ def test_one_pass_matches_numpy(device):
             np.testing.assert_allclose(reference.sigmoid(out["opacities"][row]), merged_at[r]["alpha"], rtol=1e-5)
         else:
             np.testing.assert_array_equal(out["means"][row], arrays["means"][r])
+
+
+def test_default_neighbours_by_scene_size():
+    config = SimplifyConfig()
+    assert config.k is None
+    assert config.neighbours(4_721) == 24 and config.neighbours(65_535) == 24
+    assert config.neighbours(65_536) == 16 and config.neighbours(5_000_000) == 16
+    assert SimplifyConfig(k=7).neighbours(100) == 7 and SimplifyConfig(k=7).neighbours(10**6) == 7
+
+
+@pytest.mark.parametrize("n, k", [(3_000, 24), (70_000, 16)])
+def test_default_run_uses_the_neighbours_of_its_size(n, k):
+    arrays = clustered_scene(n, seed=21, sh_degree=0)
+    splats = SplatSet.from_numpy(**arrays, device="cpu")
+    default = simplify(splats, count=n // 3).to_numpy()
+    explicit = simplify(splats, count=n // 3, config=SimplifyConfig(k=k)).to_numpy()
+    other = simplify(splats, count=n // 3, config=SimplifyConfig(k=40 - k)).to_numpy()
+    for key in default:
+        np.testing.assert_array_equal(default[key], explicit[key])
+    assert not np.array_equal(default["means"], other["means"])

@@ -124,7 +124,7 @@ def main() -> None:
     parser.add_argument("--ratio", default="0.1")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--tile", type=int, default=0, help="tile each scene to this many splats first")
-    parser.add_argument("--k", type=int, default=SimplifyConfig.k)
+    parser.add_argument("--k", type=int, default=SimplifyConfig.k, help="default: by scene size, as the commands")
     parser.add_argument("--samples", type=int, default=SimplifyConfig.samples)
     parser.add_argument("--cost", default=SimplifyConfig.cost)
     parser.add_argument("--operator", default=SimplifyConfig.operator)

@@ -53,8 +53,8 @@ def nanogs(**changes) -> dict:
 
 
 # The configuration recommended as the default (docs/quality.md): coverage operator, Runnalls cost
-# (mass exponent 0.25), no opacity pruning, k = 24.
-RECOMMENDED = {"operator": "coverage", "cost": "runnalls", "prune_opacity": 0.0, "k": 24}
+# (mass exponent 0.25), no opacity pruning, k by scene size (None: 24 below 65,536 splats, else 16).
+RECOMMENDED = {"operator": "coverage", "cost": "runnalls", "prune_opacity": 0.0, "k": None}
 
 # name -> definition. "paper" is the paper's configuration (SimplifyConfig's defaults when this was written).
 CONFIGS: dict[str, dict] = {
@@ -78,6 +78,8 @@ CONFIGS: dict[str, dict] = {
     # the recommended configuration with one change back, or one neighbour
     "rec-prune0.1": nanogs(**{**RECOMMENDED, "prune_opacity": 0.1}),
     "rec-k16": nanogs(**{**RECOMMENDED, "k": 16}),
+    "rec-k20": nanogs(**{**RECOMMENDED, "k": 20}),
+    "rec-k24": nanogs(**{**RECOMMENDED, "k": 24}),
     "rec-area": nanogs(**{**RECOMMENDED, "operator": "area"}),
     "rec-mpmm": nanogs(**{**RECOMMENDED, "operator": "mpmm"}),
     "rec-idiv": nanogs(**{**RECOMMENDED, "cost": "idiv"}),
