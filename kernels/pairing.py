@@ -1,6 +1,6 @@
 """Disjoint low-cost pairs: the greedy matching over edges in rank order.
 
-An edge's rank orders it by cost, then by edge index (edges come in (i, j) order). Two ways to the
+An edge's rank orders it by cost, then by edge index (the canonical order of ``Edges``). Two ways to the
 same matching:
 
 - Sequentially: scan the edges by rank, take an edge when both ends are free. The edges are split

@@ -1,5 +1,5 @@
 """Choose disjoint low-cost pairs: exactly the sequential greedy matching over the edges in rank
-order (by cost, then by edge index, which is (i, j) order)."""
+order (by cost, then by edge index: the canonical order of ``Edges``)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,8 @@
 """Candidate topology: the exact k-nearest-neighbour graph of the splat centres and its undirected edges.
 
 Everything runs on the device of the input; the host reads only scalars: a bounding box, six
-coordinate quantiles, two 22-bin level histograms and the edge count.
+coordinate quantiles, a 22-bin histogram of the levels where neighbours part, 22 flags of the levels
+searched and the edge count.
 """
 
 from __future__ import annotations
@@ -84,9 +85,8 @@ def candidate_edges(neighbours: wp.array, means: wp.array | None = None, reach: 
 
     ``neighbours`` is an (N, k) int32 table, k <= 32, whose row i lists k distinct points other than
     i. No global sort: every edge (a, b), a < b, is counted into and written to the segment of a
-    (see ``nanogs_warp.kernels.edges``). Scratch memory is
-    12 bytes per point (a bit mask, a count and an offset) besides the output; the host reads one
-    scalar, the edge count.
+    (see ``nanogs_warp.kernels.edges``). Scratch memory is 12 bytes per point (a bit mask, a count
+    and an offset) besides the output; the host reads one scalar, the edge count.
     """
     n, k = neighbours.shape
     device = neighbours.device
