@@ -124,8 +124,7 @@ def simplify_progressively(
             if clock is not None:
                 clock.next_pass()
             n = current.count
-            with stage("topology"):
-                edges = topology(current)
+            edges = topology(current, stage)  # times its own steps: "knn" and "edges"
             with stage("cost"):
                 costs = cost(current, edges, pass_index)
             edge_count = edges.count

@@ -7,6 +7,8 @@ searched and the edge count.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -124,7 +126,8 @@ def candidate_edges(neighbours: wp.array, means: wp.array | None = None, reach: 
 class KnnTopology:
     """The topology stage as the pipeline calls it: splats -> candidate edges of their kNN graph.
 
-    k shrinks to N-1 when fewer than k+1 splats are left.
+    k shrinks to N-1 when fewer than k+1 splats are left. ``stage`` (benchmarks) is a context
+    manager factory that times the two steps, "knn" and "edges".
     """
 
     MAX_K = KMAX
@@ -134,10 +137,12 @@ class KnnTopology:
             raise ValueError(f"k must be in [1, {KMAX}], got {k}")
         self.k = k
 
-    def __call__(self, splats) -> Edges:
-        reach = wp.empty(splats.count, dtype=wp.int64, device=splats.means.device)
-        neighbours = knn_graph(splats.means, min(self.k, splats.count - 1), reach=reach)
-        return candidate_edges(neighbours, splats.means, reach)
+    def __call__(self, splats, stage: Callable[[str], AbstractContextManager] = lambda name: nullcontext()) -> Edges:
+        with stage("knn"):
+            reach = wp.empty(splats.count, dtype=wp.int64, device=splats.means.device)
+            neighbours = knn_graph(splats.means, min(self.k, splats.count - 1), reach=reach)
+        with stage("edges"):
+            return candidate_edges(neighbours, splats.means, reach)
 
 
 def _level_groups(used: np.ndarray, work: np.ndarray, workers: int) -> list[tuple[int, int]]:

@@ -162,3 +162,17 @@ def test_default_run_uses_the_neighbours_of_its_size(n, k):
     for key in default:
         np.testing.assert_array_equal(default[key], explicit[key])
     assert not np.array_equal(default["means"], other["means"])
+
+
+def test_stage_clock_times_every_stage_of_every_pass(device):
+    from nanogs_warp.timing import StageClock
+
+    arrays = clustered_scene(2_000, seed=5)
+    clock = StageClock(device)
+    passes = []
+    list(simplify_progressively(SplatSet.from_numpy(**arrays, device=device), [20], clock=clock, on_pass=passes.append))
+    assert len(clock.passes) == len(passes) >= 6
+    for times in clock.passes:
+        assert list(times) == ["knn", "edges", "cost", "pairing", "compaction", "merge"]
+        assert all(seconds > 0.0 for seconds in times.values())
+    assert list(clock.setup) == ["prune"]
