@@ -6,8 +6,10 @@ import reference
 import warp as wp
 from scene_factory import random_splat_arrays
 
+from nanogs_warp.cost import RunnallsCost
 from nanogs_warp.kernels import cost as kernels
 from nanogs_warp.splats import SplatSet
+from nanogs_warp.topology import Edges
 
 
 def near_pairs(rng, arrays, n_edges):
@@ -110,3 +112,63 @@ def test_common_samples_are_shared_and_seeded(device):
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, draw(1, 0)) and not np.array_equal(a, draw(0, 1))
     assert np.all((a[:, 3] >= 0) & (a[:, 3] < 1))
+
+
+# -- the Runnalls cost -------------------------------------------------------------------------
+
+
+def runnalls(arrays, ei, ej, device, **kwargs):
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), len(ei))
+    return RunnallsCost(**kwargs)(splats, edges, pass_index=0).numpy()
+
+
+def test_runnalls_kernels_write_every_output(device, rng):
+    """Per-splat terms and edge costs over NaN-poisoned outputs: every slot written, finite."""
+    arrays = random_splat_arrays(50, sh_degree=2, seed=int(rng.integers(1 << 30)))
+    ei, ej = near_pairs(rng, arrays, 300)
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    covariances = wp.full(50, wp.mat33d(*([np.nan] * 9)), dtype=wp.mat33d, device=device)
+    weights = wp.full(50, np.nan, dtype=wp.float64, device=device)
+    wp.launch(
+        kernels.runnalls_splat_terms, 50,
+        inputs=[splats.rotations, splats.log_scales, splats.opacities], outputs=[covariances, weights], device=device,
+    )  # fmt: skip
+    assert np.all(np.isfinite(covariances.numpy())) and np.all(weights.numpy() > 0)
+    costs = wp.full(len(ei), np.nan, dtype=float, device=device)
+    wp.launch(
+        kernels.runnalls_costs, len(ei),
+        inputs=[wp.array(ei, device=device), wp.array(ej, device=device), splats.means, splats.log_scales,
+                covariances, weights, splats.features, 1.0, 1.0, 0.25],
+        outputs=[costs], device=device,
+    )  # fmt: skip
+    got = costs.numpy()
+    want = np.array([reference.runnalls_cost(arrays, i, j) for i, j in zip(ei, ej)])
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6 * want.max())
+
+
+@pytest.mark.parametrize("mass_exponent", [0.0, 0.25, 1.0])
+def test_runnalls_matches_reference(device, rng, mass_exponent):
+    arrays = random_splat_arrays(64, sh_degree=1, seed=int(rng.integers(1 << 30)))
+    ei, ej = near_pairs(rng, arrays, 200)
+    got = runnalls(arrays, ei, ej, device, lambda_geo=1.0, lambda_app=0.5, mass_exponent=mass_exponent)
+    want = np.array([reference.runnalls_cost(arrays, i, j, 1.0, 0.5, mass_exponent) for i, j in zip(ei, ej)])
+    assert np.all(got >= 0)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6 * want.max())
+
+
+def test_runnalls_zero_for_identical_and_scale_free(device, rng):
+    """Identical splats cost 0; with mass exponent 0 the costs do not change when the scene is scaled."""
+    arrays = random_splat_arrays(64, sh_degree=0, seed=5)
+    same = {k: v.copy() for k, v in arrays.items()}
+    for key in same:
+        same[key][1::2] = same[key][0::2]
+    pairs = np.arange(64, dtype=np.int32)
+    np.testing.assert_allclose(runnalls(same, pairs[0::2], pairs[1::2], device), 0.0, atol=1e-6)
+    ei, ej = near_pairs(rng, arrays, 100)
+    scaled = {k: v.copy() for k, v in arrays.items()}
+    scaled["means"] *= 10.0
+    scaled["log_scales"] += np.float32(np.log(10.0))
+    a = runnalls(arrays, ei, ej, device, mass_exponent=0.0)
+    b = runnalls(scaled, ei, ej, device, mass_exponent=0.0)
+    np.testing.assert_allclose(a, b, rtol=2e-4, atol=1e-6 * a.max())

@@ -6,13 +6,10 @@ import pytest
 import reference
 import warp as wp
 from scene_factory import random_splat_arrays
-from test_cost import near_pairs
 from test_merge import merged
 
-from nanogs_warp.cost import RunnallsCost
 from nanogs_warp.operators import OPERATORS, AreaWeightedMomentMatching, CoverageMomentMatching
 from nanogs_warp.splats import SplatSet
-from nanogs_warp.topology import Edges
 
 LOGIT_LIMIT = 16.1
 
@@ -172,39 +169,3 @@ def test_area_and_coverage_deterministic(device, rng):
         _, b = merged(arrays, device, pairs_ij, operator)
         for key in a:
             np.testing.assert_array_equal(a[key], b[key])
-
-
-# -- the Runnalls cost (kept here as this file's companion to the operators it scores) ----------
-
-
-def runnalls(arrays, ei, ej, device, **kwargs):
-    splats = SplatSet.from_numpy(**arrays, device=device)
-    edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), len(ei))
-    return RunnallsCost(**kwargs)(splats, edges, pass_index=0).numpy()
-
-
-@pytest.mark.parametrize("mass_exponent", [0.0, 0.25, 1.0])
-def test_runnalls_matches_reference(device, rng, mass_exponent):
-    arrays = random_splat_arrays(64, sh_degree=1, seed=int(rng.integers(1 << 30)))
-    ei, ej = near_pairs(rng, arrays, 200)
-    got = runnalls(arrays, ei, ej, device, lambda_geo=1.0, lambda_app=0.5, mass_exponent=mass_exponent)
-    want = np.array([reference.runnalls_cost(arrays, i, j, 1.0, 0.5, mass_exponent) for i, j in zip(ei, ej)])
-    assert np.all(got >= 0)
-    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6 * want.max())
-
-
-def test_runnalls_zero_for_identical_and_scale_free(device, rng):
-    """Identical splats cost 0; with mass exponent 0 the costs do not change when the scene is scaled."""
-    arrays = random_splat_arrays(64, sh_degree=0, seed=5)
-    same = {k: v.copy() for k, v in arrays.items()}
-    for key in same:
-        same[key][1::2] = same[key][0::2]
-    pairs = np.arange(64, dtype=np.int32)
-    np.testing.assert_allclose(runnalls(same, pairs[0::2], pairs[1::2], device), 0.0, atol=1e-6)
-    ei, ej = near_pairs(rng, arrays, 100)
-    scaled = {k: v.copy() for k, v in arrays.items()}
-    scaled["means"] *= 10.0
-    scaled["log_scales"] += np.float32(np.log(10.0))
-    a = runnalls(arrays, ei, ej, device, mass_exponent=0.0)
-    b = runnalls(scaled, ei, ej, device, mass_exponent=0.0)
-    np.testing.assert_allclose(a, b, rtol=2e-4, atol=1e-6 * a.max())
