@@ -3,7 +3,7 @@
 import warp as wp
 
 from .merge import log_area_mass
-from .splat_math import LOG_2PI, covariance, first_weight, log_mass, log_sigmoid, moment_match, rotation_matrix, to_vec3d
+from .splat_math import LOG_2PI, covariance, first_weight, log_mass, moment_match, rotation_matrix, to_vec3d
 
 wp.set_module_options({"enable_backward": False})
 

@@ -26,7 +26,7 @@ from typing import Any
 
 import warp as wp
 
-from .knn import squared_distance
+from .knn import neighbour_key, squared_distance
 
 wp.set_module_options({"enable_backward": False})
 
@@ -69,8 +69,7 @@ def row_lists(
     (squared distance bits << 32 | index), the distance computed as the query computes it): one
     comparison. Otherwise a scan of row j."""
     if reach.shape[0] > 0:
-        d = squared_distance(means[j], means[i])  # row j's query, candidate i
-        return ((wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(i)) <= reach[j]
+        return neighbour_key(squared_distance(means[j], means[i]), i) <= reach[j]  # row j's query, candidate i
     listed = int(0)
     for c in range(rows.shape[1]):
         listed += _count_equal(rows[j, c], i)

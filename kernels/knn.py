@@ -145,6 +145,25 @@ def squared_distance(query: wp.vec3, candidate: wp.vec3) -> float:
 
 
 @wp.func
+def neighbour_key(d: float, index: int) -> wp.int64:
+    """A candidate's rank as one int64: its squared distance's bits (a non-negative float's bits
+    are ordered), then its index."""
+    return (wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(index)
+
+
+@wp.func
+def key_distance(key: wp.int64) -> float:
+    """The squared distance of a key."""
+    return wp.cast(wp.int32(key >> wp.int64(32)), wp.float32)
+
+
+@wp.func
+def _seed_bin(d: float, bin0: int) -> int:
+    """Eighth-octave bin of a seed distance, counted from bin0 (first and last bins open)."""
+    return wp.clamp((wp.cast(d, wp.int32) >> BIN_SHIFT) - bin0, 0, BINS - 1)
+
+
+@wp.func
 def _box_distance(p: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> float:
     """Squared distance from p to the box [lo, hi]."""
     g = wp.max(wp.max(lo - p, p - hi), wp.vec3(0.0))
@@ -374,7 +393,7 @@ def _knn_query(
     hist = bin_counts()
     bin0 = wp.cast(d_min, wp.int32) >> BIN_SHIFT
     for t in range(m):
-        hist[wp.clamp((wp.cast(sd[t], wp.int32) >> BIN_SHIFT) - bin0, 0, BINS - 1)] += 1
+        hist[_seed_bin(sd[t], bin0)] += 1
     # tighter start threshold: the bin `top` that holds the k-th smallest seed distance; the `cum` >= k
     # seed points up to it bound the k-th neighbour, so no point of a later bin can be one
     cum = int(0)
@@ -395,12 +414,12 @@ def _knn_query(
         start += c
     perm = seed_slots()
     for t in range(m):
-        b = wp.min(wp.clamp((wp.cast(sd[t], wp.int32) >> BIN_SHIFT) - bin0, 0, BINS - 1), top + 1)
+        b = wp.min(_seed_bin(sd[t], bin0), top + 1)
         perm[hist[b]] = t
         hist[b] += 1
     for r in range(cum):
         t = perm[r]
-        key = (wp.int64(wp.cast(sd[t], wp.int32)) << wp.int64(32)) | wp.int64(order[seed_begin + t])
+        key = neighbour_key(sd[t], order[seed_begin + t])
         if key < worst and seed_begin + t != i:
             s = wp.min(filled, k - 1)  # fill tracking: empty slots are never shifted
             filled += 1
@@ -409,7 +428,7 @@ def _knn_query(
                 s -= 1
             best[s] = key
             worst = best[k - 1]
-    worst_d = wp.cast(wp.int32(worst >> wp.int64(32)), wp.float32)
+    worst_d = key_distance(worst)
     cj = block_ints()  # a block's points within worst_d
     cd = block_floats()
     ring = int(0)
@@ -421,7 +440,7 @@ def _knn_query(
                            _ring_gap(u[2], cz, ring, side, cells_per_axis)) - margin_p
             if gap > 0.0 and gap * gap > worst_d:
                 break
-        r = ring
+        r = ring  # the ring's half-width in cells
         for dx in range(-r, r + 1):
             x = cx + dx
             gx = _gap(u[0], cx, dx, side, margin_p)
@@ -466,7 +485,7 @@ def _knn_query(
                             j += 1
                         for c in range(nc):
                             d = cd[c]
-                            key = (wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(order[cj[c]])
+                            key = neighbour_key(d, order[cj[c]])
                             if key < worst:
                                 t = k - 1
                                 while t > 0 and best[t - 1] > key:
@@ -474,7 +493,7 @@ def _knn_query(
                                     t -= 1
                                 best[t] = key
                                 worst = best[k - 1]
-                                worst_d = wp.cast(wp.int32(worst >> wp.int64(32)), wp.float32)
+                                worst_d = key_distance(worst)
         ring += 1
 
     row = order[i]

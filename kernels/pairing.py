@@ -38,6 +38,11 @@ def priority(cost: float, e: int) -> wp.uint64:
     return (wp.uint64(cost_order(cost)) << wp.uint64(32)) | wp.uint64(e)
 
 
+@wp.func
+def both_free(partner: wp.array(dtype=wp.int32), i: int, j: int) -> bool:
+    return partner[i] < 0 and partner[j] < 0
+
+
 # -- sequential: two buckets split by cost, each sorted, scanned one after the other -------------
 
 
@@ -100,7 +105,7 @@ def greedy_pairs_in_rank_order(
         ij = ends[r]
         i = ij[0]
         j = ij[1]
-        if partner[i] < 0 and partner[j] < 0:
+        if both_free(partner, i, j):
             partner[i] = j
             partner[j] = i
             pair_i[taken] = i
@@ -176,7 +181,7 @@ def count_still_free(
     e = active_edge(active, wp.tid())
     i = edge_i[e]
     j = edge_j[e]
-    if partner[i] < 0 and partner[j] < 0:
+    if both_free(partner, i, j):
         wp.atomic_add(remaining, 0, 1)
     best[i] = NO_CLAIM
     best[j] = NO_CLAIM
@@ -193,7 +198,7 @@ def gather_still_free(
 ):
     """The next round's active list: the edges with both ends free, in any order (claims are order-free)."""
     e = active_edge(active, wp.tid())
-    if partner[edge_i[e]] < 0 and partner[edge_j[e]] < 0:
+    if both_free(partner, edge_i[e], edge_j[e]):
         next_active[wp.atomic_add(slots, 0, 1)] = e
 
 

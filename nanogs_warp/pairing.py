@@ -94,7 +94,8 @@ def _greedy_in_rank_order(edges: Edges, costs, vertex_count, cap, pair_i, pair_j
 
 
 def _median_cost_order(costs: wp.array) -> int:
-    """Median cost order of a sample of the costs (the CPU's own memory: no copy)."""
+    """Median cost order of a sample of the costs (the CPU's own memory: no copy); the same mapping
+    as ``kernels.pairing.cost_order``, for the threshold only."""
     sample = costs.numpy()[:: max(1, costs.shape[0] // 4096)]
     bits = sample.view(np.uint32)
     order = np.where(bits >> 31 == 0, bits | np.uint32(0x80000000), ~bits)
