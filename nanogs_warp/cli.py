@@ -19,7 +19,6 @@ from .budgets import Budget, output_paths, parse_budgets
 from .cli_batch import batch_command
 from .cli_eval import eval_command
 from .errors import InputError
-from .pipeline import SimplifyConfig
 
 app = typer.Typer(
     name="nanogs-warp",
@@ -103,14 +102,15 @@ def simplify(
     ratio: opts.Ratio = None,
     count: opts.Count = None,
     device: Annotated[str, typer.Option(help="auto (first GPU, else CPU), cpu, cuda or cuda:N.")] = "auto",
-    k: opts.K = SimplifyConfig.k,
-    prune_opacity: opts.PruneOpacity = SimplifyConfig.prune_opacity,
-    samples: opts.Samples = SimplifyConfig.samples,
-    seed: opts.Seed = SimplifyConfig.seed,
-    lambda_geo: opts.LambdaGeo = SimplifyConfig.lambda_geo,
-    lambda_app: opts.LambdaApp = SimplifyConfig.lambda_app,
-    cost: opts.Cost = SimplifyConfig.cost,
-    operator: opts.Operator = SimplifyConfig.operator,
+    preset: opts.Preset = "default",
+    k: opts.K = None,
+    prune_opacity: opts.PruneOpacity = None,
+    samples: opts.Samples = None,
+    seed: opts.Seed = None,
+    lambda_geo: opts.LambdaGeo = None,
+    lambda_app: opts.LambdaApp = None,
+    cost: opts.Cost = None,
+    operator: opts.Operator = None,
     drop_invalid: opts.DropInvalid = False,
     json_output: opts.Json = False,
     quiet: opts.Quiet = False,
@@ -120,7 +120,10 @@ def simplify(
     from .pipeline import simplify_progressively
     from .ply import load_ply, save_ply
 
-    config = SimplifyConfig(k, prune_opacity, samples, seed, lambda_geo, lambda_app, cost, operator)
+    config = opts.method_config(
+        preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
+        lambda_app=lambda_app, cost=cost, operator=operator,
+    )
     config.validate()
     budgets = parse_budgets(ratio, count)
     paths = output_paths(output, budgets)

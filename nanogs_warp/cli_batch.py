@@ -17,7 +17,6 @@ import typer
 
 from . import cli_options as opts
 from .errors import InputError
-from .pipeline import SimplifyConfig
 
 
 def batch_command(
@@ -30,14 +29,15 @@ def batch_command(
     shard: Annotated[Optional[str], typer.Option(help="Only scenes i, i+n, i+2n, ... of the sorted list, as i/n (0-based), e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT.", show_default=False)] = None,
     ray: Annotated[Optional[str], typer.Option("--ray", help="Run each scene as a Ray task: auto (the cluster this machine belongs to), local (a Ray instance started here) or the head's ADDRESS. Needs nanogs-warp[ray].", show_default=False)] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo every scene, even those whose outputs and record are up to date.")] = False,
-    k: opts.K = SimplifyConfig.k,
-    prune_opacity: opts.PruneOpacity = SimplifyConfig.prune_opacity,
-    samples: opts.Samples = SimplifyConfig.samples,
-    seed: opts.Seed = SimplifyConfig.seed,
-    lambda_geo: opts.LambdaGeo = SimplifyConfig.lambda_geo,
-    lambda_app: opts.LambdaApp = SimplifyConfig.lambda_app,
-    cost: opts.Cost = SimplifyConfig.cost,
-    operator: opts.Operator = SimplifyConfig.operator,
+    preset: opts.Preset = "default",
+    k: opts.K = None,
+    prune_opacity: opts.PruneOpacity = None,
+    samples: opts.Samples = None,
+    seed: opts.Seed = None,
+    lambda_geo: opts.LambdaGeo = None,
+    lambda_app: opts.LambdaApp = None,
+    cost: opts.Cost = None,
+    operator: opts.Operator = None,
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing the scene.")] = False,
     json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
@@ -49,7 +49,10 @@ def batch_command(
     from .budgets import parse_budgets
 
     started = time.perf_counter()
-    config = SimplifyConfig(k, prune_opacity, samples, seed, lambda_geo, lambda_app, cost, operator)
+    config = opts.method_config(
+        preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
+        lambda_app=lambda_app, cost=cost, operator=operator,
+    )
     config.validate()
     budgets = parse_budgets(ratio, count) if ratio is not None or count is not None else None
     shard_index, shard_count = parse_shard(shard)

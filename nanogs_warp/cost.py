@@ -100,4 +100,40 @@ class RunnallsCost:
         return costs
 
 
-COSTS = {"idiv": IDivergenceCost, "mse": MeanSquaredCost, "runnalls": RunnallsCost}
+@dataclass(frozen=True)
+class FieldCost:
+    """The squared L2 change of the projected emitted field (opacity, and colour over view
+    directions) when a pair becomes the merge operator's own merged splat (``kernels/field_cost.py``).
+    ``operator`` is the pipeline's merge operator (mpmm or coverage); ``growth`` the coverage
+    operator's."""
+
+    lambda_geo: float = 1.0
+    lambda_app: float = 1.0
+    samples: int = 1
+    seed: int = 0
+    operator: str = "coverage"
+    growth: float = 0.25
+
+    OPERATOR_IDS = {"mpmm": 0, "coverage": 1}
+
+    def __call__(self, splats: SplatSet, edges: Edges, pass_index: int) -> wp.array:
+        from .kernels import field_cost
+
+        device = splats.device
+        covariances = wp.empty(splats.count, dtype=wp.mat33d, device=device)
+        launch_rows(
+            field_cost.splat_covariances, splats.count,
+            lambda rows: [splats.rotations[rows], splats.log_scales[rows], covariances[rows]],
+            device,
+        )  # fmt: skip
+        costs = wp.empty(edges.count, dtype=wp.float32, device=device)
+        launch_rows(
+            field_cost.field_costs, edges.count,
+            lambda rows: [edges.i[rows], edges.j[rows], splats.kernel_view(), covariances, self.OPERATOR_IDS[self.operator],
+                          self.growth, self.lambda_geo, self.lambda_app, costs[rows]],
+            splats.device,
+        )  # fmt: skip
+        return costs
+
+
+COSTS = {"field": FieldCost, "idiv": IDivergenceCost, "mse": MeanSquaredCost, "runnalls": RunnallsCost}

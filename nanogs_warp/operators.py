@@ -58,4 +58,8 @@ class CoverageMomentMatching:
         _launch(kernels.coverage_moment_matching, source, pairs, out, destination, float(self.growth))
 
 
-OPERATORS = {"mpmm": MassPreservingMomentMatching, "area": AreaWeightedMomentMatching, "coverage": CoverageMomentMatching}
+OPERATORS = {
+    "mpmm": MassPreservingMomentMatching,
+    "area": AreaWeightedMomentMatching,
+    "coverage": CoverageMomentMatching,
+}

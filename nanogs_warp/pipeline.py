@@ -3,6 +3,7 @@ kNN graph -> edge costs -> disjoint greedy pairs -> merge, until the target coun
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -10,7 +11,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from .compact import remove_rows
-from .cost import COSTS
+from .cost import COSTS, FieldCost
 from .errors import InputError
 from .operators import OPERATORS
 from .pairing import select_pairs
@@ -36,7 +37,11 @@ class SimplifyConfig:
     The defaults are the configuration with the best measured mean PSNR over the shared scenes and
     budgets (docs/quality.md): the coverage merge operator, the Runnalls cost, no opacity pruning
     and k = None: 24 neighbours below 65,536 splats, 16 from there on. ``SimplifyConfig.paper()`` is
-    the NanoGS paper's configuration.
+    the NanoGS paper's configuration (``--preset paper``).
+
+    ``pass_fraction``: at most this fraction of the current splats merge in one pass, the cheapest
+    pairs of the matching first; 0.5 takes the whole matching as the paper does, smaller values merge
+    cheap regions first over more passes.
     """
 
     k: int | None = None
@@ -45,13 +50,21 @@ class SimplifyConfig:
     seed: int = 0
     lambda_geo: float = 1.0
     lambda_app: float = 1.0
-    cost: str = "runnalls"
+    cost: str = "field"
     operator: str = "coverage"
+    pass_fraction: float = 0.35
 
     @staticmethod
     def paper(**overrides) -> SimplifyConfig:
         """The paper's configuration: MPMM, Monte Carlo I-divergence, pruning at 0.1, k = 16."""
-        return SimplifyConfig(**{"k": 16, "prune_opacity": 0.1, "cost": "idiv", "operator": "mpmm", **overrides})
+        return SimplifyConfig.preset("paper", **overrides)
+
+    @staticmethod
+    def preset(name: str, **overrides) -> SimplifyConfig:
+        """A named configuration with ``overrides``: "default" (this class's defaults) or "paper"."""
+        if name not in PRESETS:
+            raise InputError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+        return SimplifyConfig(**{**PRESETS[name], **overrides})
 
     def neighbours(self, splat_count: int) -> int:
         """k for a scene of ``splat_count`` splats (after pruning): k itself, or when unset 24 below
@@ -71,10 +84,21 @@ class SimplifyConfig:
             raise InputError(f"unknown cost {self.cost!r}; choose one of {', '.join(COSTS)}")
         if self.operator not in OPERATORS:
             raise InputError(f"unknown operator {self.operator!r}; choose one of {', '.join(OPERATORS)}")
+        if self.cost == "field" and self.operator not in FieldCost.OPERATOR_IDS:
+            raise InputError(f"--cost field scores the mpmm and coverage operators, not {self.operator!r}")
+        if not (0.0 < self.pass_fraction <= 0.5):
+            raise InputError(f"pass_fraction must be in (0, 0.5], got {self.pass_fraction}")
         for name in ("lambda_geo", "lambda_app"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}")
+
+
+# Named configurations (``--preset``): the measured default and the NanoGS paper's own.
+PRESETS: dict[str, dict] = {
+    "default": {},
+    "paper": {"k": 16, "prune_opacity": 0.1, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5},
+}
 
 
 @dataclass(frozen=True)
@@ -111,6 +135,8 @@ def simplify_progressively(
     if not targets or targets[-1] < 1 or targets[0] > splats.count:
         raise InputError(f"target counts must be between 1 and the input's {splats.count} splats, got {targets}")
     cost = COSTS[config.cost](config.lambda_geo, config.lambda_app, config.samples, config.seed)
+    if isinstance(cost, FieldCost):
+        cost = dataclasses.replace(cost, operator=config.operator)  # it scores the operator's own merge
     merge = OPERATORS[config.operator]()
 
     stage = clock.stage if clock is not None else no_clock
@@ -129,7 +155,8 @@ def simplify_progressively(
                 costs = cost(current, edges, pass_index)
             edge_count = edges.count
             with stage("pairing"):
-                pairs = select_pairs(edges, costs, n, cap=n - target)
+                cap = min(n - target, max(1, math.ceil(config.pass_fraction * n)))
+                pairs = select_pairs(edges, costs, n, cap=cap)
                 del edges, costs
             if pairs.count == 0:  # cannot happen with n >= 2 (a kNN graph has edges); guards the loop
                 raise RuntimeError(f"no merge possible at {n} splats")
