@@ -81,7 +81,7 @@ def process_scene(
 
 def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> None:
     from .pipeline import simplify_progressively
-    from .ply import load_ply, save_ply
+    from .io import load_splats, save_splats
 
     try:
         size = job.input.stat().st_size
@@ -102,7 +102,7 @@ def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> No
 
     job.out_dir.mkdir(parents=True, exist_ok=True)
     _remove_leftovers(job)  # the old record first: from here on, no record describes these outputs
-    splats = load_ply(job.input, device="cpu", drop_invalid=job.drop_invalid)
+    splats = load_splats(job.input, device="cpu", drop_invalid=job.drop_invalid)
     result.input_count = splats.count
     by_target: dict[int, list] = {}
     for budget in job.budgets:
@@ -111,7 +111,7 @@ def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> No
     for target, simplified in simplify_progressively(splats.to(device), list(by_target), job.config, on_pass=on_pass):
         for budget in by_target[target]:
             path = job.output_path(budget)
-            save_ply(simplified, path)
+            save_splats(simplified, path, job.output_format)
             outputs.append({"path": path.name, "budget": budget.label, "count": simplified.count,
                             "bytes": path.stat().st_size})  # fmt: skip
     outputs.sort(key=lambda o: [b.label for b in job.budgets].index(o["budget"]))

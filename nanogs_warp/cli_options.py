@@ -20,6 +20,7 @@ LambdaGeo = Annotated[float, typer.Option(help="Weight of the geometric (I-diver
 LambdaApp = Annotated[float, typer.Option(help="Weight of the appearance cost ||f_i - f_j||^2.")]
 Cost = Annotated[str, typer.Option(help="Cost objective: runnalls (closed-form mixture-reduction bound), idiv (the paper's Monte Carlo I-divergence) or mse (the paper's ablation surrogate).")]
 Operator = Annotated[str, typer.Option(help="Merge operator: coverage (keeps the pair's coverage), area (opacity x surface-area weights) or mpmm (the paper's mass-preserving moment matching).")]
-DropInvalid = Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing.")]
+DropInvalid = Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing (says how many and why). Opacity logits of +-Inf (alpha 1 or 0) are valid.")]
+Format = Annotated[Optional[str], typer.Option("--format", show_default=False, help="Output format, whatever the output's name: ply, compressed-ply, spz, sog, splat or lod [default: by the output's name, else ply].")]
 Json = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]
 Quiet = Annotated[bool, typer.Option("-q", "--quiet", help="Print nothing but errors (and --json).")]
