@@ -6,8 +6,9 @@ Then, for all splats in turn: positions (24-bit signed fixed point, x y z), alph
 sigmoid(opacity)), colours (uint8 0.15 255 f_dc + 127.5), log scales (uint8 16 (s + 10)),
 rotations (v2: x y z as uint8 127.5 (q + 1) with w >= 0; v3: 2-bit index of the largest component
 and three 10-bit sign-magnitude components / sqrt(1/2), x y z w order) and SH (uint8 128 + 128 f,
-coefficient-major with the colour channel inner). No coordinate conversion is made: the axes are
-the file's (as splat-transform reads and writes SPZ).
+coefficient-major with the colour channel inner). SPZ's axes are right-up-back (OpenGL), PLY's
+right-down-forward: y and z are negated on reading and on writing (positions, the quaternion's y and
+z, and the SH coefficients odd in y and z), as Niantic's library and splat-transform do.
 """
 
 from __future__ import annotations
@@ -38,6 +39,10 @@ MAX_SH_DEGREE = 3
 COLOUR_SCALE = 0.15
 MAX_FRACTIONAL_BITS = 12  # Niantic's writer uses 12 (1/4096 units); fewer when positions need it
 _REST = {0: 0, 1: 3, 2: 8, 3: 15}
+# RDF <-> RUB is a half turn about x: (x, y, z) -> (x, -y, -z). Signs of the real SH basis functions
+# (degree 1-3, m = -l..l, as 3DGS orders them) under it: those odd in y and z change sign.
+AXIS_SIGNS = np.array([1.0, -1.0, -1.0])
+SH_SIGNS = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dtype=np.float64)
 
 
 def looks_like_spz(head: bytes) -> bool:
@@ -85,13 +90,15 @@ def read_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
     b = pos.reshape(n, 3, 3).astype(np.int32)
     fixed = b[..., 0] | (b[..., 1] << 8) | (b[..., 2] << 16)
     fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
-    means = fixed.astype(np.float64) / float(1 << frac)
+    means = fixed.astype(np.float64) / float(1 << frac) * AXIS_SIGNS
     features = np.zeros((n, 3 + 3 * k), np.float64)
     features[:, :3] = (colour.reshape(n, 3) / 255.0 - 0.5) / COLOUR_SCALE
     if k:
-        features[:, 3:] = interleaved_to_channel_major((sh.reshape(n, k, 3).astype(np.float64) - 128.0) / 128.0)
+        rest = (sh.reshape(n, k, 3).astype(np.float64) - 128.0) / 128.0 * SH_SIGNS[:k, None]
+        features[:, 3:] = interleaved_to_channel_major(rest)
     log_scales = scale.reshape(n, 3) / 16.0 - 10.0
     xyzw = _unpack_v3(rot.reshape(n, 4)) if version == 3 else _unpack_v2(rot.reshape(n, 3))
+    xyzw[:, :3] *= AXIS_SIGNS
     return host_arrays(means, xyzw[:, [3, 0, 1, 2]], log_scales, byte_to_opacity_logit(alpha), features)
 
 
@@ -99,7 +106,7 @@ def encode(host: dict[str, np.ndarray], version: int = 3) -> tuple[bytes, list[s
     """The SPZ bytes of host arrays (gzip, deterministic) and what was clipped, if anything."""
     n = host["means"].shape[0]
     notes = []
-    means = host["means"].astype(np.float64)
+    means = host["means"].astype(np.float64) * AXIS_SIGNS
     largest = float(np.max(np.abs(means))) if n else 0.0
     frac = MAX_FRACTIONAL_BITS
     while frac > 0 and largest * (1 << frac) > (1 << 23) - 1:
@@ -115,8 +122,11 @@ def encode(host: dict[str, np.ndarray], version: int = 3) -> tuple[bytes, list[s
     colour = _to_u8(feats[:, :3] * (COLOUR_SCALE * 255.0) + 127.5)
     scales = _to_u8((host["log_scales"].astype(np.float64) + 10.0) * 16.0)
     xyzw = unit_quaternions(host["rotations"])[:, [1, 2, 3, 0]]
+    xyzw[:, :3] *= AXIS_SIGNS
     rot = _pack_v3(xyzw) if version == 3 else _pack_v2(xyzw)
-    sh = _to_u8(channel_major_to_interleaved(feats[:, 3:]) * 128.0 + 128.0) if degree else np.zeros(0, np.uint8)
+    k = feats.shape[1] // 3 - 1
+    rest = channel_major_to_interleaved(feats[:, 3:]) * SH_SIGNS[:k, None]
+    sh = _to_u8(rest * 128.0 + 128.0) if degree else np.zeros(0, np.uint8)
     header = HEADER.pack(MAGIC, version, n, degree, frac, 0, 0)
     raw = b"".join([header, pos.tobytes(), opacity_to_byte(host["opacities"]).tobytes(), colour.tobytes(),
                     scales.tobytes(), rot.tobytes(), sh.tobytes()])  # fmt: skip
