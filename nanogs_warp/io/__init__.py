@@ -78,7 +78,7 @@ def detect_format(path) -> str:
         if sog.looks_like_meta(head):
             return "sog"
     hinted = format_for_path(path)
-    if name.lower().endswith(".ply") or hinted in ("spz", "sog", "lod") or name.lower().endswith(".json"):
+    if name.lower().endswith(".ply") or hinted in ("spz", "sog", "lod", "splat") or name.lower().endswith(".json"):
         return hinted  # that reader says what is wrong with the file
     if size % splat.ROW.itemsize == 0:
         return "splat"
