@@ -105,8 +105,6 @@ def read_splat_arrays(path) -> PlyArrays:
         data = read_file_bytes(path)
         module = {"spz": spz, "compressed-ply": compressed_ply, "splat": splat}[fmt]
         arrays, label, size = module.read_arrays(path, data), _TITLE[fmt], len(data)
-        if fmt == "spz":
-            label = "SPZ"
     return PlyArrays(arrays, plain_layout(arrays["features"].shape[1] - 3), label, size)
 
 

@@ -41,11 +41,12 @@ def nearest_in_sorted(book: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.where(np.abs(x - left) <= np.abs(book[i] - x), i - 1, i)
 
 
-def kmeans_rows(rows: np.ndarray, size: int, iterations: int, block: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+def kmeans_rows(rows: np.ndarray, size: int, iterations: int) -> tuple[np.ndarray, np.ndarray]:
     """(centroids (size, D), labels (N,)) of Lloyd's k-means over the rows, seeded with rows at
     evenly spaced positions (in the caller's order, Morton order for SOG), float32 distances."""
     x = np.ascontiguousarray(rows, dtype=np.float32)
     n = x.shape[0]
+    block = max(1, (1 << 24) // size)  # rows per distance block: 64 MB of float32 distances
     centroids = x[np.linspace(0, n - 1, size).astype(np.int64)].copy()
     labels = _assign(x, centroids, block)
     for _ in range(iterations):

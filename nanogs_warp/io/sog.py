@@ -55,7 +55,7 @@ def looks_like_meta(head: bytes) -> bool:
 # Writing
 
 
-def encode(host: dict[str, np.ndarray], generator: str, kmeans_iterations: int = 4) -> dict[str, bytes]:
+def encode(host: dict[str, np.ndarray], generator: str, kmeans_iterations: int = 2) -> dict[str, bytes]:
     """The SOG files (name -> bytes, meta.json last) of host arrays, rows in Morton order."""
     from PIL import Image  # noqa: F401 - fail early when Pillow is missing
 
