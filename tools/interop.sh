@@ -22,7 +22,8 @@ for ext in compressed.ply spz sog splat; do
 done
 mkdir -p "$work/ours/lod"
 $nanogs simplify "$scene" -o "$work/ours/lod/lod-meta.json" --ratio 1,0.1 --device cpu -q || echo "nanogs-warp could not write lod-meta.json"
-$st -q -w "$work/ours/lod/lod-meta.json" "$work/back/from_ours_lod.ply" || echo "splat-transform could not read our lod-meta.json"
+# splat-transform takes a lod-meta.json as output only: it reads our set's levels, one SOG each
+$st -q -w "$work/ours/lod/0_0/meta.json" "$work/back/from_ours_lod_level0.ply" || echo "splat-transform could not read our LOD level 0"
 $python "$here/compare_formats.py" "$scene" "$work"/back/from_ours_*.ply
 
 echo "== splat-transform writes, nanogs-warp reads"
@@ -30,8 +31,10 @@ $st -q -w "$scene" "$work/theirs/scene.compressed.ply"
 $st -q -w "$scene" --spz-version 3 "$work/theirs/scene.spz"
 $st -q -w -g cpu "$scene" "$work/theirs/scene.sog" || rm -f "$work/theirs/scene.sog"
 mkdir -p "$work/theirs/meta" && $st -q -w -g cpu "$scene" "$work/theirs/meta/meta.json"
+mkdir -p "$work/theirs/lod" && $st -q -w -g cpu "$scene" -l 0 "$work/ours/lod/1_0/meta.json" -l 1 "$work/theirs/lod/lod-meta.json"
 $python "$here/compare_formats.py" "$scene" "$work/theirs/scene.compressed.ply" "$work/theirs/scene.spz" \
-  "$work/theirs/scene.sog" "$work/theirs/meta/meta.json"
+  "$work/theirs/scene.sog" "$work/theirs/meta/meta.json" "$work/theirs/lod/lod-meta.json"
+$nanogs info "$work/theirs/lod/lod-meta.json" | head -2
 
 echo "== PLY -> SPZ -> PLY (splat-transform) -> simplify"
 $st -q -w "$work/theirs/scene.spz" "$work/theirs/spz_back.ply"
