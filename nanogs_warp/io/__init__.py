@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 
 from ..errors import InputError
 from ..ply import PlyArrays, checked_rows, load_ply, normalize_quaternions, read_ply_arrays, save_ply
@@ -87,7 +88,11 @@ def detect_format(path) -> str:
 
 def read_splat_arrays(path) -> PlyArrays:
     """A splat file's host arrays (before value checks), its layout, format and size in bytes."""
-    path = Path(path)
+    with np.errstate(all="ignore"):  # malformed values are found by the checks, not as warnings
+        return _read_splat_arrays(Path(path))
+
+
+def _read_splat_arrays(path: Path) -> PlyArrays:
     fmt = detect_format(path)
     if fmt == "ply":
         return read_ply_arrays(path)
@@ -141,7 +146,11 @@ def save_levels(levels: list[SplatSet], path, format: str | None = None, on_loss
     if fmt == "ply":
         save_ply(levels[0], path)
         return
-    hosts = [s.to_numpy() for s in levels]
+    with np.errstate(all="ignore"):  # out-of-range values clip, by design
+        _write_levels([s.to_numpy() for s in levels], levels, path, fmt, on_loss)
+
+
+def _write_levels(hosts, levels, path: Path, fmt: str, on_loss) -> None:
     lost = []
     for s, host in zip(levels, hosts):
         lost += [p for p in dropped_parts(host, s.layout, _MAX_SH[fmt]) if p not in lost]
