@@ -1,5 +1,6 @@
 """Counts and attribute errors between a reference scene and the same scene in another file
-(any format nanogs-warp reads), rows matched by nearest centre (formats may reorder rows).
+(any format nanogs-warp reads), rows in the same order when the centres agree row by row, else matched by nearest centre (compressed
+PLY and SOG reorder rows).
 
     python tools/compare_formats.py REFERENCE OTHER [OTHER ...]
 
@@ -23,22 +24,26 @@ from nanogs_warp.io.common import SH_C0, sigmoid
 
 def compare(ref: dict, other: dict) -> dict:
     extent = float(np.ptp(ref["means"], axis=0).max()) or 1.0
+    if len(ref["means"]) == len(other["means"]) and np.abs(other["means"] - ref["means"]).max() < 1e-2 * extent:
+        return _errors(ref, other, extent)  # the same row order (.splat, SPZ and PLY keep it)
     k = min(8, len(ref["means"]))
     _, near = cKDTree(ref["means"]).query(other["means"], k=k)  # quantised centres may coincide:
     near = near.reshape(len(other["means"]), k)  # among the nearest, the most similar splat
-    cost = sum(((ref[key][near].reshape(*near.shape, -1) - other[key].reshape(len(near), 1, -1)) ** 2).sum(axis=2)
-               for key in ("log_scales", "opacities"))  # fmt: skip
-    cost = cost + (((ref["means"][near] - other["means"][:, None, :]) / extent) ** 2).sum(axis=2) * 1e6
+    cost = ((ref["log_scales"][near] - other["log_scales"][:, None, :]) ** 2).sum(axis=2)
+    cost += (10.0 * (sigmoid(ref["opacities"])[near] - sigmoid(other["opacities"])[:, None])) ** 2
+    cost += (((ref["means"][near] - other["means"][:, None, :]) / extent) ** 2).sum(axis=2) * 1e6
     match = near[np.arange(len(near)), np.argmin(np.nan_to_num(cost, nan=np.inf, posinf=np.inf), axis=1)]
-    r = {key: v[match] for key, v in ref.items()}
+    return _errors({key: v[match] for key, v in ref.items()}, other, extent)
 
+
+def _errors(r: dict, other: dict, extent: float) -> dict:
     def stats(diff):
         d = np.abs(np.asarray(diff, dtype=np.float64)).reshape(-1)
         return {"max": float(d.max()), "rms": float(np.sqrt(np.mean(d * d)))}
 
     dot = np.abs(np.einsum("ij,ij->i", r["rotations"].astype(np.float64), other["rotations"].astype(np.float64)))
     out = {
-        "count": [len(ref["means"]), len(other["means"])],
+        "count": [len(r["means"]), len(other["means"])],
         "means/extent": stats((other["means"] - r["means"]) / extent),
         "log_scales": stats(other["log_scales"] - r["log_scales"]),
         "alpha": stats(sigmoid(other["opacities"]) - sigmoid(r["opacities"])),
