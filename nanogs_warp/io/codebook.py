@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 
-def kmeans_1d(values: np.ndarray, size: int = 256, iterations: int = 16) -> tuple[np.ndarray, np.ndarray]:
+def kmeans_1d(values: np.ndarray, size: int = 256, iterations: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """(codebook (<= size,) ascending, indices uint8 shaped like ``values``): every value's
     nearest codebook entry. Exact when the values take at most ``size`` distinct values;
-    otherwise Lloyd's iterations from quantiles, on the sorted values (prefix sums, no loops over
-    the data)."""
+    otherwise Lloyd's iterations on the sorted values (prefix sums, no loops over the data) from
+    the quantiles of density^(1/3), the high-resolution optimum of a 1-D quantiser, which gives
+    the sparse tails more entries than plain quantiles do."""
     flat = np.asarray(values, dtype=np.float64).reshape(-1)
     distinct = np.unique(flat)
     if distinct.shape[0] <= size:
@@ -17,7 +18,7 @@ def kmeans_1d(values: np.ndarray, size: int = 256, iterations: int = 16) -> tupl
     else:
         data = np.sort(flat)
         prefix = np.concatenate([[0.0], np.cumsum(data)])
-        book = np.unique(np.quantile(data, (np.arange(size) + 0.5) / size))
+        book = _companded_quantiles(data, size)
         for _ in range(iterations):
             cuts = np.searchsorted(data, (book[1:] + book[:-1]) / 2.0)
             starts = np.concatenate([[0], cuts])
@@ -30,6 +31,14 @@ def kmeans_1d(values: np.ndarray, size: int = 256, iterations: int = 16) -> tupl
                 break
             book = updated
     return book, nearest_in_sorted(book, flat).astype(np.uint8).reshape(np.shape(values))
+
+
+def _companded_quantiles(data: np.ndarray, size: int, bins: int = 4096) -> np.ndarray:
+    counts, edges = np.histogram(data, bins=bins)
+    mass = np.cbrt(counts.astype(np.float64))
+    cdf = np.concatenate([[0.0], np.cumsum(mass)])
+    targets = (np.arange(size) + 0.5) / size * cdf[-1]
+    return np.unique(np.interp(targets, cdf, edges))
 
 
 def nearest_in_sorted(book: np.ndarray, x: np.ndarray) -> np.ndarray:
