@@ -120,3 +120,16 @@ def test_batch_writes_the_format_asked_for(tmp_path):
     result = run("batch", tmp_path / "out", "-o", tmp_path / "again", "--ratio", "0.5", "--devices", "cpu", "-q")
     assert result.exit_code == 0, result.output
     assert load_ply(tmp_path / "again" / "a_0.1_0.5.ply").count == 10
+
+
+def test_batch_reports_dropped_rows_and_losses(tmp_path):
+    (tmp_path / "in").mkdir()
+    a = random_splat_arrays(100, 1, seed=12)
+    a["means"][7, 0] = np.nan
+    write_splats_ply(tmp_path / "in" / "b.ply", a)
+    result = run("batch", tmp_path / "in", "-o", tmp_path / "out", "--ratio", "0.5,0.2", "--format", "splat",
+                 "--drop-invalid", "--devices", "cpu", "--json")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    notes = json.loads(result.stdout)["scenes"][0]["notes"]
+    assert notes[0] == "b.ply: dropped 1 of 100 splats (1 with NaN/Inf values in x)"
+    assert len(notes) == 2 and "SH degree 1 -> 0" in notes[1]
