@@ -180,7 +180,8 @@ def simplify(
         typer.echo(json.dumps(summary, indent=2))
     elif not quiet:
         for out in written:
-            typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}, {out['passes']} passes)")
+            level = f", level {out['level']}" if "level" in out else ""
+            typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}{level}, {out['passes']} passes)")
         typer.echo(f"{splats.count:,} splats in, {len(passes)} passes on {target_device}, {finished - started:.2f} s")
 
 
