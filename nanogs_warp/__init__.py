@@ -3,6 +3,7 @@
 __version__ = "0.1.0"
 
 from .errors import InputError  # noqa: E402
+from .io import load_splats, save_splats  # noqa: E402
 from .pipeline import SimplifyConfig, simplify, simplify_progressively  # noqa: E402
 from .ply import load_ply, save_ply  # noqa: E402
 from .splats import SplatSet  # noqa: E402
@@ -12,7 +13,9 @@ __all__ = [
     "SimplifyConfig",
     "SplatSet",
     "load_ply",
+    "load_splats",
     "save_ply",
+    "save_splats",
     "simplify",
     "simplify_progressively",
 ]

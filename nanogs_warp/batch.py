@@ -139,6 +139,7 @@ def format_summary(results: list[SceneResult], seconds: float) -> str:
 
     out = [line(header), line(["-" * w for w in widths]), *(line(row) for row in rows)]
     out += [f"failed: {r.relative}: {r.error}" for r in results if r.status == "failed"]
+    out += [f"note: {r.relative}: {note}" for r in results for note in r.notes]
     totals = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
     out.append(f"{len(results)} scenes: {totals['done']} done, {totals['skipped']} skipped, "
                f"{totals['failed']} failed, {seconds:.2f} s")  # fmt: skip

@@ -39,6 +39,7 @@ class SceneResult:
     input_count: int | None = None
     outputs: list[dict] = field(default_factory=list)  # {"path", "budget", "count"}
     error: str | None = None
+    notes: list[str] = field(default_factory=list)  # rows dropped on load, what the output format drops
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -81,7 +82,7 @@ def process_scene(
 
 def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> None:
     from .pipeline import simplify_progressively
-    from .ply import load_ply, save_ply
+    from .io import load_splats, save_splats
 
     try:
         size = job.input.stat().st_size
@@ -102,7 +103,7 @@ def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> No
 
     job.out_dir.mkdir(parents=True, exist_ok=True)
     _remove_leftovers(job)  # the old record first: from here on, no record describes these outputs
-    splats = load_ply(job.input, device="cpu", drop_invalid=job.drop_invalid)
+    splats = load_splats(job.input, device="cpu", drop_invalid=job.drop_invalid, on_drop=result.notes.append)
     result.input_count = splats.count
     by_target: dict[int, list] = {}
     for budget in job.budgets:
@@ -111,7 +112,7 @@ def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> No
     for target, simplified in simplify_progressively(splats.to(device), list(by_target), job.config, on_pass=on_pass):
         for budget in by_target[target]:
             path = job.output_path(budget)
-            save_ply(simplified, path)
+            save_splats(simplified, path, job.output_format, on_loss=lambda line: _note_once(result, line))
             outputs.append({"path": path.name, "budget": budget.label, "count": simplified.count,
                             "bytes": path.stat().st_size})  # fmt: skip
     outputs.sort(key=lambda o: [b.label for b in job.budgets].index(o["budget"]))
@@ -166,6 +167,13 @@ def write_json_atomic(path: Path, data: dict) -> None:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _note_once(result: SceneResult, line: str) -> None:
+    """Keeps what an output format drops once per scene, not once per budget."""
+    what = line.split(": ", 1)[-1]
+    if all(n.split(": ", 1)[-1] != what for n in result.notes):
+        result.notes.append(line)
 
 
 def _remove_leftovers(job: SceneJob) -> None:

@@ -63,9 +63,13 @@ def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
 
 def output_paths(output: Path, budgets: list[Budget]) -> dict[Budget, Path]:
     """One budget writes ``output`` itself; several write ``<stem>_<label><suffix>`` beside it,
-    e.g. ``out.ply`` with --ratio 0.1,0.01 gives ``out_0.1.ply`` and ``out_0.01.ply``."""
+    e.g. ``out.ply`` with --ratio 0.1,0.01 gives ``out_0.1.ply`` and ``out_0.01.ply`` (and
+    ``out.compressed.ply`` gives ``out_0.1.compressed.ply``)."""
     output = Path(output)
     if len(budgets) == 1:
         return {budgets[0]: output}
     suffix = output.suffix or ".ply"
-    return {b: output.with_name(f"{output.stem}_{b.label}{suffix}") for b in budgets}
+    if output.name.lower().endswith(".compressed.ply"):  # one suffix in two parts
+        suffix = output.name[-len(".compressed.ply") :]
+    stem = output.name[: len(output.name) - len(suffix)] if output.suffix else output.name
+    return {b: output.with_name(f"{stem}_{b.label}{suffix}") for b in budgets}

@@ -97,8 +97,8 @@ class _PassProgress:
 @app.command()
 @user_errors
 def simplify(
-    input: Annotated[Path, typer.Argument(help="Input 3DGS .ply file.", show_default=False)],
-    output: Annotated[Path, typer.Option("-o", "--output", help="Output .ply path. With several budgets, OUT_<budget>.ply is written for each.", show_default=False)],
+    input: Annotated[Path, typer.Argument(help="Input scene: INRIA or compressed .ply, .spz, .sog, meta.json, lod-meta.json or .splat.", show_default=False)],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output path; its name picks the format (.ply, .compressed.ply, .spz, .sog, meta.json, .splat, lod-meta.json). With several budgets, OUT_<budget>.<ext> is written for each; lod-meta.json writes them as one level-of-detail set.", show_default=False)],
     ratio: opts.Ratio = None,
     count: opts.Count = None,
     device: Annotated[str, typer.Option(help="auto (first GPU, else CPU), cpu, cuda or cuda:N.")] = "auto",
@@ -112,13 +112,14 @@ def simplify(
     cost: opts.Cost = None,
     operator: opts.Operator = None,
     drop_invalid: opts.DropInvalid = False,
+    output_format: opts.Format = None,
     json_output: opts.Json = False,
     quiet: opts.Quiet = False,
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
     from .device import keep_freed_host_memory, resolve_device
+    from .io import format_for_path, load_splats, save_levels, save_splats
     from .pipeline import simplify_progressively
-    from .ply import load_ply, save_ply
 
     config = opts.method_config(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
@@ -126,18 +127,27 @@ def simplify(
     )
     config.validate()
     budgets = parse_budgets(ratio, count)
-    paths = output_paths(output, budgets)
+    fmt = format_for_path(output, output_format)
+    lod_set = fmt == "lod"
+    if lod_set and output.is_dir():
+        output = output / "lod-meta.json"
+    if fmt == "sog" and output.suffix.lower() == ".json" and len(budgets) > 1:
+        raise InputError(f"{output.name}: several budgets cannot share one unbundled SOG folder; "
+                         "write .sog files or a lod-meta.json set")  # fmt: skip
+    paths = {b: output for b in budgets} if lod_set else output_paths(output, budgets)
     _check_outputs(input, list(paths.values()))
     target_device = resolve_device(device)
     keep_freed_host_memory()
+    notes = _Notes(quiet or json_output)
 
     started = time.perf_counter()
-    splats = load_ply(input, device="cpu", drop_invalid=drop_invalid)
+    splats = load_splats(input, device="cpu", drop_invalid=drop_invalid, on_drop=notes)
     loaded = time.perf_counter()
     targets = {budget: budget.target(splats.count) for budget in budgets}
     progress = _PassProgress(sys.stderr.isatty() and not quiet and not json_output, max(targets.values()))
     passes = []
     written = []
+    levels = []
     budgets_for_target: dict[int, list[Budget]] = {}
     for budget, target in targets.items():
         budgets_for_target.setdefault(target, []).append(budget)
@@ -145,12 +155,19 @@ def simplify(
     for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=lambda r: (passes.append(r), progress(r))):
         reached = time.perf_counter()
         for budget in budgets_for_target[target]:
-            save_ply(result, paths[budget])
+            if lod_set:
+                levels.append(result.to("cpu"))
+            else:
+                save_splats(result, paths[budget], fmt, on_loss=notes)
             written.append({"path": str(paths[budget]), "budget": budget.label, "count": result.count,
                             "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
         smaller = [t for t in budgets_for_target if t < target]
         progress.target = max(smaller) if smaller else target
     progress.done()
+    if lod_set:  # level 0 is the finest: the largest budget, reached first
+        for level, out in enumerate(written):
+            out["level"] = level
+        save_levels(levels, output, fmt, on_loss=notes)
     finished = time.perf_counter()
     summary = {
         "input": str(input),
@@ -159,14 +176,33 @@ def simplify(
         "device": str(target_device),
         "passes": len(passes),
         "outputs": written,
+        "notes": notes.lines,
         "seconds": {"read": round(loaded - started, 4), "total": round(finished - started, 4)},
     }
     if json_output:
         typer.echo(json.dumps(summary, indent=2))
     elif not quiet:
         for out in written:
-            typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}, {out['passes']} passes)")
+            level = f", level {out['level']}" if "level" in out else ""
+            typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}{level}, {out['passes']} passes)")
         typer.echo(f"{splats.count:,} splats in, {len(passes)} passes on {target_device}, {finished - started:.2f} s")
+
+
+class _Notes:
+    """Warnings that are not errors (rows dropped on load, what an output format cannot hold):
+    each distinct one once on stderr (unless silenced), all kept for the --json summary."""
+
+    def __init__(self, silent: bool):
+        self.silent = silent
+        self.lines: list[str] = []
+        self._seen: set[str] = set()
+
+    def __call__(self, line: str) -> None:
+        self.lines.append(line)
+        what = line.split(": ", 1)[-1]  # the same loss for every budget's file: said once
+        if what not in self._seen and not self.silent:
+            typer.echo(f"nanogs-warp: warning: {line}", err=True)
+        self._seen.add(what)
 
 
 def _check_outputs(input: Path, outputs: list[Path]) -> None:
@@ -187,7 +223,7 @@ def _check_outputs(input: Path, outputs: list[Path]) -> None:
 @app.command()
 @user_errors
 def info(
-    input: Annotated[Path, typer.Argument(help="A 3DGS .ply file.", show_default=False)],
+    input: Annotated[Path, typer.Argument(help="A scene file: INRIA or compressed .ply, .spz, .sog, meta.json, lod-meta.json or .splat.", show_default=False)],
     json_output: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
 ) -> None:
     """Describe a 3DGS scene: count, SH degree, properties, bounds, opacity and scale statistics."""

@@ -20,8 +20,8 @@ from .errors import InputError
 
 
 def batch_command(
-    input: Annotated[str, typer.Argument(help="A directory (every .ply below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
-    output: Annotated[Path, typer.Option("-o", "--output", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.ply, and <stem>.nanogs.json records for resuming.", show_default=False)],
+    input: Annotated[str, typer.Argument(help="A directory (every .ply, .spz, .sog and .splat below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.<ext of --format>, and <stem>.nanogs.json records for resuming.", show_default=False)],
     ratio: opts.Ratio = None,
     count: opts.Count = None,
     devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.")] = "auto",
@@ -39,6 +39,7 @@ def batch_command(
     cost: opts.Cost = None,
     operator: opts.Operator = None,
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing the scene.")] = False,
+    output_format: Annotated[Optional[str], typer.Option("--format", show_default=False, help="Output format: ply (default), compressed-ply, spz, sog or splat.")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
 ) -> None:
@@ -46,6 +47,7 @@ def batch_command(
     of a Slurm array, or a Ray cluster. Finished scenes are skipped when run again; one failing
     scene is reported and the others go on (exit code 1 if any failed)."""
     from .batch import BatchProgress, find_scenes, format_summary, parse_shard, run_batch, select_shard, summary_json
+    from .batch_scenes import OUTPUT_SUFFIXES
     from .budgets import parse_budgets
 
     started = time.perf_counter()
@@ -61,7 +63,10 @@ def batch_command(
     if output.exists() and not output.is_dir():
         raise InputError(f"--output {output} is not a directory")
 
-    jobs = find_scenes(input, output, budgets, config, drop_invalid)
+    fmt = output_format or "ply"
+    if fmt not in OUTPUT_SUFFIXES:
+        raise InputError(f"--format {fmt!r}: batch writes one of {', '.join(OUTPUT_SUFFIXES)}")
+    jobs = find_scenes(input, output, budgets, config, drop_invalid, fmt)
     selected = select_shard(jobs, shard_index, shard_count)
     device_list, ray_gpu = None, None
     if ray is not None:

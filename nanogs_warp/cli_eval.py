@@ -45,8 +45,8 @@ def _finite_or_none(value):
 
 
 def eval_command(
-    reference: Annotated[Path, typer.Argument(help="Reference 3DGS .ply (usually the unsimplified scene).", show_default=False)],
-    tests: Annotated[list[Path], typer.Argument(help="One or more 3DGS .ply files to compare with the reference.", show_default=False)],
+    reference: Annotated[Path, typer.Argument(help="Reference scene (usually the unsimplified one), in any format simplify reads.", show_default=False)],
+    tests: Annotated[list[Path], typer.Argument(help="One or more scenes (any format simplify reads) to compare with the reference.", show_default=False)],
     views: Annotated[int, typer.Option(help="Number of orbit views (ignored with --cameras).")] = 16,
     size: Annotated[int, typer.Option(help="Image side in pixels: orbit views are square; --cameras views are scaled to this longest side (0 keeps their sizes).")] = 256,
     device: Annotated[str, typer.Option(help="auto (first GPU, else CPU), cpu, cuda or cuda:N.")] = "auto",
@@ -61,7 +61,7 @@ def eval_command(
     from .cameras import load_cameras_json, orbit_cameras, parse_up
     from .device import resolve_device
     from .evaluate import evaluate, format_table, write_images
-    from .ply import load_ply
+    from .io import load_splats
 
     if not tests:
         raise InputError("give at least one test scene to compare with the reference")
@@ -73,17 +73,17 @@ def eval_command(
     parse_up(up)
     target = resolve_device(device)
     for path in [reference, *tests]:
-        if not path.is_file():
+        if not path.exists():
             raise InputError(f"{path}: no such file")
     if images is not None and images.exists() and not images.is_dir():
         raise InputError(f"--images {images}: exists and is not a directory")
 
-    ref_splats = load_ply(reference, device=target)
+    ref_splats = load_splats(reference, device=target)
     if cameras is not None:
         camera_list = load_cameras_json(cameras, size=size or None)
     else:
         camera_list = orbit_cameras(ref_splats, views=views, size=size, up=up)
-    test_splats = [load_ply(path, device=target) for path in tests]
+    test_splats = [load_splats(path, device=target) for path in tests]
     rendered: dict = {}
     result = evaluate(ref_splats, test_splats, camera_list, target, bg, names=[str(p) for p in tests], images=rendered)
     result["reference"]["path"] = str(reference)

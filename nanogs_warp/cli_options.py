@@ -20,9 +20,10 @@ Samples = Annotated[Optional[int], typer.Option(show_default=False, help="Monte 
 Seed = Annotated[Optional[int], typer.Option(show_default=False, help="Seed of the common random numbers [default: 0].")]
 LambdaGeo = Annotated[Optional[float], typer.Option(show_default=False, help="Weight of the cost's geometric term (the mixture-reduction bound, I-divergence or field change, by --cost) [default: 1].")]
 LambdaApp = Annotated[Optional[float], typer.Option(show_default=False, help="Weight of the cost's appearance term (SH difference; the colour field for --cost field) [default: 1].")]
-Cost = Annotated[Optional[str], typer.Option(show_default=False, help="Cost objective: runnalls (closed-form mixture-reduction bound; default), idiv (the paper's Monte Carlo I-divergence), field (change of the projected emitted field under the operator's own merge; mpmm and coverage) or mse (the paper's ablation surrogate).")]
+Cost = Annotated[Optional[str], typer.Option(show_default=False, help="Cost objective: field (change of the projected emitted field under the operator's own merge, for mpmm and coverage; default), runnalls (closed-form mixture-reduction bound), idiv (the paper's Monte Carlo I-divergence) or mse (the paper's ablation surrogate).")]
 Operator = Annotated[Optional[str], typer.Option(show_default=False, help="Merge operator: coverage (keeps the pair's coverage; default), area (opacity x surface-area weights) or mpmm (the paper's mass-preserving moment matching).")]
-DropInvalid = Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing.")]
+DropInvalid = Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing (says how many and why). Opacity logits of +-Inf (alpha 1 or 0) are valid.")]
+Format = Annotated[Optional[str], typer.Option("--format", show_default=False, help="Output format, whatever the output's name: ply, compressed-ply, spz, sog, splat or lod [default: by the output's name, else ply].")]
 Json = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]
 Quiet = Annotated[bool, typer.Option("-q", "--quiet", help="Print nothing but errors (and --json).")]
 

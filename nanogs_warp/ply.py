@@ -49,29 +49,55 @@ DROP_HINT = "load with drop_invalid (CLI: --drop-invalid) to drop them"
 # Public API
 
 
-def load_ply(path, device="cpu", drop_invalid: bool = False) -> SplatSet:
+def load_ply(path, device="cpu", drop_invalid: bool = False, on_drop=None) -> SplatSet:
     """Reads a 3DGS PLY file into a :class:`SplatSet` on ``device`` with its layout filled in.
 
     Quaternions are normalised (left bit-exact when already unit to float32 precision, so that
     load -> save -> load is bitwise stable). Rows with NaN/Inf in a 3DGS property or a zero-norm
-    quaternion raise :class:`InputError`, or are dropped when ``drop_invalid`` is true.
+    quaternion raise :class:`InputError`, or are dropped when ``drop_invalid`` is true (then
+    ``on_drop``, if given, is called with one line saying how many rows went and why). Opacity
+    logits of +Inf (alpha = 1) and -Inf (alpha = 0) are valid: see :func:`saturate_opacity_logits`.
     """
     data = read_ply_arrays(path)
-    name = Path(path).name
-    a = data.arrays
+    a = checked_rows(data.arrays, Path(path).name, drop_invalid, on_drop)
+    a["rotations"] = normalize_quaternions(a["rotations"])
+    return _to_splat_set(a, data.layout, device)
+
+
+def checked_rows(a: dict[str, np.ndarray], name: str, drop_invalid: bool, on_drop=None) -> dict[str, np.ndarray]:
+    """The host arrays with invalid rows refused (InputError) or dropped, and infinite opacity
+    logits saturated; shared by every format's reader."""
+    count = a["means"].shape[0]
     check = check_values(a)
     bad = check.nonfinite_rows | check.zero_quat_rows
     n_bad = int(np.count_nonzero(bad))
     if n_bad:
         what = _describe_invalid(check)
         if not drop_invalid:
-            raise InputError(f"{name}: {n_bad} of {data.count} splats are invalid ({what}); {DROP_HINT}")
-        if n_bad == data.count:
-            raise InputError(f"{name}: all {data.count} splats are invalid ({what}); none left after dropping them")
+            raise InputError(f"{name}: {n_bad} of {count} splats are invalid ({what}); {DROP_HINT}")
+        if n_bad == count:
+            raise InputError(f"{name}: all {count} splats are invalid ({what}); none left after dropping them")
         keep = ~bad
         a = {k: v[keep] for k, v in a.items()}
-    a["rotations"] = normalize_quaternions(a["rotations"])
-    return _to_splat_set(a, data.layout, device)
+        if on_drop is not None:
+            on_drop(f"{name}: dropped {n_bad} of {count} splats ({what})")
+    a["opacities"] = saturate_opacity_logits(a["opacities"])
+    return a
+
+
+def saturate_opacity_logits(logits: np.ndarray) -> np.ndarray:
+    """Opacity logits with +Inf / -Inf (alpha exactly 1 / 0) replaced by +/- the largest float32.
+
+    The activated opacity is the same (sigmoid gives exactly 1 and 0 in float32), but the merge and
+    cost kernels' log-sigmoid arithmetic stays finite: two -Inf logits would make the pair's mass
+    weights 0/0. Finite logits are returned bit for bit unchanged.
+    """
+    infinite = np.isinf(logits)
+    if not infinite.any():
+        return logits
+    out = np.array(logits, dtype=np.float32, copy=True)
+    out[infinite] = np.copysign(np.finfo(np.float32).max, out[infinite])
+    return out
 
 
 def save_ply(splats: SplatSet, path) -> None:
@@ -136,11 +162,13 @@ class PlyArrays:
 
 @dataclass
 class ValueCheck:
-    """Which rows hold non-finite values (and in which properties) or zero-norm quaternions."""
+    """Which rows hold non-finite values (and in which properties) or zero-norm quaternions, and
+    how many opacity logits are +Inf / -Inf (valid: alpha 1 / 0, not counted as non-finite)."""
 
     nonfinite_rows: np.ndarray  # bool (N,)
     nonfinite_by_property: dict[str, int]  # property name -> rows with NaN/Inf, only those > 0
     zero_quat_rows: np.ndarray  # bool (N,), finite quaternions with norm 0
+    infinite_opacities: tuple[int, int] = (0, 0)  # rows with opacity logit +Inf (alpha 1), -Inf (alpha 0): valid
 
 
 def read_ply_arrays(path) -> PlyArrays:
@@ -192,7 +220,7 @@ def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = 
         values = arrays[key].reshape(n, -1)
         if np.isfinite(values).all():  # the common case, ~5x faster than the row-wise test
             continue
-        bad = ~np.isfinite(values)
+        bad = np.isnan(values) if key == "opacities" else ~np.isfinite(values)  # +-Inf opacity: alpha 1 / 0
         rows |= bad.any(axis=1)
         for prop, count in zip(names, np.count_nonzero(bad, axis=0)):
             if count:
@@ -200,7 +228,9 @@ def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = 
     q = arrays["rotations"].astype(np.float64)
     with np.errstate(all="ignore"):
         zero = np.einsum("ij,ij->i", q, q) == 0  # exact in float64 for float32 inputs
-    return ValueCheck(rows, by_prop, zero)
+    logits = arrays["opacities"].reshape(n)
+    infinite = (int(np.count_nonzero(np.isposinf(logits))), int(np.count_nonzero(np.isneginf(logits))))
+    return ValueCheck(rows, by_prop, zero, infinite)
 
 
 def normalize_quaternions(q: np.ndarray) -> np.ndarray:
