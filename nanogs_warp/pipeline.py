@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from decimal import Decimal, InvalidOperation
+from fractions import Fraction
 
 import warp as wp
 
@@ -87,11 +89,33 @@ class PassReport:
     edges: int
 
 
-def target_count(input_count: int, ratio: float) -> int:
-    """N_tgt = max(1, ceil(ratio * N_0))."""
-    if not (0.0 < ratio <= 1.0):
+def exact_ratio(ratio: float | str | Decimal | Fraction) -> Fraction:
+    """The ratio as an exact fraction in (0, 1]: text ("0.07", "7e-2") and Decimals as written, a
+    float as its shortest repr (0.07 is 7/100, not the binary double just below it)."""
+    if isinstance(ratio, Fraction):
+        value = ratio
+    else:
+        text = repr(ratio) if isinstance(ratio, float) else str(ratio).strip()
+        try:
+            decimal = Decimal(text)
+        except (InvalidOperation, ValueError):
+            raise InputError(f"ratio {ratio!r} is not a number") from None
+        if not decimal.is_finite():
+            raise InputError(f"ratio must be in (0, 1], got {ratio}")
+        # beyond 1e-60 every scene below 1e60 splats keeps one splat: spare Fraction a huge denominator
+        if decimal > 0 and decimal.adjusted() < -60:
+            decimal = Decimal("1e-61")
+        value = Fraction(decimal)
+    if not 0 < value <= 1:
         raise InputError(f"ratio must be in (0, 1], got {ratio}")
-    return max(1, math.ceil(ratio * input_count))
+    return value
+
+
+def target_count(input_count: int, ratio: float | str | Decimal | Fraction) -> int:
+    """N_tgt = max(1, ceil(ratio * N_0)), exactly: integer arithmetic on the ratio as written
+    (``exact_ratio``), so target_count(100, 0.07) is 7."""
+    value = exact_ratio(ratio)
+    return max(1, -(-int(input_count) * value.numerator // value.denominator))
 
 
 def simplify_progressively(
