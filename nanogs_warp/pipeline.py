@@ -30,6 +30,10 @@ SMALL_SCENE_SPLATS = 65_536
 K_SMALL_SCENE = 24
 K_LARGE_SCENE = 16
 
+# The kNN table (N x k neighbour slots) and the edge offsets are indexed with int32, as Warp's
+# array lengths are: N k must stay below this. A module constant so that tests can lower it.
+INDEX_LIMIT = 2**31
+
 
 @dataclass(frozen=True)
 class SimplifyConfig:
@@ -118,6 +122,20 @@ def target_count(input_count: int, ratio: float | str | Decimal | Fraction) -> i
     return max(1, -(-int(input_count) * value.numerator // value.denominator))
 
 
+def check_index_limits(splat_count: int, k: int, limit: int | None = None) -> None:
+    """Refuses a scene whose kNN graph would not fit int32 indices: N k neighbour slots must be
+    below ``limit`` (default INDEX_LIMIT, 2^31). The message says how many splats fit at this k."""
+    limit = INDEX_LIMIT if limit is None else limit
+    slots = splat_count * k
+    if slots >= limit:
+        fits = (limit - 1) // k
+        raise InputError(
+            f"{splat_count:,} splats x {k} neighbours = {slots:,} neighbour slots, more than the {limit - 1:,} "
+            f"that 32-bit indices address: at k = {k} at most {fits:,} splats fit (a smaller --k fits more; "
+            f"or split the scene)"
+        )
+
+
 def simplify_progressively(
     splats: SplatSet,
     targets: Sequence[int],
@@ -142,6 +160,7 @@ def simplify_progressively(
     with stage("prune"):
         current = prune_low_opacity(splats, config.prune_opacity, keep_at_least=targets[0])
     topology = KnnTopology(config.neighbours(current.count))
+    check_index_limits(current.count, min(topology.k, max(current.count - 1, 0)))
     pass_index = 0
     for target in targets:
         while current.count > target:
