@@ -4,6 +4,7 @@ kNN graph -> edge costs -> disjoint greedy pairs -> merge, until the target coun
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
@@ -53,6 +54,9 @@ class SimplifyConfig:
     lambda_app: float = 1.0
     cost: str = "runnalls"
     operator: str = "coverage"
+
+    def __post_init__(self):
+        self.validate()  # a bad configuration fails where it is built, not where it runs
 
     @staticmethod
     def paper(**overrides) -> SimplifyConfig:
@@ -190,19 +194,49 @@ def simplify_progressively(
 
 def simplify(
     splats: SplatSet,
-    ratio: float | None = None,
-    count: int | None = None,
+    ratio: float | str | Sequence[float | str] | None = None,
+    count: int | Sequence[int] | None = None,
     device=None,
     config: SimplifyConfig = SimplifyConfig(),
-) -> SplatSet:
-    """Simplifies ``splats`` to ``count`` splats, or to max(1, ceil(ratio * N)).
+    *,
+    ratios: Sequence[float | str] | None = None,
+    counts: Sequence[int] | None = None,
+) -> SplatSet | list[SplatSet]:
+    """Simplifies ``splats`` to ``count`` splats, or to max(1, ceil(ratio * N)) (exactly: the ratio
+    as written, a float through its shortest repr).
 
-    ``device`` is where the work runs ("cpu", "cuda:0", ...; None: the splats' own device); the
-    result stays there.
+    Several budgets (``ratio=[0.1, 0.01]``, ``ratios=...``, ``count=[5000, 500]`` or ``counts=...``)
+    continue one progressive merge, as the command line does, and give a list of splat sets in the
+    order the budgets were given. ``device`` is where the work runs ("auto", "cpu", "cuda",
+    "cuda:0", a ``wp.Device``; None: the splats' own device); the results stay there. A device that
+    is not on this machine raises InputError.
     """
+    if ratios is not None:
+        if ratio is not None:
+            raise InputError("give ratio or ratios, not both")
+        ratio = list(ratios)
+    if counts is not None:
+        if count is not None:
+            raise InputError("give count or counts, not both")
+        count = list(counts)
     if (ratio is None) == (count is None):
         raise InputError("give exactly one of ratio or count")
-    target = target_count(splats.count, ratio) if ratio is not None else int(count)
+    several = not isinstance(ratio if ratio is not None else count, (str, numbers.Number))
+    budgets = list(ratio if ratio is not None else count) if several else [ratio if ratio is not None else count]
+    if not budgets:
+        raise InputError("give at least one budget")
+    if ratio is not None:
+        targets = [target_count(splats.count, r) for r in budgets]
+    else:
+        targets = []
+        for c in budgets:
+            if isinstance(c, bool) or int(c) != c:
+                raise InputError(f"count must be a whole number, got {c!r}")
+            targets.append(int(c))
+    if isinstance(device, str):
+        from .device import resolve_device
+
+        device = resolve_device(device)
     on_device = splats.to(wp.get_device(device) if device is not None else splats.device)
-    _, result = next(simplify_progressively(on_device, [target], config))
-    return result
+    results = dict(simplify_progressively(on_device, targets, config))
+    return [results[t] for t in targets] if several else results[targets[0]]
