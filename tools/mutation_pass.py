@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--root", type=Path, default=Path(__file__).resolve().parent.parent, help="repository root")
     parser.add_argument("--only", help="comma-separated kernel modules (prune, pairing, merge, ...)")
     parser.add_argument("--json", type=Path, help="write the report as JSON to this file")
-    parser.add_argument("--timeout", type=float, default=900.0, help="seconds per mutant's test run")
+    parser.add_argument("--timeout", type=float, default=300.0, help="seconds per mutant's test run (a hang counts as caught)")
     parser.add_argument("--list", action="store_true", help="list the mutants and exit")
     args = parser.parse_args(argv)
 
