@@ -6,6 +6,7 @@ import json
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -17,7 +18,7 @@ from .budgets import Budget, output_paths, parse_budgets
 from .cli_batch import batch_command
 from .cli_eval import eval_command
 from .cli_errors import examples, readable_placeholders, user_errors
-from .errors import InputError
+from .errors import InputError, NanogsWarning
 from .pipeline import SimplifyConfig
 
 readable_placeholders()
@@ -98,7 +99,6 @@ def simplify(
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
     from .device import keep_freed_host_memory, resolve_device
-    from .pipeline import simplify_progressively
     from .ply import load_ply, save_ply
 
     config = SimplifyConfig(k, prune_opacity, samples, seed, lambda_geo, lambda_app, cost, operator)
@@ -124,15 +124,15 @@ def simplify(
     on_device = splats.to(target_device)
     if folder is not None:
         folder.mkdir(exist_ok=True)
-    for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=lambda r: (passes.append(r), progress(r))):
-        reached = time.perf_counter()
-        for budget in budgets_for_target[target]:
-            save_ply(result, paths[budget])
-            written.append({"path": str(paths[budget].resolve()), "budget": budget.label, "count": result.count,
-                            "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
-        smaller = [t for t in budgets_for_target if t < target]
-        progress.target = max(smaller) if smaller else target
+    with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
+        warnings.simplefilter("always", NanogsWarning)
+        _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, save_ply)
     progress.done()
+    for warning in caught:
+        if not issubclass(warning.category, NanogsWarning):
+            warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
+        elif not quiet:
+            typer.echo(f"nanogs-warp: warning: {warning.message}", err=True)
     finished = time.perf_counter()
     after_prune = passes[0].count_before if passes else (written[0]["count"] if written else splats.count)
     summary = {
@@ -153,6 +153,21 @@ def simplify(
         for out in written:
             typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}, {out['passes']} passes)")
         typer.echo(f"{splats.count:,} splats in, {len(passes)} passes on {target_device}, {finished - started:.2f} s")
+
+
+def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, save_ply):
+    """Runs the progressive merge and writes each budget as it is reached (appending to ``written``)."""
+    from .pipeline import simplify_progressively
+
+    on_pass = lambda r: (passes.append(r), progress(r))  # noqa: E731
+    for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass):
+        reached = time.perf_counter()
+        for budget in budgets_for_target[target]:
+            save_ply(result, paths[budget])
+            written.append({"path": str(paths[budget].resolve()), "budget": budget.label, "count": result.count,
+                            "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
+        smaller = [t for t in budgets_for_target if t < target]
+        progress.target = max(smaller) if smaller else target
 
 
 def _settings(config: SimplifyConfig, splat_count: int, device) -> dict:

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import math
 import numbers
+import warnings
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from decimal import Decimal, InvalidOperation
 from fractions import Fraction
 
@@ -14,11 +15,11 @@ import warp as wp
 
 from .compact import remove_rows
 from .cost import COSTS
-from .errors import InputError
+from .errors import InputError, NanogsWarning
 from .operators import OPERATORS
 from .pairing import select_pairs
 from .prune import prune_low_opacity
-from .splats import SplatSet
+from .splats import PlyLayout, SplatSet
 from .timing import StageClock, no_clock
 from .topology import KnnTopology
 
@@ -140,6 +141,30 @@ def check_index_limits(splat_count: int, k: int, limit: int | None = None) -> No
         )
 
 
+# Other PLY elements that refer to vertices by row (meshes' faces and edges): simplification renumbers
+# the vertices, so these would point at the wrong splats.
+_VERTEX_INDEX_PROPERTIES = {"vertex_indices", "vertex_index", "vertex1", "vertex2", "vertex"}
+_VERTEX_INDEXED_ELEMENTS = {"face", "edge", "tristrips"}
+
+
+def without_vertex_indexed(layout: PlyLayout | None) -> PlyLayout | None:
+    """``layout`` without the other elements that index vertices (``face``, ``edge``, ``tristrips``
+    or any element with a ``vertex_indices``-like property), with a one-line warning naming them;
+    ``layout`` itself when it has none."""
+    if layout is None:
+        return None
+    stale = [
+        e for e in layout.other_elements
+        if e.name in _VERTEX_INDEXED_ELEMENTS or any(p.name in _VERTEX_INDEX_PROPERTIES for p in e.properties)
+    ]  # fmt: skip
+    if not stale:
+        return layout
+    names = ", ".join(f"'{e.name}' ({e.count:,} rows)" for e in stale)
+    warnings.warn(f"dropped PLY element(s) {names}: they index vertices, which simplification renumbers",
+                  NanogsWarning, stacklevel=3)  # fmt: skip
+    return replace(layout, other_elements=[e for e in layout.other_elements if e not in stale])
+
+
 def simplify_progressively(
     splats: SplatSet,
     targets: Sequence[int],
@@ -163,6 +188,7 @@ def simplify_progressively(
 
     with stage("prune"):
         current = prune_low_opacity(splats, config.prune_opacity, keep_at_least=targets[0])
+    renumbered_layout = None  # the layout of outputs whose rows are not the input's
     topology = KnnTopology(config.neighbours(current.count))
     check_index_limits(current.count, min(topology.k, max(current.count - 1, 0)))
     pass_index = 0
@@ -189,6 +215,11 @@ def simplify_progressively(
             current = merged
             del pairs, destination, merged  # free this pass's scratch before the next kNN
             pass_index += 1
+        if current is not splats:  # pruned or merged: rows renumbered
+            if renumbered_layout is None:
+                renumbered_layout = without_vertex_indexed(splats.layout)
+            if renumbered_layout is not current.layout:
+                current = replace(current, layout=renumbered_layout)
         yield target, current
 
 

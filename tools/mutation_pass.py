@@ -34,7 +34,7 @@ TESTS = {
     "cost": ["tests/test_cost.py"],
     "knn": ["tests/test_topology.py"],
     "edges": ["tests/test_topology.py"],
-    "compact": ["tests/test_pipeline.py", "tests/test_prune.py"],
+    "compact": ["tests/test_compact.py", "tests/test_pipeline.py", "tests/test_prune.py"],
     "splat_math": ["tests/test_merge.py", "tests/test_cost.py", "tests/test_operators_area.py"],
 }
 
