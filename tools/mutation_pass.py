@@ -61,6 +61,9 @@ class Mutant:
 # rank order); the sequential matching's ``partner[j] = i`` -> ``partner[j] = j`` (partner is only
 # read as "is free"); the coverage operator's ``ratio = ratio / grow`` -> ``ratio`` is one only for
 # growth <= 1, and the tests now also run growth 2.
+# Two listed mutants are expected to survive, as they change speed, not results: ``_box_distance``
+# with min for max only loosens the kNN search's pruning bound (the result stays exact), and
+# ``_classify_rows``' ``j >= i`` differs from ``j > i`` only for j == i, which a kNN row never holds.
 MUTANTS = [
     # pruning
     Mutant("prune", "keep_at_least", ">= threshold", "> threshold"),
