@@ -122,8 +122,6 @@ def simplify(
     for budget, target in targets.items():
         budgets_for_target.setdefault(target, []).append(budget)
     on_device = splats.to(target_device)
-    if folder is not None:
-        folder.mkdir(exist_ok=True)
     with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
         warnings.simplefilter("always", NanogsWarning)
         _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, save_ply)
@@ -163,6 +161,7 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
     for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass):
         reached = time.perf_counter()
         for budget in budgets_for_target[target]:
+            paths[budget].parent.mkdir(exist_ok=True)  # -o DIR/: created with the first output, not before
             save_ply(result, paths[budget])
             written.append({"path": str(paths[budget].resolve()), "budget": budget.label, "count": result.count,
                             "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip

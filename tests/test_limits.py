@@ -67,3 +67,11 @@ def test_cli_reports_what_fits(monkeypatch, tmp_path):
     assert result.stderr.startswith("nanogs-warp: error: 300 splats x 24 neighbours")
     assert "at most 41 splats fit" in result.stderr and len(result.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "out.ply").exists()
+
+
+def test_failed_run_leaves_no_output_folder(monkeypatch, tmp_path):
+    monkeypatch.setattr(pipeline, "INDEX_LIMIT", 1000)
+    scene = tmp_path / "scene.ply"
+    random_splats_ply(scene, 300, seed=3)
+    result = CliRunner().invoke(app, ["simplify", str(scene), "-o", f"{tmp_path}/lods/", "--ratio", "0.1", "--device", "cpu"])
+    assert result.exit_code == 2 and not (tmp_path / "lods").exists()
