@@ -125,6 +125,7 @@ def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> No
         "input_count": splats.count,
         "outputs": outputs,
         "device": result.device,
+        "device_kind": getattr(device, "name", str(device)),  # e.g. "NVIDIA H100 80GB HBM3" or the CPU's
         "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     write_json_atomic(job.record_path, record)

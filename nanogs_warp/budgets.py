@@ -2,20 +2,24 @@
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from fractions import Fraction
 from pathlib import Path
 
 from .errors import InputError
-from .pipeline import target_count
+from .pipeline import exact_ratio, target_count
 
 
 @dataclass(frozen=True)
 class Budget:
-    """Keep a ``ratio`` of the input's splats, or an absolute ``count``."""
+    """Keep a ``ratio`` of the input's splats, or an absolute ``count``.
+
+    ``exact`` is the ratio as the user wrote it (``parse_budgets``), so that the target is
+    ceil(ratio * N) exactly; without it, the float's shortest repr is used (0.07 is 7/100)."""
 
     ratio: float | None = None
     count: int | None = None
+    exact: Fraction | None = field(default=None, compare=False, repr=False)
 
     @property
     def label(self) -> str:
@@ -24,7 +28,7 @@ class Budget:
     def target(self, input_count: int) -> int:
         """max(1, ceil(ratio * N0)), or the count itself; checked against the input's size."""
         if self.ratio is not None:
-            return target_count(input_count, self.ratio)
+            return target_count(input_count, self.exact if self.exact is not None else self.ratio)
         if self.count > input_count:
             raise InputError(f"--count {self.count} is more than the input's {input_count} splats")
         return self.count
@@ -42,12 +46,13 @@ def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
     for token in tokens:
         if ratio is not None:
             try:
-                value = float(token)
-            except ValueError:
-                raise InputError(f"--ratio {token!r} is not a number") from None
-            if not (math.isfinite(value) and 0.0 < value <= 1.0):
-                raise InputError(f"--ratio {token} must be in (0, 1]")
-            budgets.append(Budget(ratio=value))
+                exact = exact_ratio(token)
+            except InputError:
+                raise InputError(f"--ratio {token!r} must be a number in (0, 1]") from None
+            value = float(exact)
+            if value == 0.0:
+                raise InputError(f"--ratio {token} is too small to use; give --count 1 instead")
+            budgets.append(Budget(ratio=value, exact=exact))
         else:
             try:
                 value = int(token)

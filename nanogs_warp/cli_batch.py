@@ -86,7 +86,14 @@ def batch_command(
     results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress)
     seconds = time.perf_counter() - started
     if json_output:
-        typer.echo(json.dumps(summary_json(results, seconds, (shard_index, shard_count)), indent=2))
+        summary = summary_json(results, seconds, (shard_index, shard_count))
+        for scene in summary["scenes"]:  # full paths, as every --json output
+            scene["input"] = os.path.abspath(scene["input"])
+            for out in scene["outputs"]:
+                out["path"] = os.path.abspath(out["path"])
+        settings = {**vars(config), "devices": devices, "workers": workers, "ray": ray, "drop_invalid": drop_invalid}
+        summary = {"schema": opts.JSON_SCHEMA, "command": "batch", "output": os.path.abspath(output), "settings": settings, **summary}
+        typer.echo(json.dumps(summary, indent=2))
     elif not quiet:
         typer.echo(format_summary(results, seconds))
     sys.stdout.flush()
@@ -105,7 +112,7 @@ def _make_output_dir(output: Path) -> None:
 
 def main() -> None:
     """``python -m nanogs_warp.cli_batch``: the batch command on its own (as ``nanogs-warp batch``)."""
-    from .cli import user_errors
+    from .cli_errors import user_errors
 
     app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None,
                       context_settings={"help_option_names": ["-h", "--help"]})  # fmt: skip

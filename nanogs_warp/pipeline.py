@@ -5,18 +5,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
+import warnings
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from decimal import Decimal, InvalidOperation
+from fractions import Fraction
 
 import warp as wp
 
 from .compact import remove_rows
 from .cost import COSTS, FieldCost
-from .errors import InputError
+from .errors import InputError, NanogsWarning
 from .operators import OPERATORS
 from .pairing import select_pairs
 from .prune import prune_low_opacity
-from .splats import SplatSet
+from .splats import PlyLayout, SplatSet
 from .timing import StageClock, no_clock
 from .topology import KnnTopology
 
@@ -28,6 +32,10 @@ from .topology import KnnTopology
 SMALL_SCENE_SPLATS = 65_536
 K_SMALL_SCENE = 24
 K_LARGE_SCENE = 16
+
+# The kNN table (N x k neighbour slots) and the edge offsets are indexed with int32, as Warp's
+# array lengths are: N k must stay below this. A module constant so that tests can lower it.
+INDEX_LIMIT = 2**31
 
 
 @dataclass(frozen=True)
@@ -53,6 +61,9 @@ class SimplifyConfig:
     cost: str = "field"
     operator: str = "coverage"
     pass_fraction: float = 0.35
+
+    def __post_init__(self):
+        self.validate()  # a bad configuration fails where it is built, not where it runs
 
     @staticmethod
     def paper(**overrides) -> SimplifyConfig:
@@ -111,11 +122,71 @@ class PassReport:
     edges: int
 
 
-def target_count(input_count: int, ratio: float) -> int:
-    """N_tgt = max(1, ceil(ratio * N_0))."""
-    if not (0.0 < ratio <= 1.0):
+def exact_ratio(ratio: float | str | Decimal | Fraction) -> Fraction:
+    """The ratio as an exact fraction in (0, 1]: text ("0.07", "7e-2") and Decimals as written, a
+    float as its shortest repr (0.07 is 7/100, not the binary double just below it)."""
+    if isinstance(ratio, Fraction):
+        value = ratio
+    else:
+        text = repr(ratio) if isinstance(ratio, float) else str(ratio).strip()
+        try:
+            decimal = Decimal(text)
+        except (InvalidOperation, ValueError):
+            raise InputError(f"ratio {ratio!r} is not a number") from None
+        if not decimal.is_finite():
+            raise InputError(f"ratio must be in (0, 1], got {ratio}")
+        # beyond 1e-60 every scene below 1e60 splats keeps one splat: spare Fraction a huge denominator
+        if decimal > 0 and decimal.adjusted() < -60:
+            decimal = Decimal("1e-61")
+        value = Fraction(decimal)
+    if not 0 < value <= 1:
         raise InputError(f"ratio must be in (0, 1], got {ratio}")
-    return max(1, math.ceil(ratio * input_count))
+    return value
+
+
+def target_count(input_count: int, ratio: float | str | Decimal | Fraction) -> int:
+    """N_tgt = max(1, ceil(ratio * N_0)), exactly: integer arithmetic on the ratio as written
+    (``exact_ratio``), so target_count(100, 0.07) is 7."""
+    value = exact_ratio(ratio)
+    return max(1, -(-int(input_count) * value.numerator // value.denominator))
+
+
+def check_index_limits(splat_count: int, k: int, limit: int | None = None) -> None:
+    """Refuses a scene whose kNN graph would not fit int32 indices: N k neighbour slots must be
+    below ``limit`` (default INDEX_LIMIT, 2^31). The message says how many splats fit at this k."""
+    limit = INDEX_LIMIT if limit is None else limit
+    slots = splat_count * k
+    if slots >= limit:
+        fits = (limit - 1) // k
+        raise InputError(
+            f"{splat_count:,} splats x {k} neighbours = {slots:,} neighbour slots, more than the {limit - 1:,} "
+            f"that 32-bit indices address: at k = {k} at most {fits:,} splats fit (a smaller --k fits more; "
+            f"or split the scene)"
+        )
+
+
+# Other PLY elements that refer to vertices by row (meshes' faces and edges): simplification renumbers
+# the vertices, so these would point at the wrong splats.
+_VERTEX_INDEX_PROPERTIES = {"vertex_indices", "vertex_index", "vertex1", "vertex2", "vertex"}
+_VERTEX_INDEXED_ELEMENTS = {"face", "edge", "tristrips"}
+
+
+def without_vertex_indexed(layout: PlyLayout | None) -> PlyLayout | None:
+    """``layout`` without the other elements that index vertices (``face``, ``edge``, ``tristrips``
+    or any element with a ``vertex_indices``-like property), with a one-line warning naming them;
+    ``layout`` itself when it has none."""
+    if layout is None:
+        return None
+    stale = [
+        e for e in layout.other_elements
+        if e.name in _VERTEX_INDEXED_ELEMENTS or any(p.name in _VERTEX_INDEX_PROPERTIES for p in e.properties)
+    ]  # fmt: skip
+    if not stale:
+        return layout
+    names = ", ".join(f"'{e.name}' ({e.count:,} rows)" for e in stale)
+    warnings.warn(f"dropped PLY element(s) {names}: they index vertices, which simplification renumbers",
+                  NanogsWarning, stacklevel=3)  # fmt: skip
+    return replace(layout, other_elements=[e for e in layout.other_elements if e not in stale])
 
 
 def simplify_progressively(
@@ -143,7 +214,9 @@ def simplify_progressively(
 
     with stage("prune"):
         current = prune_low_opacity(splats, config.prune_opacity, keep_at_least=targets[0])
+    renumbered_layout = None  # the layout of outputs whose rows are not the input's
     topology = KnnTopology(config.neighbours(current.count))
+    check_index_limits(current.count, min(topology.k, max(current.count - 1, 0)))
     pass_index = 0
     for target in targets:
         while current.count > target:
@@ -169,24 +242,59 @@ def simplify_progressively(
             current = merged
             del pairs, destination, merged  # free this pass's scratch before the next kNN
             pass_index += 1
+        if current is not splats:  # pruned or merged: rows renumbered
+            if renumbered_layout is None:
+                renumbered_layout = without_vertex_indexed(splats.layout)
+            if renumbered_layout is not current.layout:
+                current = replace(current, layout=renumbered_layout)
         yield target, current
 
 
 def simplify(
     splats: SplatSet,
-    ratio: float | None = None,
-    count: int | None = None,
+    ratio: float | str | Sequence[float | str] | None = None,
+    count: int | Sequence[int] | None = None,
     device=None,
     config: SimplifyConfig = SimplifyConfig(),
-) -> SplatSet:
-    """Simplifies ``splats`` to ``count`` splats, or to max(1, ceil(ratio * N)).
+    *,
+    ratios: Sequence[float | str] | None = None,
+    counts: Sequence[int] | None = None,
+) -> SplatSet | list[SplatSet]:
+    """Simplifies ``splats`` to ``count`` splats, or to max(1, ceil(ratio * N)) (exactly: the ratio
+    as written, a float through its shortest repr).
 
-    ``device`` is where the work runs ("cpu", "cuda:0", ...; None: the splats' own device); the
-    result stays there.
+    Several budgets (``ratio=[0.1, 0.01]``, ``ratios=...``, ``count=[5000, 500]`` or ``counts=...``)
+    continue one progressive merge, as the command line does, and give a list of splat sets in the
+    order the budgets were given. ``device`` is where the work runs ("auto", "cpu", "cuda",
+    "cuda:0", a ``wp.Device``; None: the splats' own device); the results stay there. A device that
+    is not on this machine raises InputError.
     """
+    if ratios is not None:
+        if ratio is not None:
+            raise InputError("give ratio or ratios, not both")
+        ratio = list(ratios)
+    if counts is not None:
+        if count is not None:
+            raise InputError("give count or counts, not both")
+        count = list(counts)
     if (ratio is None) == (count is None):
         raise InputError("give exactly one of ratio or count")
-    target = target_count(splats.count, ratio) if ratio is not None else int(count)
+    several = not isinstance(ratio if ratio is not None else count, (str, numbers.Number))
+    budgets = list(ratio if ratio is not None else count) if several else [ratio if ratio is not None else count]
+    if not budgets:
+        raise InputError("give at least one budget")
+    if ratio is not None:
+        targets = [target_count(splats.count, r) for r in budgets]
+    else:
+        targets = []
+        for c in budgets:
+            if isinstance(c, bool) or int(c) != c:
+                raise InputError(f"count must be a whole number, got {c!r}")
+            targets.append(int(c))
+    if isinstance(device, str):
+        from .device import resolve_device
+
+        device = resolve_device(device)
     on_device = splats.to(wp.get_device(device) if device is not None else splats.device)
-    _, result = next(simplify_progressively(on_device, [target], config))
-    return result
+    results = dict(simplify_progressively(on_device, targets, config))
+    return [results[t] for t in targets] if several else results[targets[0]]

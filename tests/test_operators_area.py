@@ -90,7 +90,7 @@ def test_area_conserves_weighted_mass(device, rng):
 
 
 @pytest.mark.parametrize("sh_degree", [0, 3])
-@pytest.mark.parametrize("growth", [0.0, 0.25, 1.0])
+@pytest.mark.parametrize("growth", [0.0, 0.25, 1.0, 2.0])  # 2: alpha_m = r^-1 < 1 checks alpha_m = r / grow
 def test_coverage_matches_reference(device, rng, sh_degree, growth):
     n = 256
     arrays = random_splat_arrays(n, sh_degree=sh_degree, seed=int(rng.integers(1 << 30)))

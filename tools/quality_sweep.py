@@ -1,7 +1,7 @@
 """Quality sweep: every scene in a folder x budgets x configurations, evaluated against the original.
 
-    python tools/quality_sweep.py ~/.cache/nanogs-scenes -o sweep/ --device cpu
-    python tools/quality_sweep.py ~/.cache/nanogs-scenes -o sweep/ --configs paper,area --scenes guitar
+    python tools/quality_sweep.py SCENES/ -o sweep/ --device cpu
+    python tools/quality_sweep.py SCENES/ -o sweep/ --configs paper,area --scenes guitar
     python tools/quality_sweep.py -o sweep/ --table-only          # rebuild the markdown from the JSON lines
 
 Per scene: the reference is loaded once, its orbit cameras (16 views, 256 x 256 by default, black
@@ -239,7 +239,7 @@ MOONSHOT = {
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("scenes_dir", type=Path, nargs="?", help="folder of .ply scenes")
+    parser.add_argument("scenes_dir", type=Path, nargs="?", help="folder of .ply scenes (docs/scenes.md: the published ones)")
     parser.add_argument("-o", "--out", type=Path, required=True, help="output folder (sweep.jsonl, sweep.md)")
     parser.add_argument("--configs", default=",".join(DEFAULT_CONFIGS), help=f"comma-separated, from: {', '.join(CONFIGS)}")
     parser.add_argument("--scenes", help="comma-separated scene names (file stems); default: every .ply in the folder")
