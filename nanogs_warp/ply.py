@@ -49,14 +49,15 @@ DROP_HINT = "load with drop_invalid (CLI: --drop-invalid) to drop them"
 # Public API
 
 
-def load_ply(path, device="cpu", drop_invalid: bool = False) -> SplatSet:
+def load_ply(path, device="cpu", drop_invalid: bool = False, digest=None) -> SplatSet:
     """Reads a 3DGS PLY file into a :class:`SplatSet` on ``device`` with its layout filled in.
 
     Quaternions are normalised (left bit-exact when already unit to float32 precision, so that
     load -> save -> load is bitwise stable). Rows with NaN/Inf in a 3DGS property or a zero-norm
     quaternion raise :class:`InputError`, or are dropped when ``drop_invalid`` is true.
+    ``digest`` (a :mod:`hashlib` object) is fed every byte of the file, in order, as it is read.
     """
-    data = read_ply_arrays(path)
+    data = read_ply_arrays(path, digest)
     name = Path(path).name
     a = data.arrays
     check = check_values(a)
@@ -143,8 +144,9 @@ class ValueCheck:
     zero_quat_rows: np.ndarray  # bool (N,), finite quaternions with norm 0
 
 
-def read_ply_arrays(path) -> PlyArrays:
-    """Reads and structurally checks a 3DGS PLY file; values are not checked (see check_values)."""
+def read_ply_arrays(path, digest=None) -> PlyArrays:
+    """Reads and structurally checks a 3DGS PLY file; values are not checked (see check_values).
+    ``digest`` (a :mod:`hashlib` object), when given, is fed the whole file in the same pass."""
     path = Path(path)
     name = path.name
     header = None
@@ -159,7 +161,7 @@ def read_ply_arrays(path) -> PlyArrays:
         ply = plyfile.PlyData.read(str(path), mmap="r")
         check_agreement(header, ply, name)
         with np.errstate(all="ignore"):
-            return _extract(header, vertex_h, ply, path, file_bytes)
+            return _extract(header, vertex_h, ply, path, file_bytes, digest)
     except (InputError, MemoryError):
         raise
     except OSError as e:
@@ -219,7 +221,8 @@ def sh_degree_for_rest_count(count: int) -> int:
     return REST_COUNTS[count]
 
 
-def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path, file_bytes: int) -> PlyArrays:
+def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path, file_bytes: int,
+             digest=None) -> PlyArrays:
     n = vertex_h.count
     data = ply["vertex"].data
     if data.shape != (n,):
@@ -239,7 +242,7 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     }
     arrays = {key: np.empty((n, len(group)), np.float32) for key, group in groups.items()}
     plans = [(arrays[key], _runs(fields, group)) for key, group in groups.items()]
-    for start, rows in _vertex_chunks(header, data, path):
+    for start, rows in _vertex_chunks(header, data, path, digest):
         stop = start + rows.shape[0]
         for out, runs in plans:
             for i, j, dt, off in runs:
@@ -278,10 +281,12 @@ def _runs(fields, names) -> list[tuple[int, int, np.dtype, int]]:
     return runs
 
 
-def _vertex_chunks(header: Header, data: np.ndarray, path: Path):
+def _vertex_chunks(header: Header, data: np.ndarray, path: Path, digest=None):
     """(first row, (rows, itemsize) uint8 view) chunks of the vertex records. A binary vertex
-    element at a known offset is read from the file into one reused cache-sized buffer (about
-    twice as fast as touching plyfile's memory map); otherwise plyfile's array is sliced."""
+    element at a known offset is read from the file into reused cache-sized buffers (about twice
+    as fast as touching plyfile's memory map); otherwise plyfile's array is sliced. ``digest`` is
+    fed the whole file: in the first case the bytes as they are read (hashed on another thread
+    while the next chunk is converted), else in a separate pass."""
     n, itemsize = data.shape[0], data.dtype.itemsize
     step = max(1, _CHUNK_BYTES // itemsize)
     offset = _binary_offset(header, "vertex")
@@ -290,19 +295,77 @@ def _vertex_chunks(header: Header, data: np.ndarray, path: Path):
             f.seek(offset)
             # plyfile found the same first record there: trust the offset (else use plyfile's array)
             if f.read(itemsize) == data[:1].view(np.uint8).tobytes():
-                f.seek(offset)
-                buffer = np.empty((min(step, n), itemsize), np.uint8)
-                for start in range(0, n, step):
-                    rows = buffer[: min(step, n - start)]
-                    if f.readinto(memoryview(rows).cast("B")) != rows.nbytes:
-                        raise ValueError("the file changed while it was read")
-                    yield start, rows
+                with _Hasher(digest) as hasher:
+                    f.seek(0)
+                    hasher.feed_from(f, offset)  # the header and any element before the vertices
+                    buffers = [np.empty((min(step, n), itemsize), np.uint8) for _ in range(2 if digest else 1)]
+                    for k, start in enumerate(range(0, n, step)):
+                        buffer = buffers[k % len(buffers)]
+                        hasher.wait_for(buffer)
+                        rows = buffer[: min(step, n - start)]
+                        if f.readinto(memoryview(rows).cast("B")) != rows.nbytes:
+                            raise ValueError("the file changed while it was read")
+                        hasher.feed(rows, buffer)
+                        yield start, rows
+                    hasher.feed_from(f, None)  # the elements after the vertices
                 return
+    if digest is not None:
+        with open(path, "rb") as f:
+            while chunk := f.read(_CHUNK_BYTES):
+                digest.update(chunk)
     if not data.flags.c_contiguous:
         data = np.ascontiguousarray(data)
     rows = data.view(np.uint8).reshape(n, itemsize)
     for start in range(0, n, step):
         yield start, rows[start : start + step]
+
+
+class _Hasher:
+    """Feeds a digest on one background thread (hashlib releases the GIL on large buffers), in
+    order; ``wait_for(buffer)`` returns once no pending update still reads ``buffer``."""
+
+    def __init__(self, digest):
+        self.digest = digest
+        self.pool = None
+        self.pending: dict[int, object] = {}
+
+    def __enter__(self):
+        if self.digest is not None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self.pool = ThreadPoolExecutor(1, thread_name_prefix="nanogs-hash")
+        return self
+
+    def __exit__(self, *exc):
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
+        return False
+
+    def feed(self, rows: np.ndarray, buffer: np.ndarray) -> None:
+        if self.pool is not None:
+            self.pending[id(buffer)] = self.pool.submit(self.digest.update, memoryview(rows).cast("B"))
+
+    def wait_for(self, buffer: np.ndarray) -> None:
+        future = self.pending.pop(id(buffer), None)
+        if future is not None:
+            future.result()
+
+    def feed_from(self, f, length: int | None) -> None:
+        """Reads ``length`` bytes (None: to the end) from ``f`` into the digest, in order."""
+        if self.pool is None:
+            if length is not None:
+                f.seek(length, os.SEEK_CUR)
+            return
+        for future in self.pending.values():
+            future.result()
+        self.pending.clear()
+        while length is None or length > 0:
+            chunk = f.read(_CHUNK_BYTES if length is None else min(length, _CHUNK_BYTES))
+            if not chunk:
+                break
+            self.digest.update(chunk)
+            if length is not None:
+                length -= len(chunk)
 
 
 def _binary_offset(header: Header, name: str) -> int | None:
