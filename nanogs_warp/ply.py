@@ -85,9 +85,18 @@ def save_ply(splats: SplatSet, path) -> None:
     vertex element. The data goes to a temporary file beside ``path`` that then replaces it, so a
     failure never leaves a partial file and never touches an existing one.
     """
-    host = splats.to_numpy()
+    host = _host_arrays(splats)
     props = output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1])
     atomic_write(Path(path), lambda stream: _write_ply_stream(stream, host, props, splats.layout, _CHUNK_BYTES))
+
+
+def _host_arrays(splats: SplatSet) -> dict[str, np.ndarray]:
+    """The splats' arrays as 2D host arrays for writing: views of the Warp arrays on the CPU (no
+    copy), one device-to-host copy each from a GPU; quaternions in Warp's x, y, z, w order."""
+    n = splats.count
+    arrays = {"means": splats.means, "quats_xyzw": splats.rotations, "log_scales": splats.log_scales,
+              "opacities": splats.opacities, "features": splats.features, "extras": splats.extras}  # fmt: skip
+    return {key: a.numpy().reshape(n, -1) for key, a in arrays.items()}
 
 
 def _to_splat_set(a: dict[str, np.ndarray], layout: PlyLayout, device) -> SplatSet:
@@ -246,7 +255,7 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
         stop = start + rows.shape[0]
         for out, runs in plans:
             for i, j, dt, off in runs:
-                out[start:stop, i:j] = rows[:, off : off + (j - i) * dt.itemsize].view(dt)
+                _copy_run(out[start:stop, i:j], rows[:, off : off + (j - i) * dt.itemsize], dt)
     arrays["opacities"] = arrays["opacities"].reshape(n)
 
     others = []
@@ -265,6 +274,17 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
 
 
 _CHUNK_BYTES = 4 << 20  # rows are converted (and written, by save_ply) in chunks of about this size
+
+
+def _copy_run(out: np.ndarray, raw: np.ndarray, dt: np.dtype) -> None:
+    """``out`` ((rows, k) float32) = ``raw`` ((rows, k * itemsize) bytes of records) read as ``dt``.
+    Float32 runs are copied row by row as one opaque item, about twice as fast as numpy's
+    element-wise strided copy of short rows."""
+    if dt == out.dtype and raw.strides[-1] == 1 and out.strides[-1] == out.itemsize:
+        run = np.dtype((np.void, raw.shape[1]))
+        out.view(run)[:, 0] = raw.view(run)[:, 0]
+    else:
+        out[...] = raw.view(dt)
 
 
 def _runs(fields, names) -> list[tuple[int, int, np.dtype, int]]:
