@@ -14,7 +14,7 @@ from pathlib import Path
 
 from .budgets import Budget, parse_budgets
 from .errors import InputError
-from .pipeline import SimplifyConfig
+from .config import SimplifyConfig
 
 RECORD_SUFFIX = ".nanogs.json"
 _GLOB_CHARS = set("*?[")

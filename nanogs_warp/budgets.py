@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .errors import InputError
-from .pipeline import target_count
+from .config import target_count
 
 
 @dataclass(frozen=True)

@@ -18,8 +18,9 @@ from . import __version__
 from .budgets import Budget, output_paths, parse_budgets
 from .cli_batch import batch_command
 from .cli_eval import eval_command
+from .cli_warmup import warmup_command
 from .errors import InputError
-from .pipeline import SimplifyConfig
+from .config import SimplifyConfig
 
 app = typer.Typer(
     name="nanogs-warp",
@@ -117,6 +118,7 @@ def simplify(
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
     from .device import keep_freed_host_memory, resolve_device
+    from .kernel_cache import load_kernels
     from .pipeline import simplify_progressively
     from .ply import load_ply, save_ply
 
@@ -127,6 +129,7 @@ def simplify(
     _check_outputs(input, list(paths.values()))
     target_device = resolve_device(device)
     keep_freed_host_memory()
+    load_kernels(target_device, announce=not quiet)
 
     started = time.perf_counter()
     splats = load_ply(input, device="cpu", drop_invalid=drop_invalid)
@@ -196,6 +199,7 @@ def info(
 
 app.command("eval")(user_errors(eval_command))
 app.command("batch")(user_errors(batch_command))
+app.command("warmup")(user_errors(warmup_command))
 
 
 def main() -> None:

@@ -17,7 +17,7 @@ import typer
 
 from . import cli_options as opts
 from .errors import InputError
-from .pipeline import SimplifyConfig
+from .config import SimplifyConfig
 
 
 def batch_command(

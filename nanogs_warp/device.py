@@ -16,10 +16,21 @@ from .errors import InputError
 _NO_DRIVER_NOTICE = "Could not find or load the NVIDIA CUDA driver"
 
 
+def quiet_warp() -> None:
+    """Warp's start-up banner and module-load lines off (on with NANOGS_DEBUG=1), and the kernel
+    cache at $NANOGS_WARP_CACHE when that is set and no directory was chosen before."""
+    from .kernel_cache import cache_dir_from_environment, use_cache_dir
+
+    wp.config.log_level = wp.LOG_INFO if os.environ.get("NANOGS_DEBUG") else wp.LOG_WARNING
+    if wp.config.kernel_cache_dir is None:
+        use_cache_dir(cache_dir_from_environment())
+
+
 def init_warp() -> None:
-    """Initialises Warp once, quietly: the expected no-driver notice is dropped, anything else
-    Warp's native code prints is passed on to stderr."""
-    wp.config.log_level = wp.LOG_WARNING
+    """Initialises Warp once, quietly (NANOGS_DEBUG=1: with Warp's own messages): the expected
+    no-driver notice is dropped, anything else Warp's native code prints is passed on to stderr.
+    The kernel cache is $NANOGS_WARP_CACHE when set and no directory was chosen before."""
+    quiet_warp()
     sys.stderr.flush()
     saved = os.dup(2)
     with tempfile.TemporaryFile(mode="w+b") as captured:

@@ -14,10 +14,10 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import plyfile
-import warp as wp
 
 from .errors import InputError
 from .ply_header import (
@@ -40,7 +40,10 @@ from .ply_header import (
 )
 from .ply_write import atomic_write, output_properties
 from .ply_write import write_ply_stream as _write_ply_stream  # by this name: the tests patch it here
-from .splats import PlyLayout, SplatSet
+from .ply_layout import PlyLayout
+
+if TYPE_CHECKING:
+    from .splats import SplatSet
 
 DROP_HINT = "load with drop_invalid (CLI: --drop-invalid) to drop them"
 
@@ -102,6 +105,10 @@ def _host_arrays(splats: SplatSet) -> dict[str, np.ndarray]:
 def _to_splat_set(a: dict[str, np.ndarray], layout: PlyLayout, device) -> SplatSet:
     """SplatSet.from_numpy, but on the CPU the fresh host arrays become the Warp arrays without a
     copy (Warp keeps a reference to them); this saves a quarter of the load time."""
+    import warp as wp  # here, not at the top: reading a file's header and values needs no Warp
+
+    from .splats import SplatSet
+
     device = wp.get_device(device)
     if not device.is_cpu:
         return SplatSet.from_numpy(a["means"], a["rotations"], a["log_scales"], a["opacities"],

@@ -27,7 +27,7 @@ from .ply_header import (
     SCALE_NAMES,
     one_line,
 )
-from .splats import PlyLayout
+from .ply_layout import PlyLayout
 
 _INRIA_HEAD = MEAN_NAMES + NORMAL_NAMES + DC_NAMES
 _INRIA_TAIL = OPACITY_NAMES + SCALE_NAMES + ROT_NAMES
