@@ -117,22 +117,29 @@ def simplify(
     quiet: opts.Quiet = False,
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
-    from .device import keep_freed_host_memory, resolve_device
-    from .kernel_cache import load_kernels
-    from .pipeline import simplify_progressively
-    from .ply import load_ply, save_ply
+    from .device import WarpStart, keep_freed_host_memory
+    from .ply import read_splats, save_ply, splats_from_host
 
     config = SimplifyConfig(k, prune_opacity, samples, seed, lambda_geo, lambda_app, cost, operator)
-    config.validate()
     budgets = parse_budgets(ratio, count)
     paths = output_paths(output, budgets)
     _check_outputs(input, list(paths.values()))
-    target_device = resolve_device(device)
     keep_freed_host_memory()
-    load_kernels(target_device, announce=not quiet)
 
     started = time.perf_counter()
-    splats = load_ply(input, device="cpu", drop_invalid=drop_invalid)
+    warp_start = WarpStart(device, prepare=lambda: _import_pipeline(config))  # while the file is read
+    try:
+        arrays, layout = read_splats(input, drop_invalid=drop_invalid)
+        target_device = warp_start.device()
+    except BaseException:
+        warp_start.wait()
+        raise
+    from .kernel_cache import load_kernels
+    from .pipeline import simplify_progressively
+
+    load_kernels(target_device, announce=not quiet)
+    splats = splats_from_host(arrays, layout)
+    del arrays
     loaded = time.perf_counter()
     targets = {budget: budget.target(splats.count) for budget in budgets}
     progress = _PassProgress(sys.stderr.isatty() and not quiet and not json_output, max(targets.values()))
@@ -167,6 +174,13 @@ def simplify(
         for out in written:
             typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}, {out['passes']} passes)")
         typer.echo(f"{splats.count:,} splats in, {len(passes)} passes on {target_device}, {finished - started:.2f} s")
+
+
+def _import_pipeline(config: SimplifyConfig) -> None:
+    """Imports the pipeline (Warp and the kernel definitions with it) and checks ``config``."""
+    from . import pipeline  # noqa: F401
+
+    config.validate()
 
 
 def _check_outputs(input: Path, outputs: list[Path]) -> None:

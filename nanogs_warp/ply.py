@@ -60,6 +60,13 @@ def load_ply(path, device="cpu", drop_invalid: bool = False, digest=None) -> Spl
     quaternion raise :class:`InputError`, or are dropped when ``drop_invalid`` is true.
     ``digest`` (a :mod:`hashlib` object) is fed every byte of the file, in order, as it is read.
     """
+    arrays, layout = read_splats(path, drop_invalid, digest)
+    return _to_splat_set(arrays, layout, device)
+
+
+def read_splats(path, drop_invalid: bool = False, digest=None) -> tuple[dict[str, np.ndarray], PlyLayout]:
+    """load_ply's part on the host, without Warp: the checked host arrays (``PlyArrays`` names,
+    quaternions normalised) and the layout; ``splats_from_host`` makes them a :class:`SplatSet`."""
     data = read_ply_arrays(path, digest)
     name = Path(path).name
     a = data.arrays
@@ -75,7 +82,13 @@ def load_ply(path, device="cpu", drop_invalid: bool = False, digest=None) -> Spl
         keep = ~bad
         a = {k: v[keep] for k, v in a.items()}
     a["rotations"] = normalize_quaternions(a["rotations"])
-    return _to_splat_set(a, data.layout, device)
+    return a, data.layout
+
+
+def splats_from_host(arrays: dict[str, np.ndarray], layout: PlyLayout, device="cpu") -> SplatSet:
+    """A :class:`SplatSet` on ``device`` from :func:`read_splats`' arrays (shared, not copied, on
+    the CPU)."""
+    return _to_splat_set(arrays, layout, device)
 
 
 def save_ply(splats: SplatSet, path) -> None:
