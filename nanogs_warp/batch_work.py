@@ -56,8 +56,8 @@ def file_sha256(path: Path) -> str:
 @dataclass
 class LoadedScene:
     """A scene between its stages: read (``splats`` on the host, or ``result`` already final when
-    it was skipped or failed), then simplified (``simplified``: (target, splats, budgets) on the
-    device), then written."""
+    it was skipped or failed), then simplified (``simplified``: (target, splats on the host,
+    budgets)), then written."""
 
     job: SceneJob
     result: SceneResult
@@ -99,7 +99,8 @@ def read_scene(job: SceneJob, force: bool, label: str) -> LoadedScene:
 
 
 def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) -> None:
-    """Stage 2: every budget in one progressive run on ``device``; the results stay there."""
+    """Stage 2: every budget in one progressive run on ``device``; the results come back to the
+    host."""
     if scene.final:
         return
     with _stage(scene, "simplify"):
@@ -111,11 +112,8 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
             by_target.setdefault(budget.target(splats.count), []).append(budget)
         scene.splats = None  # the host copy is not needed again
         for target, simplified in simplify_progressively(splats.to(device), list(by_target), job.config, on_pass=on_pass):
-            scene.simplified.append((target, simplified, by_target[target]))
-        if getattr(device, "is_cuda", False):
-            import warp as wp
-
-            wp.synchronize_device(device)
+            # to the host here, so that the writer thread never touches the GPU (and its memory is freed)
+            scene.simplified.append((target, simplified.to("cpu"), by_target[target]))
 
 
 def write_scene(scene: LoadedScene) -> SceneResult:

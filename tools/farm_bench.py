@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import shutil
 import statistics
 import subprocess
@@ -119,7 +120,7 @@ def run_batch(scenes_dir: Path, out_dir: Path, ratios: str, devices: str, extra:
 
     return {
         "devices": devices,
-        "workers": devices_used,
+        "devices_used": devices_used,
         "scenes": len(scenes),
         "failed": summary["failed"],
         "wall_s": round(wall, 3),
@@ -155,11 +156,11 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=8)
     parser.add_argument("--splats", type=int, default=6_000_000)
     parser.add_argument("--ratio", default="0.1,0.01,0.001")
-    parser.add_argument("--runs", nargs="+", default=None, help="--devices value of each batch run, e.g. cuda:0 all")
+    parser.add_argument("--runs", nargs="+", default=None,
+                        help="one batch run each: a --devices value and any more batch options, e.g. cuda:0 all 'cpu --workers 2'")
     parser.add_argument("--workdir", type=Path, required=True, help="scenes and outputs go here (keep it on a fast disk)")
     parser.add_argument("--simplify", action="store_true", help="also time `nanogs-warp simplify` of one scene end to end")
     parser.add_argument("--json", type=Path, default=None, help="append the results as one JSON line")
-    parser.add_argument("batch_args", nargs=argparse.REMAINDER, help="after --: more `batch` options")
     args = parser.parse_args()
 
     gpus = 0
@@ -167,7 +168,6 @@ def main() -> None:
         listing = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout
         gpus = sum(line.startswith("GPU ") for line in listing.splitlines())
     runs = args.runs or (["cuda:0", "all"] if gpus > 1 else ["cuda:0"] if gpus == 1 else ["cpu"])
-    extra = [a for a in args.batch_args if a != "--"]
 
     scenes = make_scenes(args.source, args.scenes, args.splats, args.workdir / "scenes")
     into_page_cache(scenes)
@@ -175,17 +175,18 @@ def main() -> None:
     subprocess.run([sys.executable, "-m", "nanogs_warp", "warmup", "-q", "--arch", "none"], check=True)
 
     results = []
-    for devices in runs:
-        out_dir = args.workdir / f"out_{devices.replace(':', '').replace(',', '_')}"
-        results.append(run_batch(args.workdir / "scenes", out_dir, args.ratio, devices, extra))
+    for k, run in enumerate(runs):
+        devices, *extra = shlex.split(run)
+        results.append(run_batch(args.workdir / "scenes", args.workdir / f"out_{k}", args.ratio, devices, extra))
+        results[-1]["run"] = run
     single = time_simplify(scenes[0], args.workdir, args.ratio, "cuda:0" if gpus else "cpu") if args.simplify else None
 
     print(f"{len(scenes)} scenes of {args.splats:,} splats ({size_mb:.0f} MB each), budgets {args.ratio}")
-    print(f"{'devices':>14} {'workers':>8} {'wall s':>8} {'scenes/s':>9} {'steady/s/dev':>13} {'read s':>7} {'simplify s':>10} {'write s':>8}  GPU busy")
+    print(f"{'run':>18} {'devices':>8} {'wall s':>8} {'scenes/s':>9} {'steady/s/dev':>13} {'read s':>7} {'simplify s':>10} {'write s':>8}  GPU busy")
     for r in results:
         busy = ", ".join(f"{g}: {v['busy_fraction']:.0%} ({v['mean_utilisation']:.0f}%)" for g, v in r["gpus"].items()) or "-"
         steady = f"{r['steady_scenes_per_s_per_device']:.3f}" if r["steady_scenes_per_s_per_device"] else "-"
-        print(f"{r['devices']:>14} {len(r['workers']):>8} {r['wall_s']:>8.2f} {r['scenes_per_s']:>9.3f} {steady:>13} "
+        print(f"{r['run']:>18} {len(r['devices_used']):>8} {r['wall_s']:>8.2f} {r['scenes_per_s']:>9.3f} {steady:>13} "
               f"{r['read_s']:>7.3f} {r['simplify_s']:>10.3f} {r['write_s']:>8.3f}  {busy}")  # fmt: skip
         if r["failed"]:
             print(f"  {r['failed']} scene(s) failed")
