@@ -173,17 +173,17 @@ def run_local(
         except (EOFError, OSError):
             worker.closed = True
 
-    def reap(worker: _Worker, timed_out: str | None = None) -> None:
-        """A worker has exited (or was killed because its oldest scene ran past its time limit:
-        ``timed_out`` says so): fails the scene it was working on, hands back the others, and
-        starts another worker in its place while scenes wait."""
+    def reap(worker: _Worker, timed_out: tuple[SceneJob, str, float] | None = None) -> None:
+        """A worker has exited (or was killed because a scene ran past its time limit:
+        ``timed_out`` is that scene, the error and its seconds): fails the scene it was working on,
+        hands back the others, and starts another worker in its place while scenes wait."""
         receive(worker)  # what it sent before it exited comes first
         worker.reaped = True
         worker.conn.close()
         held, worker.jobs = worker.jobs, []
         culprit, seconds = None, 0.0
-        if timed_out is not None and held:
-            culprit, error, seconds = held[0], timed_out, time.monotonic() - worker.head_since
+        if timed_out is not None:
+            culprit, error, seconds = timed_out  # no one, if it finished just before the kill
         elif held:
             begun = [j for j in held if j.relative in worker.simplifying]
             culprit = begun[-1] if begun else (held[0] if held[0].relative in worker.reading else None)
@@ -231,9 +231,10 @@ def run_local(
                     limit = deadline(worker)
                     if limit is not None and now >= limit:
                         seconds = now - worker.head_since
+                        error = f"timed out after {seconds:.0f} s (--scene-timeout); its worker process was replaced"
                         worker.process.kill()
                         worker.process.join()
-                        reap(worker, timed_out=f"timed out after {seconds:.0f} s (--scene-timeout); its worker process was replaced")
+                        reap(worker, timed_out=(worker.jobs[0], error, seconds))
             live = [w for w in workers.values() if not w.reaped]
             deadlines = [d for d in map(deadline, live) if d is not None]
             wait_s = max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
