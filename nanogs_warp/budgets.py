@@ -6,8 +6,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import InputError
 from .config import target_count
+from .errors import InputError
 
 
 @dataclass(frozen=True)
