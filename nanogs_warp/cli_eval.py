@@ -61,6 +61,7 @@ def eval_command(
     from .cameras import load_cameras_json, orbit_cameras, parse_up
     from .device import resolve_device
     from .evaluate import evaluate, format_table, write_images
+    from .kernel_cache import EVAL_MODULES, load_kernels
     from .ply import load_ply
 
     if not tests:
@@ -77,6 +78,7 @@ def eval_command(
             raise InputError(f"{path}: no such file")
     if images is not None and images.exists() and not images.is_dir():
         raise InputError(f"--images {images}: exists and is not a directory")
+    load_kernels(target, EVAL_MODULES)  # says so in one line when they must be compiled first
 
     ref_splats = load_ply(reference, device=target)
     if cameras is not None:
