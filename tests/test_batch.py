@@ -305,6 +305,30 @@ def test_a_dead_worker_fails_its_scene_and_is_replaced(tmp_path):
     assert summary["z_empty.ply"]["status"] == "failed" and "died" not in summary["z_empty.ply"]["error"]
 
 
+def test_default_time_limit_scales_with_the_scene():
+    from nanogs_warp.batch_scenes import scene_timeout
+
+    job = SceneJob(Path("a.ply"), "a.ply", Path("o"), (), SimplifyConfig(), False, 1_500_000_000)
+    assert scene_timeout(job, on_gpu=True) == pytest.approx(450.0)  # docs/batch.md's example
+    assert scene_timeout(job, on_gpu=False) == pytest.approx(1050.0)
+    assert scene_timeout(job, on_gpu=True, seconds=12.5) == 12.5 and scene_timeout(job, True, seconds=0) is None
+
+
+def test_devices_every_gpu_and_the_cpu():
+    import warp as wp
+
+    from nanogs_warp.batch_local import parse_devices
+    from nanogs_warp.errors import InputError
+
+    gpus = [f"cuda:{i}" for i in range(wp.get_cuda_device_count())]
+    assert parse_devices("auto,cpu") == gpus + ["cpu"]
+    if gpus:
+        assert parse_devices("all,cpu") == gpus + ["cpu"]
+    else:
+        with pytest.raises(InputError, match="no CUDA GPU"):
+            parse_devices("all,cpu")
+
+
 SPIN = "NANOGS_WARP_TEST_SPIN_SCENE"  # batch_work.SPIN_SCENE_VARIABLE: a worker spins on this scene
 
 
@@ -352,3 +376,4 @@ def test_ray_task_past_its_time_limit_is_cancelled(scenes_and_a_spinner, tmp_pat
         ray.shutdown()
     summary = run_json(root, "-o", out, "--ratio", "0.1,0.01", "--scene-timeout", "6", "--ray", "local", code=1)
     check_spinner_timed_out(summary, clean, out, 6, "its Ray task was cancelled")
+
