@@ -311,7 +311,11 @@ def _serve(device: str, warp_device, conn, force: bool) -> None:
 
     def writer() -> None:
         while (scene := to_write.get()) is not None:
-            send(("finished", write_scene(scene)))
+            result = write_scene(scene)
+            try:
+                send(("finished", result))
+            except OSError:  # the parent is gone: keep draining, so that this process can exit
+                pass
 
     threads = [threading.Thread(target=t, name=f"nanogs-batch-{t.__name__}", daemon=True) for t in (receiver, reader, writer)]
     for thread in threads:
