@@ -286,8 +286,12 @@ def _serve(device: str, warp_device, conn, force: bool) -> None:
     lock = threading.Lock()
 
     def send(message) -> None:
+        """To the parent; if it is gone, the receiver sees end-of-file and the stages wind down."""
         with lock:
-            conn.send(message)
+            try:
+                conn.send(message)
+            except OSError:
+                pass
 
     jobs: queue.Queue = queue.Queue()
     read: queue.Queue = queue.Queue()
@@ -311,11 +315,7 @@ def _serve(device: str, warp_device, conn, force: bool) -> None:
 
     def writer() -> None:
         while (scene := to_write.get()) is not None:
-            result = write_scene(scene)
-            try:
-                send(("finished", result))
-            except OSError:  # the parent is gone: keep draining, so that this process can exit
-                pass
+            send(("finished", write_scene(scene)))
 
     threads = [threading.Thread(target=t, name=f"nanogs-batch-{t.__name__}", daemon=True) for t in (receiver, reader, writer)]
     for thread in threads:
