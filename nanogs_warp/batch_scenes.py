@@ -14,7 +14,7 @@ from pathlib import Path
 
 from .budgets import Budget, parse_budgets
 from .errors import InputError
-from .pipeline import SimplifyConfig
+from .config import SimplifyConfig
 
 RECORD_SUFFIX = ".nanogs.json"
 _GLOB_CHARS = set("*?[")
@@ -123,6 +123,22 @@ def parse_shard(text: str | None) -> tuple[int, int]:
 def select_shard(jobs: list[SceneJob], index: int, count: int) -> list[SceneJob]:
     """Scene ``k`` of the sorted list belongs to shard ``k mod count``."""
     return [job for k, job in enumerate(jobs) if k % count == index]
+
+
+# The default --scene-timeout: a fixed part for starting Warp and compiling its kernels on a fresh
+# machine, plus a part per MB of input, larger on the CPU. Both are far above the measured times (a
+# 2-core CPU: about 0.03 s per MB all told; an H100: about 0.003 s per MB), so that only a scene
+# that would never end reaches them.
+TIMEOUT_BASE_S = 300.0
+TIMEOUT_PER_MB_S = {"cpu": 0.5, "gpu": 0.1}
+
+
+def scene_timeout(job: SceneJob, on_gpu: bool, seconds: float | None = None) -> float | None:
+    """How long ``job`` may take on one worker: ``seconds`` when given (0: no limit, None), else
+    TIMEOUT_BASE_S plus TIMEOUT_PER_MB_S per MB of input."""
+    if seconds is not None:
+        return seconds if seconds > 0 else None
+    return TIMEOUT_BASE_S + TIMEOUT_PER_MB_S["gpu" if on_gpu else "cpu"] * max(job.size, 0) / 1e6
 
 
 def largest_first(jobs: list[SceneJob]) -> list[SceneJob]:

@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
 
+from .config import exact_ratio, target_count
 from .errors import InputError
-from .pipeline import exact_ratio, target_count
 
 
 @dataclass(frozen=True)

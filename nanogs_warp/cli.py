@@ -18,6 +18,7 @@ from .budgets import Budget, output_paths, parse_budgets
 from .cli_batch import batch_command
 from .cli_eval import eval_command
 from .cli_errors import examples, readable_placeholders, user_errors
+from .cli_warmup import warmup_command
 from .errors import InputError, NanogsWarning
 
 readable_placeholders()
@@ -99,8 +100,9 @@ def simplify(
     quiet: opts.Quiet = False,
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
-    from .device import keep_freed_host_memory, resolve_device
-    from .io import format_for_path, load_splats, save_levels
+    from .device import WarpStart, keep_freed_host_memory
+    from .io import format_for_path, read_any_splats, save_levels
+    from .ply import splats_from_host
 
     config = opts.method_config(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
@@ -122,12 +124,22 @@ def simplify(
     else:
         paths, folder = _output_paths(output, input, budgets, output_format)
     _check_outputs(input, list(paths.values()), overwrite, folder)
-    target_device = resolve_device(device)
     keep_freed_host_memory()
     notes = _Notes(quiet or json_output)
 
     started = time.perf_counter()
-    splats = load_splats(input, device="cpu", drop_invalid=drop_invalid, on_drop=notes)
+    warp_start = WarpStart(device, prepare=lambda: _import_pipeline(config))  # while the file is read
+    try:
+        arrays, layout = read_any_splats(input, drop_invalid=drop_invalid, on_drop=notes)
+        target_device = warp_start.device()
+    except BaseException:
+        warp_start.wait()
+        raise
+    from .kernel_cache import load_kernels
+
+    load_kernels(target_device, announce=not quiet)
+    splats = splats_from_host(arrays, layout)
+    del arrays
     loaded = time.perf_counter()
     targets = {budget: budget.target(splats.count) for budget in budgets}
     progress = _PassProgress(sys.stderr.isatty() and not quiet and not json_output, max(targets.values()))
@@ -211,6 +223,13 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
                             "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
         smaller = [t for t in budgets_for_target if t < target]
         progress.target = max(smaller) if smaller else target
+
+
+def _import_pipeline(config) -> None:
+    """Imports the pipeline (Warp and the kernel definitions with it) and checks ``config``."""
+    from . import pipeline  # noqa: F401
+
+    config.validate()
 
 
 def _settings(config, splat_count: int, device) -> dict:
@@ -303,6 +322,10 @@ app.command("batch", epilog=examples(
     "nanogs-warp batch 'captures/**/point_cloud.ply' -o out/ --count 100000 --shard 0/4",
     "nanogs-warp batch manifest.json -o out/ --ray auto --json",
 ))(user_errors(batch_command))  # fmt: skip
+app.command("warmup", epilog=examples(
+    "nanogs-warp warmup                      # every kernel for this machine's devices",
+    "nanogs-warp warmup --device cpu --arch 75,80,86,89,90 --cache-dir /opt/nanogs-kernels",
+))(user_errors(warmup_command))  # fmt: skip
 
 
 def main() -> None:

@@ -24,10 +24,11 @@ def batch_command(
     output: Annotated[Path, typer.Option("-o", "--output", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.<ext of --format>, and <stem>.nanogs.json records for resuming.", show_default=False)],
     ratio: opts.Ratio = None,
     count: opts.Count = None,
-    devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.")] = "auto",
+    devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, all,cpu (every GPU and the CPU), or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.")] = "auto",
     workers: Annotated[int, typer.Option(help="Worker processes per device (e.g. several on the CPU).")] = 1,
     shard: Annotated[Optional[str], typer.Option(help="Only scenes i, i+n, i+2n, ... of the sorted list, as i/n (0-based), e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT.", show_default=False)] = None,
     ray: Annotated[Optional[str], typer.Option("--ray", help="Run each scene as a Ray task: auto (the cluster this machine belongs to), local (a Ray instance started here) or the head's ADDRESS. Needs nanogs-warp[ray].", show_default=False)] = None,
+    scene_timeout: Annotated[Optional[float], typer.Option("--scene-timeout", metavar="SECONDS", help="Time limit per scene; a scene past it fails and its worker process is replaced. 0: no limit. [default: 300 s plus 0.1 s per MB of input on a GPU, 0.5 s per MB on the CPU]", show_default=False)] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo every scene, even those whose outputs and record are up to date.")] = False,
     preset: opts.Preset = "default",
     k: opts.K = None,
@@ -58,6 +59,8 @@ def batch_command(
     config.validate()
     budgets = parse_budgets(ratio, count) if ratio is not None or count is not None else None
     shard_index, shard_count = parse_shard(shard)
+    if scene_timeout is not None and not (scene_timeout >= 0 and scene_timeout < float("inf")):
+        raise InputError(f"--scene-timeout must be a number of seconds >= 0, got {scene_timeout}")
     if workers < 1:
         raise InputError(f"--workers must be at least 1, got {workers}")
     if output.exists() and not output.is_dir():
@@ -83,7 +86,7 @@ def batch_command(
     progress = BatchProgress(len(selected), quiet=quiet)
     if shard_count > 1 and not quiet:
         typer.echo(f"nanogs-warp batch: shard {shard_index}/{shard_count}: {len(selected)} of {len(jobs)} scenes", err=True)
-    results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress)
+    results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress, scene_timeout)
     seconds = time.perf_counter() - started
     if json_output:
         summary = summary_json(results, seconds, (shard_index, shard_count))

@@ -64,6 +64,7 @@ def eval_command(
     from .device import resolve_device
     from .evaluate import evaluate, format_table, write_images
     from .io import load_splats
+    from .kernel_cache import EVAL_MODULES, load_kernels
 
     if not tests:
         raise InputError("give at least one test scene to compare with the reference")
@@ -79,6 +80,7 @@ def eval_command(
             raise InputError(f"{path}: no such file")
     if images is not None and images.exists() and not images.is_dir():
         raise InputError(f"--images {images}: exists and is not a directory")
+    load_kernels(target, EVAL_MODULES)  # says so in one line when they must be compiled first
 
     ref_splats = load_splats(reference, device=target)
     if cameras is not None:

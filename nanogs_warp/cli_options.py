@@ -33,6 +33,6 @@ Quiet = Annotated[bool, typer.Option("-q", "--quiet", help="Print nothing but er
 
 def method_config(preset: str, **options):
     """The SimplifyConfig of ``preset`` with every option that was given (not None)."""
-    from .pipeline import SimplifyConfig
+    from .config import SimplifyConfig
 
     return SimplifyConfig.preset(preset, **{name: value for name, value in options.items() if value is not None})

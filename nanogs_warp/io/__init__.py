@@ -10,15 +10,19 @@ levels). What each keeps and loses: docs/formats.md.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import InputError
-from ..ply import PlyArrays, checked_rows, load_ply, normalize_quaternions, read_ply_arrays, save_ply
+from ..ply import PlyArrays, checked_rows, normalize_quaternions, read_ply_arrays, read_splats, save_ply, splats_from_host
+from ..ply_layout import PlyLayout
 from ..ply_write import atomic_write
-from ..splats import SplatSet
 from . import compressed_ply, lod, sog, spz, splat
 from .common import dropped_parts, plain_layout, read_file_bytes
+
+if TYPE_CHECKING:
+    from ..splats import SplatSet
 
 FORMATS = ("ply", "compressed-ply", "spz", "sog", "splat", "lod")
 GENERATOR = "nanogs-warp"
@@ -119,14 +123,20 @@ def load_splats(path, device="cpu", drop_invalid: bool = False, on_drop=None) ->
     Values are checked as :func:`nanogs_warp.ply.load_ply` checks them (``drop_invalid`` and
     ``on_drop`` likewise). Scenes from non-PLY files get the plain INRIA layout.
     """
+    arrays, layout = read_any_splats(path, drop_invalid, on_drop)
+    return splats_from_host(arrays, layout, device)
+
+
+def read_any_splats(path, drop_invalid: bool = False, on_drop=None) -> tuple[dict[str, np.ndarray], PlyLayout]:
+    """load_splats' part on the host, without Warp: the checked host arrays (quaternions
+    normalised) and the layout; :func:`nanogs_warp.ply.splats_from_host` makes them a SplatSet."""
     path = Path(path)
     if detect_format(path) == "ply":
-        return load_ply(path, device=device, drop_invalid=drop_invalid, on_drop=on_drop)
+        return read_splats(path, drop_invalid=drop_invalid, on_drop=on_drop)
     data = read_splat_arrays(path)
     a = checked_rows(data.arrays, path.name, drop_invalid, on_drop)
     a["rotations"] = normalize_quaternions(a["rotations"])
-    return SplatSet.from_numpy(a["means"], a["rotations"], a["log_scales"], a["opacities"], a["features"],
-                               a["extras"], layout=data.layout, device=device)  # fmt: skip
+    return a, data.layout
 
 
 def save_splats(splats: SplatSet, path, format: str | None = None, on_loss=None) -> None:
