@@ -92,6 +92,7 @@ def simplify(
     lambda_app: opts.LambdaApp = None,
     cost: opts.Cost = None,
     operator: opts.Operator = None,
+    pass_fraction: opts.PassFraction = None,
     drop_invalid: opts.DropInvalid = False,
     output_format: opts.Format = None,
     sample: Annotated[bool, typer.Option("--sample", help="Use the shipped 20,000-splat sample scene as the input.")] = False,
@@ -106,7 +107,7 @@ def simplify(
 
     config = opts.method_config(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
-        lambda_app=lambda_app, cost=cost, operator=operator,
+        lambda_app=lambda_app, cost=cost, operator=operator, pass_fraction=pass_fraction,
     )
     budgets = parse_budgets(ratio, count)
     input = _input_path(input, sample)

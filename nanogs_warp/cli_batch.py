@@ -39,6 +39,7 @@ def batch_command(
     lambda_app: opts.LambdaApp = None,
     cost: opts.Cost = None,
     operator: opts.Operator = None,
+    pass_fraction: opts.PassFraction = None,
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing the scene.")] = False,
     output_format: Annotated[Optional[str], typer.Option("--format", show_default=False, help="Output format: ply (default), compressed-ply, spz, sog or splat.")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
@@ -54,7 +55,7 @@ def batch_command(
     started = time.perf_counter()
     config = opts.method_config(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
-        lambda_app=lambda_app, cost=cost, operator=operator,
+        lambda_app=lambda_app, cost=cost, operator=operator, pass_fraction=pass_fraction,
     )
     config.validate()
     budgets = parse_budgets(ratio, count) if ratio is not None or count is not None else None

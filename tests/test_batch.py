@@ -374,6 +374,6 @@ def test_ray_task_past_its_time_limit_is_cancelled(scenes_and_a_spinner, tmp_pat
     monkeypatch.setenv(SPIN, "spin.ply")
     if ray.is_initialized():
         ray.shutdown()
-    summary = run_json(root, "-o", out, "--ratio", "0.1,0.01", "--scene-timeout", "6", "--ray", "local", code=1)
-    check_spinner_timed_out(summary, clean, out, 6, "its Ray task was cancelled")
+    summary = run_json(root, "-o", out, "--ratio", "0.1,0.01", "--scene-timeout", "20", "--ray", "local", code=1)
+    check_spinner_timed_out(summary, clean, out, 20, "its Ray task was cancelled")
 

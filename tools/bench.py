@@ -64,9 +64,9 @@ def bench_scene(path: Path, args, device) -> dict:
     input_bytes = host.count * (3 + 4 + 3 + 1 + host.features.shape[1] + host.extras.shape[1]) * 4
     budgets = parse_budgets(args.ratio, None)
     targets = sorted({b.target(host.count) for b in budgets}, reverse=True)
-    config = SimplifyConfig(
-        k=args.k, samples=args.samples, cost=args.cost, operator=args.operator, prune_opacity=args.prune_opacity
-    )
+    given = {"k": args.k, "samples": args.samples, "cost": args.cost, "operator": args.operator,
+             "prune_opacity": args.prune_opacity, "pass_fraction": args.pass_fraction}  # fmt: skip
+    config = SimplifyConfig.preset(args.preset, **{name: value for name, value in given.items() if value is not None})
 
     t = time.perf_counter()
     splats = host.to(device)
@@ -127,11 +127,13 @@ def main() -> None:
     parser.add_argument("--ratio", default="0.1")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--tile", type=int, default=0, help="tile each scene to this many splats first")
-    parser.add_argument("--k", type=int, default=SimplifyConfig.k, help="default: by scene size, as the commands")
-    parser.add_argument("--samples", type=int, default=SimplifyConfig.samples)
-    parser.add_argument("--cost", default=SimplifyConfig.cost)
-    parser.add_argument("--operator", default=SimplifyConfig.operator)
-    parser.add_argument("--prune-opacity", type=float, default=SimplifyConfig.prune_opacity)
+    parser.add_argument("--preset", default="default", help="default, fast or paper; the options below override it")
+    parser.add_argument("--k", type=int, default=None, help="default: the preset's (by scene size, as the commands)")
+    parser.add_argument("--samples", type=int, default=None)
+    parser.add_argument("--cost", default=None)
+    parser.add_argument("--operator", default=None)
+    parser.add_argument("--prune-opacity", type=float, default=None)
+    parser.add_argument("--pass-fraction", type=float, default=None)
     parser.add_argument("--json", action="store_true", help="print the records as JSON")
     parser.add_argument("--log", type=Path, default=Path(__file__).parent / "bench.jsonl")
     args = parser.parse_args()
