@@ -20,6 +20,7 @@ from .cli_batch import batch_command
 from .cli_eval import eval_command
 from .errors import InputError
 from .pipeline import SimplifyConfig
+from .refine import RefineConfig
 
 app = typer.Typer(
     name="nanogs-warp",
@@ -112,6 +113,9 @@ def simplify(
     cost: opts.Cost = SimplifyConfig.cost,
     operator: opts.Operator = SimplifyConfig.operator,
     drop_invalid: opts.DropInvalid = False,
+    refine: opts.Refine = False,
+    refine_steps: opts.RefineSteps = None,
+    refine_size: opts.RefineSize = RefineConfig.size,
     json_output: opts.Json = False,
     quiet: opts.Quiet = False,
 ) -> None:
@@ -122,6 +126,10 @@ def simplify(
 
     config = SimplifyConfig(k, prune_opacity, samples, seed, lambda_geo, lambda_app, cost, operator)
     config.validate()
+    refine_config = None
+    if refine or refine_steps is not None:
+        refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size, seed=seed)
+        refine_config.validate()
     budgets = parse_budgets(ratio, count)
     paths = output_paths(output, budgets)
     _check_outputs(input, list(paths.values()))
@@ -141,10 +149,16 @@ def simplify(
     on_device = splats.to(target_device)
     for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=lambda r: (passes.append(r), progress(r))):
         reached = time.perf_counter()
+        report = None
+        if refine_config is not None:
+            progress.done()
+            result, report = _refine(result, on_device, refine_config, progress.enabled)
         for budget in budgets_for_target[target]:
             save_ply(result, paths[budget])
             written.append({"path": str(paths[budget]), "budget": budget.label, "count": result.count,
                             "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
+            if report is not None:
+                written[-1]["refine"] = report.to_json()
         smaller = [t for t in budgets_for_target if t < target]
         progress.target = max(smaller) if smaller else target
     progress.done()
@@ -163,7 +177,26 @@ def simplify(
     elif not quiet:
         for out in written:
             typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}, {out['passes']} passes)")
+            if "refine" in out:
+                r = out["refine"]
+                typer.echo(f"  refined: {r['steps']} steps, training loss {r['loss_before']:.5f} -> {r['loss_after']:.5f}, {r['seconds']:.2f} s")
         typer.echo(f"{splats.count:,} splats in, {len(passes)} passes on {target_device}, {finished - started:.2f} s")
+
+
+def _refine(result, reference, config: RefineConfig, show_progress: bool):
+    """``result`` refined toward ``reference``, with a progress line on stderr when asked."""
+    from .refine import refine_with_report
+
+    def on_step(step: int, steps: int) -> None:
+        if step == steps or step % max(1, steps // 100) == 0:
+            sys.stderr.write(f"\rrefine {result.count:,} splats: step {step}/{steps}\033[K")
+            sys.stderr.flush()
+
+    refined, report = refine_with_report(result, reference, config, on_step=on_step if show_progress else None)
+    if show_progress:
+        sys.stderr.write("\r\033[K")
+        sys.stderr.flush()
+    return refined, report
 
 
 def _check_outputs(input: Path, outputs: list[Path]) -> None:

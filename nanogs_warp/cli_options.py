@@ -7,6 +7,8 @@ from typing import Annotated, Optional
 
 import typer
 
+from .refine import RefineConfig
+
 Ratio = Annotated[Optional[str], typer.Option(help="Fraction of the input's splats to keep, in (0, 1]; several as 0.1,0.01,0.001.")]
 Count = Annotated[Optional[str], typer.Option(help="Number of splats to keep; several as 100000,10000.")]
 K = Annotated[
@@ -23,3 +25,6 @@ Operator = Annotated[str, typer.Option(help="Merge operator: coverage (keeps the
 DropInvalid = Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing.")]
 Json = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]
 Quiet = Annotated[bool, typer.Option("-q", "--quiet", help="Print nothing but errors (and --json).")]
+Refine = Annotated[bool, typer.Option("--refine", help=f"Refine each output toward the input's appearance ({RefineConfig.steps} steps of Adam on renders from training cameras; the count is kept).")]
+RefineSteps = Annotated[Optional[int], typer.Option(help=f"Refinement steps (implies --refine) [default: {RefineConfig.steps}].", show_default=False)]
+RefineSize = Annotated[int, typer.Option(help="Longest side in pixels of the training views of refinement.")]
