@@ -35,6 +35,8 @@ class SceneJob:
     config: SimplifyConfig
     drop_invalid: bool
     size: int  # bytes; -1 when the file is missing (the scene then fails in its worker)
+    refine_steps: int = 0  # refinement steps per output (0: none)
+    refine_size: int = 256  # longest side of refinement's training views
 
     @property
     def stem(self) -> str:
@@ -50,7 +52,10 @@ class SceneJob:
     def options(self) -> dict:
         """What the outputs depend on besides the input's bytes; kept in the scene's record."""
         budgets = [{"ratio": b.ratio} if b.ratio is not None else {"count": b.count} for b in self.budgets]
-        return {"budgets": budgets, **vars(self.config), "drop_invalid": self.drop_invalid}
+        options = {"budgets": budgets, **vars(self.config), "drop_invalid": self.drop_invalid}
+        if self.refine_steps > 0:
+            options.update(refine_steps=self.refine_steps, refine_size=self.refine_size)
+        return options
 
 
 def find_scenes(

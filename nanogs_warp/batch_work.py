@@ -108,7 +108,13 @@ def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> No
     for budget in job.budgets:
         by_target.setdefault(budget.target(splats.count), []).append(budget)
     outputs = []
-    for target, simplified in simplify_progressively(splats.to(device), list(by_target), job.config, on_pass=on_pass):
+    on_device = splats.to(device)
+    for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
+        if job.refine_steps > 0:
+            from .refine import RefineConfig, refine_with_report
+
+            config = RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed)
+            simplified = refine_with_report(simplified, on_device, config)[0]
         for budget in by_target[target]:
             path = job.output_path(budget)
             save_ply(simplified, path)

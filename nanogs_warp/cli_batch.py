@@ -10,6 +10,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -18,6 +19,7 @@ import typer
 from . import cli_options as opts
 from .errors import InputError
 from .pipeline import SimplifyConfig
+from .refine import RefineConfig
 
 
 def batch_command(
@@ -39,6 +41,9 @@ def batch_command(
     cost: opts.Cost = SimplifyConfig.cost,
     operator: opts.Operator = SimplifyConfig.operator,
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing the scene.")] = False,
+    refine: opts.Refine = False,
+    refine_steps: opts.RefineSteps = None,
+    refine_size: opts.RefineSize = RefineConfig.size,
     json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
 ) -> None:
@@ -59,6 +64,10 @@ def batch_command(
         raise InputError(f"--output {output} is not a directory")
 
     jobs = find_scenes(input, output, budgets, config, drop_invalid)
+    if refine or refine_steps is not None:
+        refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size)
+        refine_config.validate()
+        jobs = [replace(job, refine_steps=refine_config.steps, refine_size=refine_config.size) for job in jobs]
     selected = select_shard(jobs, shard_index, shard_count)
     device_list, ray_gpu = None, None
     if ray is not None:

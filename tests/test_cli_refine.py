@@ -1,13 +1,15 @@
-"""``simplify --refine``: refined outputs of the budgets' counts, the JSON report, unchanged outputs
+"""``simplify --refine`` and ``batch --refine``: refined outputs of the budgets' counts, the JSON report, unchanged outputs
 without the flag, and one line with exit code 2 for bad refinement settings."""
 
 import json
 
 import numpy as np
+import typer
 from scene_factory import random_splats_ply
 from typer.testing import CliRunner
 
-from nanogs_warp.cli import app
+from nanogs_warp.cli import app, user_errors
+from nanogs_warp.cli_batch import batch_command
 from nanogs_warp.ply import load_ply
 
 runner = CliRunner()
@@ -49,3 +51,25 @@ def test_bad_refine_settings(tmp_path):
         assert result.exit_code == 2
         assert result.stderr.count("\n") == 1 and result.stderr.startswith("nanogs-warp: error: ")
         assert not (tmp_path / "out.ply").exists()
+
+
+def test_batch_refine(tmp_path):
+    batch = typer.Typer(pretty_exceptions_enable=False)
+    batch.callback()(lambda: None)
+    batch.command("batch")(user_errors(batch_command))
+    scenes = tmp_path / "in"
+    scenes.mkdir()
+    random_splats_ply(scenes / "a.ply", 300, sh_degree=1, seed=6)
+    out = tmp_path / "out"
+    args = ["batch", str(scenes), "-o", str(out), "--ratio", "0.1", "--devices", "cpu", "--json"]
+    plain = runner.invoke(batch, args)
+    assert plain.exit_code == 0, plain.output
+    unrefined = load_ply(out / "a_0.1.ply").to_numpy()
+    result = runner.invoke(batch, [*args, "--refine-steps", "3", "--refine-size", "40"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["scenes"][0]["status"] == "done"  # the record's options differ: redone
+    refined = load_ply(out / "a_0.1.ply").to_numpy()
+    assert refined["means"].shape == unrefined["means"].shape
+    assert not np.array_equal(refined["features"], unrefined["features"])
+    record = json.loads((out / "a.nanogs.json").read_text())
+    assert record["options"]["refine_steps"] == 3 and record["options"]["refine_size"] == 40
