@@ -84,6 +84,10 @@ def blur(
     target[py, px] = acc
 
 
+wp.overload(blur, {"source": wp.array2d(dtype=vec15), "target": wp.array2d(dtype=vec15)})
+wp.overload(blur, {"source": wp.array2d(dtype=vec9), "target": wp.array2d(dtype=vec9)})
+
+
 @wp.kernel
 def ssim_terms(
     first: int,
