@@ -40,7 +40,7 @@ class RefineConfig:
     steps: int = 300
     size: int = 256
     views_per_step: int = 1
-    reference_views: int = 64
+    reference_views: int = 128
     seed: int = 0
     ssim_weight: float = 0.2
     lr_means: float = 1.6e-4
@@ -123,7 +123,7 @@ class _Refiner:
         self.config, self.device = config, device
         self.splats = _copy(simplified, device)
         self.reference = reference.to(device)
-        centre, p90, _ = scene_spread(self.reference.means.numpy())
+        _, p90, _ = scene_spread(self.reference.means.numpy())
         self.extent = 2.2 * p90
         self.grads = SplatGradients.zeros_like(self.splats)
         self.rasteriser = GradRasteriser(self.splats)
