@@ -5,8 +5,9 @@ The forward is ``render.py``'s own (``project``, ``emit_entries``, stable radix 
 ``composite`` / ``composite_tiles``), with its conventions; here only the bookkeeping to find a splat's
 entries after the sort (``number_slots``, ``order_entries``) and the two backward stages:
 
-1. ``composite_backward``: one thread per 16x16 tile replays the tile's compositing front to back with
-   the forward's float32 arithmetic (so every skip and early-termination decision is the forward's),
+1. ``composite_backward``: one thread per 16x16 tile (or ``lanes`` threads per tile, each owning every
+   lanes-th pixel row, their per-entry sums then added lane by lane in ``sum_lanes``) replays the
+   tile's compositing front to back with the forward's float32 arithmetic (so every skip and early-termination decision is the forward's),
    keeping per pixel the transmittance T_k and the colour in front C_<=k. With the forward's final pixel
    colour C (background included), the colour behind entry k is B_k = C - C_<=k, and for
    C = sum_k rgb_k alpha_k T_k + T_N bg:
@@ -81,6 +82,7 @@ def order_entries(
 @wp.kernel
 def composite_backward(
     first: int,
+    lanes: int,
     e_xy: wp.array(dtype=wp.vec2),
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
@@ -100,20 +102,29 @@ def composite_backward(
     g_opacity: wp.array(dtype=float),
     g_rgb: wp.array(dtype=wp.vec3),
 ):
-    """One thread per tile: per entry, dL/d(mean 2D, conic, opacity, colour) summed over the tile's
-    pixels (see the module docstring); ``image`` is the forward's (H, W, 3) output, ``grad_image``
-    dL/dimage. Per-pixel state lives in the tile's 256 slots of the scratch arrays."""
-    tile = first + wp.tid()
+    """``lanes`` threads per tile (1, 2, 4, 8 or 16), lane l owning the tile's pixel rows l, l + lanes, ...:
+    per entry k, dL/d(mean 2D, conic, opacity, colour) summed over the lane's pixels in row order
+    (see the module docstring), written to slot k * lanes + l. ``image`` is the forward's (H, W, 3)
+    output, ``grad_image`` dL/dimage. Per-pixel state lives in the tile's 256 slots of the scratch
+    arrays (each lane touches only its rows')."""
+    tid = first + wp.tid()
+    tile = tid / lanes
+    lane = tid - tile * lanes
     base = tile * TILE_PIXELS
     x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
     y_lo = (tile / tiles_x) * TILE
     x_hi = wp.min(x_lo + TILE, width)
     y_hi = wp.min(y_lo + TILE, height)
-    for s in range(TILE_PIXELS):
-        transmittance[base + s] = 1.0
-        front[base + s] = wp.vec3(0.0, 0.0, 0.0)
-        done[base + s] = 0
-    remaining = (x_hi - x_lo) * (y_hi - y_lo)
+    own_rows = int(0)
+    for r in range(lane, TILE, lanes):
+        if y_lo + r < y_hi:
+            own_rows += 1
+        for c in range(TILE):
+            slot = base + r * TILE + c
+            transmittance[slot] = 1.0
+            front[slot] = wp.vec3(0.0, 0.0, 0.0)
+            done[slot] = 0
+    remaining = (x_hi - x_lo) * own_rows
     fx_lo = float(x_lo)
     fx_hi = float(x_hi - 1)
     fy_lo = float(y_lo)
@@ -133,7 +144,8 @@ def composite_backward(
         p = e_xy[k]
         co = e_conic_opacity[k]
         rgb = e_rgb[k]
-        for py in range(gy0, gy1 + 1):
+        first_row = gy0 + ((lane - (gy0 - y_lo)) % lanes + lanes) % lanes  # the lane's first row >= gy0
+        for py in range(first_row, gy1 + 1, lanes):
             if gx1 < gx0:
                 break
             row = base + (py - y_lo) * TILE - x_lo
@@ -171,10 +183,42 @@ def composite_backward(
                     g_power = g_alpha * alpha
                     gco = gco + g_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
                     gxy = gxy - g_power * wp.vec2(co[0] * dx + co[1] * dy, co[1] * dx + co[2] * dy)
-        g_xy[k] = gxy
-        g_conic[k] = gco
-        g_opacity[k] = gop
-        g_rgb[k] = grgb
+        out = k * lanes + lane
+        g_xy[out] = gxy
+        g_conic[out] = gco
+        g_opacity[out] = gop
+        g_rgb[out] = grgb
+
+
+@wp.kernel
+def sum_lanes(
+    first: int,
+    lanes: int,
+    lane_xy: wp.array(dtype=wp.vec2),
+    lane_conic: wp.array(dtype=wp.vec3),
+    lane_opacity: wp.array(dtype=float),
+    lane_rgb: wp.array(dtype=wp.vec3),
+    g_xy: wp.array(dtype=wp.vec2),
+    g_conic: wp.array(dtype=wp.vec3),
+    g_opacity: wp.array(dtype=float),
+    g_rgb: wp.array(dtype=wp.vec3),
+):
+    """Per entry k: the sum of its lanes' gradients, lane 0 first."""
+    k = first + wp.tid()
+    gxy = wp.vec2(0.0, 0.0)
+    gco = wp.vec3(0.0, 0.0, 0.0)
+    gop = float(0.0)
+    grgb = wp.vec3(0.0, 0.0, 0.0)
+    for lane in range(lanes):
+        j = k * lanes + lane
+        gxy = gxy + lane_xy[j]
+        gco = gco + lane_conic[j]
+        gop = gop + lane_opacity[j]
+        grgb = grgb + lane_rgb[j]
+    g_xy[k] = gxy
+    g_conic[k] = gco
+    g_opacity[k] = gop
+    g_rgb[k] = grgb
 
 
 @wp.func

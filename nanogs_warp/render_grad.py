@@ -55,8 +55,13 @@ class GradRasteriser(_Rasteriser):
     """Renders one view at a time of a splat set whose parameters may change between views, and
     back-propagates dL/dimage of the last view rendered."""
 
-    def __init__(self, splats: SplatSet, workers: int | None = None, method: str | None = None):
+    def __init__(self, splats: SplatSet, workers: int | None = None, method: str | None = None, lanes: int | None = None):
         super().__init__(splats, workers, method)
+        if lanes is None:
+            lanes = 1 if self.device.is_cpu else 16  # threads per tile in the backward pass
+        if lanes not in (1, 2, 4, 8, 16):
+            raise ValueError(f"lanes {lanes}: expected 1, 2, 4, 8 or 16")
+        self.lanes = lanes
         wp.load_module(grad_kernels, device=self.device)
         self.grad_capacity = 0
         self.scratch_pixels = 0
@@ -75,6 +80,12 @@ class GradRasteriser(_Rasteriser):
         self.e_g_conic = wp.empty(c, dtype=wp.vec3, device=d)
         self.e_g_opacity = wp.empty(c, dtype=wp.float32, device=d)
         self.e_g_rgb = wp.empty(c, dtype=wp.vec3, device=d)
+        if self.lanes > 1:
+            lanes = c * self.lanes
+            self.lane_xy = wp.empty(lanes, dtype=wp.vec2, device=d)
+            self.lane_conic = wp.empty(lanes, dtype=wp.vec3, device=d)
+            self.lane_opacity = wp.empty(lanes, dtype=wp.float32, device=d)
+            self.lane_rgb = wp.empty(lanes, dtype=wp.vec3, device=d)
 
     def _rows(self, kernel, rows: int, inputs: list, min_rows: int) -> None:
         """``kernel(first, *inputs)`` over ``rows`` rows, split over CPU cores when worthwhile."""
@@ -150,15 +161,18 @@ class GradRasteriser(_Rasteriser):
             self.bw_transmittance = wp.empty(pixels, dtype=wp.float32, device=d)
             self.bw_front = wp.empty(pixels, dtype=wp.vec3, device=d)
             self.bw_done = wp.empty(pixels, dtype=wp.int32, device=d)
+        per_entry = [self.e_g_xy, self.e_g_conic, self.e_g_opacity, self.e_g_rgb]
+        per_lane = per_entry if self.lanes == 1 else [self.lane_xy, self.lane_conic, self.lane_opacity, self.lane_rgb]
         self._rows(
             grad_kernels.composite_backward,
-            self.tiles,
-            [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end,
+            self.tiles * self.lanes,
+            [self.lanes, self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end,
              p.width, p.height, p.tiles_x, image[0], grad_image[0],
-             self.bw_transmittance, self.bw_front, self.bw_done,
-             self.e_g_xy, self.e_g_conic, self.e_g_opacity, self.e_g_rgb],
+             self.bw_transmittance, self.bw_front, self.bw_done, *per_lane],
             8,
         )  # fmt: skip
+        if self.lanes > 1:
+            self._rows(grad_kernels.sum_lanes, self.count, [self.lanes, *per_lane, *per_entry], 16384)
         self._rows(
             grad_kernels.splat_backward,
             self.n,
