@@ -10,7 +10,7 @@ import warp as wp
 from nanogs_warp.image_loss import ImageLoss
 
 
-@pytest.mark.parametrize("shape", [(16, 13), (27, 22)])
+@pytest.mark.parametrize("shape", [(16, 13), (23, 12)])
 def test_loss_and_gradient_match_reference(device, rng, shape):
     h, w = shape
     x = rng.uniform(0.0, 1.0, (h, w, 3))
