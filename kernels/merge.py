@@ -15,13 +15,18 @@ dispersion), features and extras. Operators differ in their weights and in the m
 
 import warp as wp
 
-from .splat_math import Splats, covariance, first_weight, log_mass, log_sigmoid, moment_match, quaternion_from_frame, symmetric_eigen, to_vec3d
+from .splat_math import Splats, covariance, face_plane, first_weight, log_mass, log_sigmoid, moment_match, quaternion_from_frame, symmetric_eigen, to_vec3d
 
 wp.set_module_options({"enable_backward": False})
 
 # Written values stay finite: |logit| <= 16.1 keeps sigmoid(logit) < 1 in float32, and scales
-# below exp(-30) are not distinguishable from zero in any renderer.
+# below exp(-30) are not distinguishable from zero in any renderer. A merged opacity stays at or
+# below 254/255 (logit log 254): 8-bit formats store alpha 255 as an infinite logit, and a trainer
+# that fine-tunes the result gets no gradient at a saturated one. Renderers clamp alpha at 0.99, so
+# the cap changes a render by at most 0.4 % in a splat's falloff.
 LOGIT_LIMIT = wp.constant(16.1)
+MERGED_LOGIT_MAX = wp.constant(5.537334267018537)  # log(254) = logit(254 / 255)
+MERGED_ALPHA_MAX = wp.constant(254.0 / 255.0)
 LOG_SCALE_MIN = wp.constant(-30.0)
 
 
@@ -31,7 +36,7 @@ def over_opacity_logit(logit_i: float, logit_j: float):
     log_t = log_sigmoid(-wp.float64(logit_i)) + log_sigmoid(-wp.float64(logit_j))
     alpha = wp.float64(1.0) - wp.exp(log_t)
     logit = wp.log(wp.max(alpha, wp.float64(1e-300))) - log_t
-    return wp.clamp(wp.float32(logit), -LOGIT_LIMIT, LOGIT_LIMIT)
+    return wp.clamp(wp.float32(logit), -LOGIT_LIMIT, MERGED_LOGIT_MAX)
 
 
 @wp.func
@@ -104,12 +109,11 @@ def pair_moments(
 
 @wp.func
 def logit_of_log_alpha(log_alpha: wp.float64):
-    """logit(alpha) from log alpha, alpha clamped to (0, 1): |logit| <= LOGIT_LIMIT."""
-    limit = wp.float32(LOGIT_LIMIT)
-    logit = limit
+    """logit(alpha) from log alpha, clamped to [-LOGIT_LIMIT, MERGED_LOGIT_MAX]."""
+    logit = wp.float32(MERGED_LOGIT_MAX)
     if log_alpha < wp.float64(0.0):
         logit = wp.float32(log_alpha - wp.log(wp.max(wp.float64(1.0) - wp.exp(log_alpha), wp.float64(1e-300))))
-    return wp.clamp(logit, -limit, limit)
+    return wp.clamp(logit, -LOGIT_LIMIT, MERGED_LOGIT_MAX)
 
 
 @wp.func
@@ -153,6 +157,15 @@ def projected_footprint(cov: wp.mat33d, c0: wp.vec3d, c1: wp.vec3d):
     return wp.sqrt(wp.max(a00 * a11 - a01 * a01, wp.float64(0.0)))
 
 
+@wp.func
+def mpmm_merged(i: int, j: int, src: Splats):
+    """MPMM's merged splat of the pair (NanoGS eq. 6-9): mass weights w = (2 pi)^{3/2} alpha prod s;
+    returns (pi, mu_m, Sigma_m, opacity logit by the over rule)."""
+    pi = first_weight(log_mass(src.opacities[i], src.log_scales[i]), log_mass(src.opacities[j], src.log_scales[j]))
+    mu_m, cov_m = pair_moments(i, j, pi, src)
+    return pi, mu_m, cov_m, over_opacity_logit(src.opacities[i], src.opacities[j])
+
+
 @wp.kernel
 def mass_preserving_moment_matching(
     pair_i: wp.array(dtype=wp.int32),
@@ -168,9 +181,8 @@ def mass_preserving_moment_matching(
     i = int(pair_i[p])
     j = int(pair_j[p])
     row = int(destination[i])
-    pi = first_weight(log_mass(src.opacities[i], src.log_scales[i]), log_mass(src.opacities[j], src.log_scales[j]))
-    mu_m, cov_m = pair_moments(i, j, pi, src)
-    out.opacities[row] = over_opacity_logit(src.opacities[i], src.opacities[j])
+    pi, mu_m, cov_m, logit_m = mpmm_merged(i, j, src)
+    out.opacities[row] = logit_m
     blend_appearance(i, j, pi, row, src, out)
     write_gaussian(row, mu_m, cov_m, out)
 
@@ -200,6 +212,30 @@ def area_weighted_moment_matching(
     out.opacities[row] = logit_of_log_alpha(log_w_m - log_area(log_scale_m))
 
 
+@wp.func
+def coverage_merged(i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, growth: float):
+    """The coverage operator's merged splat: weights w = alpha s_a s_b (face-on footprint). In the
+    merged splat's face plane (normal n: the eigenvector of Sigma_m's smallest eigenvalue) with
+    F_k = sqrt(det) of splat k's covariance projected onto it, the pair covers C = alpha_i F_i +
+    alpha_j F_j and the merged splat F_m = s0 s1 = sqrt(lambda_0 lambda_1). Where r = C / F_m > 1,
+    the variances in the face plane grow by r^growth: Sigma <- g Sigma - (g - 1) lambda_2 n n^T.
+    ``cov_i``, ``cov_j``: the pair's covariances. Returns (pi, mu_m, Sigma_m, c0, c1, r), (c0, c1) an
+    orthonormal basis of the face plane and alpha_m = min(r, MERGED_ALPHA_MAX)."""
+    pi = first_weight(log_coverage_mass(src.opacities[i], src.log_scales[i]), log_coverage_mass(src.opacities[j], src.log_scales[j]))
+    mu_m, cov_m = moment_match(pi, to_vec3d(src.means[i]), cov_i, to_vec3d(src.means[j]), cov_j)
+    n, c0, c1, face = face_plane(cov_m)
+    coverage = wp.exp(log_sigmoid(wp.float64(src.opacities[i]))) * projected_footprint(cov_i, c0, c1) + wp.exp(
+        log_sigmoid(wp.float64(src.opacities[j]))
+    ) * projected_footprint(cov_j, c0, c1)
+    ratio = coverage / wp.sqrt(wp.max(face, wp.float64(1e-300)))
+    if ratio > wp.float64(1.0):
+        grow = wp.pow(ratio, wp.float64(growth))
+        normal_variance = wp.dot(n, cov_m * n)
+        cov_m = grow * cov_m - (grow - wp.float64(1.0)) * normal_variance * wp.outer(n, n)
+        ratio = ratio / grow
+    return pi, mu_m, cov_m, c0, c1, ratio
+
+
 @wp.kernel
 def coverage_moment_matching(
     pair_i: wp.array(dtype=wp.int32),
@@ -209,31 +245,16 @@ def coverage_moment_matching(
     out: Splats,
     growth: float,
 ):
-    """Coverage-conserving moment matching: weights w = alpha s_a s_b (face-on footprint);
-    w-weighted mean, covariance, features and extras. With (c0, c1) the merged splat's two major
-    axes (its face plane) and F_k = sqrt(det) of splat k's covariance projected onto that plane,
-    the pair covers C = alpha_i F_i + alpha_j F_j there and the merged splat F_m = s0 s1. Where
-    r = C / F_m > 1, the variances along c0 and c1 grow by r^growth; then alpha_m = C / F_m,
-    clamped to (0, 1)."""
+    """Coverage-conserving moment matching (``coverage_merged``): w-weighted mean, covariance,
+    features and extras; alpha_m = C / F_m after growth, clamped to (0, 1)."""
     p = wp.tid()
     i = int(pair_i[p])
     j = int(pair_j[p])
     row = int(destination[i])
-    pi = first_weight(log_coverage_mass(src.opacities[i], src.log_scales[i]), log_coverage_mass(src.opacities[j], src.log_scales[j]))
     cov_i = covariance(src.rotations[i], src.log_scales[i])
     cov_j = covariance(src.rotations[j], src.log_scales[j])
-    mu_m, cov_m = moment_match(pi, to_vec3d(src.means[i]), cov_i, to_vec3d(src.means[j]), cov_j)
+    pi, mu_m, cov_m, c0, c1, ratio = coverage_merged(i, j, src, cov_i, cov_j, growth)
     blend_appearance(i, j, pi, row, src, out)
-    values, frame = symmetric_eigen(cov_m)
-    c0 = wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0])
-    c1 = wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
-    coverage = wp.exp(log_sigmoid(wp.float64(src.opacities[i]))) * projected_footprint(cov_i, c0, c1) + wp.exp(
-        log_sigmoid(wp.float64(src.opacities[j]))
-    ) * projected_footprint(cov_j, c0, c1)
-    ratio = coverage / wp.sqrt(wp.max(values[0] * values[1], wp.float64(1e-300)))
-    if ratio > wp.float64(1.0):
-        grow = wp.pow(ratio, wp.float64(growth))
-        values = wp.vec3d(values[0] * grow, values[1] * grow, values[2])  # the frame and the order stay
-        ratio = ratio / grow
-    store_gaussian(row, mu_m, values, frame, out)
+    write_gaussian(row, mu_m, cov_m, out)
     out.opacities[row] = logit_of_log_alpha(wp.log(wp.max(ratio, wp.float64(1e-300))))
+

@@ -198,3 +198,67 @@ def quaternion_from_frame(r: wp.mat33d):
     if w < wp.float64(0.0):
         n = -n  # canonical sign: w >= 0
     return wp.quat(wp.float32(x / n), wp.float32(y / n), wp.float32(z / n), wp.float32(w / n))
+
+
+@wp.func
+def _largest_cross(m: wp.mat33d):
+    """The largest of the cross products of m's row pairs (a null vector of m when its rank is 2)."""
+    r0 = wp.vec3d(m[0, 0], m[0, 1], m[0, 2])
+    r1 = wp.vec3d(m[1, 0], m[1, 1], m[1, 2])
+    r2 = wp.vec3d(m[2, 0], m[2, 1], m[2, 2])
+    best = wp.cross(r0, r1)
+    c = wp.cross(r0, r2)
+    if wp.dot(c, c) > wp.dot(best, best):
+        best = c
+    c = wp.cross(r1, r2)
+    if wp.dot(c, c) > wp.dot(best, best):
+        best = c
+    return best
+
+
+@wp.func
+def any_perpendicular(n: wp.vec3d):
+    """A unit vector perpendicular to the unit vector n (a fixed choice)."""
+    a = wp.vec3d(wp.float64(1.0), wp.float64(0.0), wp.float64(0.0))
+    if wp.abs(n[0]) > wp.float64(0.6):
+        a = wp.vec3d(wp.float64(0.0), wp.float64(1.0), wp.float64(0.0))
+    p = a - wp.dot(a, n) * n
+    return p / wp.length(p)
+
+
+@wp.func
+def face_plane(a: wp.mat33d):
+    """The face plane of a symmetric positive semi-definite 3x3 matrix: its unit normal n (the
+    eigenvector of the smallest eigenvalue, from the closed-form eigenvalues of the characteristic
+    cubic, float64), an orthonormal basis (c0, c1) of the plane and the product of the two largest
+    eigenvalues (the determinant of a's block in the plane). Where the smallest eigenvalue is not
+    simple, n is perpendicular to the largest eigenvalue's eigenvector."""
+    p1 = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+    q = (a[0, 0] + a[1, 1] + a[2, 2]) / wp.float64(3.0)
+    d0 = a[0, 0] - q
+    d1 = a[1, 1] - q
+    d2 = a[2, 2] - q
+    p2 = d0 * d0 + d1 * d1 + d2 * d2 + wp.float64(2.0) * p1
+    one = wp.float64(1.0)
+    identity = wp.identity(n=3, dtype=wp.float64)
+    n = wp.vec3d(wp.float64(0.0), wp.float64(0.0), one)  # a multiple of the identity: any plane
+    if p2 > wp.float64(0.0):
+        p = wp.sqrt(p2 / wp.float64(6.0))
+        b = (a - q * identity) / p
+        r = wp.clamp(wp.determinant(b) / wp.float64(2.0), -one, one)
+        phi = wp.acos(r) / wp.float64(3.0)
+        big = q + wp.float64(2.0) * p * wp.cos(phi)
+        small = q + wp.float64(2.0) * p * wp.cos(phi + wp.float64(2.0943951023931957))
+        n = _largest_cross(a - small * identity)
+        scale = wp.float64(1e-20) * (big * big + p1)
+        if wp.dot(n, n) <= scale * scale:  # smallest eigenvalue not simple: the plane holds the major axis
+            major = _largest_cross(a - big * identity)
+            n = any_perpendicular(major / wp.length(major))
+        else:
+            n = n / wp.length(n)
+    c0 = any_perpendicular(n)
+    c1 = wp.cross(n, c0)
+    a00 = wp.dot(c0, a * c0)
+    a01 = wp.dot(c0, a * c1)
+    a11 = wp.dot(c1, a * c1)
+    return n, c0, c1, wp.max(a00 * a11 - a01 * a01, wp.float64(0.0))

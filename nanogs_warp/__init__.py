@@ -1,21 +1,41 @@
-"""nanogs-warp: training-free simplification of 3D Gaussian Splatting scenes (NanoGS) with Warp."""
+"""nanogs-warp: training-free simplification of 3D Gaussian Splatting scenes (NanoGS) with Warp.
+
+Importing the package is quick and quiet: the names below load their modules (and Warp) on first
+use, with Warp's start-up and module-load messages off (NANOGS_DEBUG=1 turns them on).
+"""
 
 __version__ = "0.1.0"
 
-from .errors import InputError  # noqa: E402
-from .pipeline import SimplifyConfig, simplify, simplify_progressively  # noqa: E402
-from .ply import load_ply, save_ply  # noqa: E402
-from .refine import RefineConfig, refine  # noqa: E402
-from .splats import SplatSet  # noqa: E402
+# name -> module that defines it
+_EXPORTS = {
+    "InputError": "errors",
+    "SimplifyConfig": "config",
+    "simplify": "pipeline",
+    "simplify_progressively": "pipeline",
+    "load_ply": "ply",
+    "save_ply": "ply",
+    "SplatSet": "splats",
+    "RefineConfig": "refine_config",
+    "refine": "refine",
+    "load_splats": "io",
+    "save_splats": "io",
+}
 
-__all__ = [
-    "InputError",
-    "RefineConfig",
-    "SimplifyConfig",
-    "SplatSet",
-    "load_ply",
-    "refine",
-    "save_ply",
-    "simplify",
-    "simplify_progressively",
-]
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'nanogs_warp' has no attribute {name!r}")
+    import importlib
+
+    if module in ("pipeline", "ply", "splats", "io", "refine"):
+        importlib.import_module(".device", __name__).quiet_warp()
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))

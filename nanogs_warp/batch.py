@@ -26,9 +26,11 @@ def run_batch(
     ray_gpu: bool | None = None,
     force: bool = False,
     progress: BatchProgress | None = None,
+    scene_timeout_s: float | None = None,
 ) -> list[SceneResult]:
     """Simplifies every job, on local worker processes (``devices``, e.g. ``["cuda:0", "cuda:1"]``)
-    or as Ray tasks (``ray_address``); returns one result per job, sorted by scene name."""
+    or as Ray tasks (``ray_address``); returns one result per job, sorted by scene name.
+    ``scene_timeout_s``: each scene's time limit (None: scaled with its size; 0: none)."""
     progress = progress or BatchProgress(len(jobs), quiet=True)
     try:
         if not jobs:
@@ -36,11 +38,11 @@ def run_batch(
         elif ray_address is not None:
             from .batch_ray import run_ray
 
-            results = run_ray(jobs, ray_address, ray_gpu, force, progress)
+            results = run_ray(jobs, ray_address, ray_gpu, force, progress, scene_timeout_s)
         else:
             from .batch_local import run_local
 
-            results = run_local(jobs, devices or ["cpu"], workers_per_device, force, progress)
+            results = run_local(jobs, devices or ["cpu"], workers_per_device, force, progress, scene_timeout_s)
     finally:
         progress.close()
     return sorted(results, key=lambda r: r.relative)
@@ -139,6 +141,7 @@ def format_summary(results: list[SceneResult], seconds: float) -> str:
 
     out = [line(header), line(["-" * w for w in widths]), *(line(row) for row in rows)]
     out += [f"failed: {r.relative}: {r.error}" for r in results if r.status == "failed"]
+    out += [f"note: {r.relative}: {note}" for r in results for note in r.notes]
     totals = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
     out.append(f"{len(results)} scenes: {totals['done']} done, {totals['skipped']} skipped, "
                f"{totals['failed']} failed, {seconds:.2f} s")  # fmt: skip

@@ -1,30 +1,38 @@
 """The batch on this machine: one worker process per device (``spawn``; each initialises Warp and
-sees only its own GPU). The parent holds the queue, largest scene first, and hands the next scene
-to whichever worker is free; each worker talks to it over its own pipe, so a worker killed at any
-moment (the out-of-memory killer) cannot block the others. The parent sees a worker die at once
-(its process sentinel), fails the scene it had begun and starts another worker in its place."""
+sees only its own GPU). The parent holds the queue, largest scene first, and keeps two scenes
+assigned to each worker, so that a worker reads and parses the next scene while the current one
+is on its device, and writes the outputs of the last one in the background. Each worker talks to
+the parent over its own pipe, so a worker killed at any moment (the out-of-memory killer) cannot
+block the others. The parent sees a worker die at once (its process sentinel), fails the scene it
+was working on, hands back the others and starts another worker in its place. The scene a worker
+is working on (the oldest it holds) has a time limit; past it, the parent kills the worker (the
+only way to stop a GPU kernel that does not end), fails that scene and goes on."""
 
 from __future__ import annotations
 
 import multiprocessing
 import os
+import queue
 import signal
+import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 
-from .batch_scenes import SceneJob, largest_first
+from .batch_scenes import SceneJob, largest_first, scene_timeout
 from .batch_work import SceneResult
 from .errors import InputError
 
 _PASS_EVENT_EVERY_S = 0.25
 _MAX_RESTARTS = 3  # per device: a worker that keeps dying is not started again
+_SCENES_PER_WORKER = 2  # the one it works on and the one it reads meanwhile
+_MAX_HANDBACKS = 2  # a scene handed back more often than this (its workers kept dying) fails
 
 
 def parse_devices(text: str) -> list[str]:
-    """``auto`` (every GPU, else the CPU), ``all`` (every GPU), ``cpu`` or ``cuda:0,cuda:1`` ->
-    device names, checked against this machine."""
+    """``auto`` (every GPU, else the CPU), ``all`` (every GPU), ``cpu``, ``cuda:0,cuda:1``, or
+    ``all,cpu`` / ``auto,cpu`` (every GPU and the CPU) -> device names, checked against this machine."""
     names = [t.strip().lower() for t in text.split(",") if t.strip()]
     if names == ["cpu"]:
         return ["cpu"]
@@ -34,19 +42,22 @@ def parse_devices(text: str) -> list[str]:
 
     init_warp()
     gpus = wp.get_cuda_device_count()
+    every_gpu = [f"cuda:{i}" for i in range(gpus)]
     if names == ["auto"]:
-        return [f"cuda:{i}" for i in range(gpus)] or ["cpu"]
-    if names == ["all"]:
+        return every_gpu or ["cpu"]
+    if names in (["all"], ["all", "cpu"], ["cpu", "all"]):
         if gpus == 0:
-            raise InputError("--devices all: no CUDA GPU is available on this machine")
-        return [f"cuda:{i}" for i in range(gpus)]
+            raise InputError(f"--devices {text}: no CUDA GPU is available on this machine")
+        return every_gpu + (["cpu"] if "cpu" in names else [])
+    if names in (["auto", "cpu"], ["cpu", "auto"]):
+        return every_gpu + ["cpu"]
     devices = []
     for name in names:
         if name == "cuda":
             name = "cuda:0"
         ordinal = name.split(":", 1)[1] if name.startswith("cuda:") else None
         if name != "cpu" and not (ordinal and ordinal.isdigit()):
-            raise InputError(f"--devices {text!r}: expected auto, all, cpu or a list like cuda:0,cuda:1")
+            raise InputError(f"--devices {text!r}: expected auto, all, cpu, all,cpu or a list like cuda:0,cuda:1")
         if ordinal is not None and int(ordinal) >= gpus:
             raise InputError(f"--devices {name}: this machine has {gpus} CUDA GPU(s)")
         if name in devices:
@@ -63,21 +74,33 @@ class _Worker:
     device: str  # as the user names it: "cpu", "cuda:1"
     process: multiprocessing.process.BaseProcess
     conn: multiprocessing.connection.Connection  # the parent's end of the worker's pipe
-    job: SceneJob | None = None
-    started: bool = False  # the worker has begun `job`
+    jobs: list[SceneJob] = field(default_factory=list)  # sent and not finished, oldest (the one it works on) first
+    reading: set[str] = field(default_factory=set)  # scenes it has begun to read
+    simplifying: list[str] = field(default_factory=list)  # scenes it has begun to simplify, in order
+    head_since: float = 0.0  # when jobs[0] became the oldest
     stopping: bool = False  # sent None: it will exit
     closed: bool = False  # its pipe is at end-of-file: it is exiting
     reaped: bool = False  # its exit has been dealt with
 
 
-def run_local(jobs: list[SceneJob], devices: list[str], workers_per_device: int, force: bool, progress) -> list[SceneResult]:
+def run_local(
+    jobs: list[SceneJob],
+    devices: list[str],
+    workers_per_device: int,
+    force: bool,
+    progress,
+    timeout_s: float | None = None,
+) -> list[SceneResult]:
     """Runs every job on worker processes, ``workers_per_device`` per device; returns the results
-    in the order the scenes finished. ``progress`` gets started / advanced / finished calls."""
+    in the order the scenes finished. ``progress`` gets started / advanced / finished calls.
+    ``timeout_s``: each scene's time limit on its worker (None: scaled with its size, see
+    :func:`~nanogs_warp.batch_scenes.scene_timeout`; 0: none)."""
     context = multiprocessing.get_context("spawn")
     pending = deque(largest_first(jobs))
     results: list[SceneResult] = []
     workers: dict[str, _Worker] = {}
     restarts = dict.fromkeys(devices, 0)
+    handbacks: dict[str, int] = {}
     broken: dict[str, str] = {}  # device -> why its worker could not start Warp
     serial = iter(range(1 << 30))
 
@@ -90,13 +113,33 @@ def run_local(jobs: list[SceneJob], devices: list[str], workers_per_device: int,
         there.close()
         workers[name] = _Worker(name, device, process, here)
 
+    def fail(worker: _Worker, job: SceneJob, error: str, seconds: float = 0.0) -> None:
+        result = SceneResult(str(job.input), job.relative, "failed", worker.device, round(seconds, 4), error=error)
+        results.append(result)
+        progress.finished(worker.name, result)
+
+    def new_head(worker: _Worker) -> None:
+        worker.head_since = time.monotonic()
+        if worker.jobs:
+            progress.started(worker.name, worker.device, worker.jobs[0])
+
     def feed(worker: _Worker) -> None:
-        worker.job, worker.started = (pending.popleft() if pending else None), False
-        worker.stopping = worker.job is None
-        try:
-            worker.conn.send(worker.job)
-        except OSError:  # it has just died: reap() hands the job back
-            pass
+        """Tops the worker up to _SCENES_PER_WORKER scenes; tells it to exit when none is left."""
+        sent = []
+        while len(worker.jobs) + len(sent) < _SCENES_PER_WORKER and pending:
+            sent.append(pending.popleft())
+        if not sent and not worker.jobs and not worker.stopping:
+            sent, worker.stopping = [None], True
+        was_idle = not worker.jobs
+        for job in sent:
+            if job is not None:
+                worker.jobs.append(job)
+            try:
+                worker.conn.send(job)
+            except OSError:  # it has just died: reap() hands the jobs back
+                pass
+        if was_idle and worker.jobs:
+            new_head(worker)
 
     def handle(worker: _Worker, event) -> None:
         kind, payload = event
@@ -104,15 +147,22 @@ def run_local(jobs: list[SceneJob], devices: list[str], workers_per_device: int,
             feed(worker)
         elif kind == "broken":
             broken[worker.device] = payload
+        elif kind == "reading":
+            worker.reading.add(payload)
         elif kind == "started":
-            worker.started = True
-            progress.started(worker.name, worker.device, worker.job)
+            worker.simplifying.append(payload)
         elif kind == "pass":
             progress.advanced(worker.name, payload)
         elif kind == "finished":
-            worker.job = None
+            index = next(i for i, j in enumerate(worker.jobs) if j.relative == payload.relative)
+            del worker.jobs[index]
+            worker.reading.discard(payload.relative)
+            if payload.relative in worker.simplifying:
+                worker.simplifying.remove(payload.relative)
             results.append(payload)
             progress.finished(worker.name, payload)
+            if index == 0:
+                new_head(worker)
             feed(worker)
 
     def receive(worker: _Worker) -> None:
@@ -123,24 +173,40 @@ def run_local(jobs: list[SceneJob], devices: list[str], workers_per_device: int,
         except (EOFError, OSError):
             worker.closed = True
 
-    def reap(worker: _Worker) -> None:
-        """A worker has exited: fails the scene it had begun (or hands back the one it had not),
-        and starts another worker in its place while scenes wait."""
+    def reap(worker: _Worker, timed_out: tuple[SceneJob, str, float] | None = None) -> None:
+        """A worker has exited (or was killed because a scene ran past its time limit:
+        ``timed_out`` is that scene, the error and its seconds): fails the scene it was working on,
+        hands back the others, and starts another worker in its place while scenes wait."""
         receive(worker)  # what it sent before it exited comes first
         worker.reaped = True
         worker.conn.close()
-        job, worker.job = worker.job, None
-        if job is not None and worker.started:
+        held, worker.jobs = worker.jobs, []
+        culprit, seconds = None, 0.0
+        if timed_out is not None:
+            culprit, error, seconds = timed_out  # no one, if it finished just before the kill
+        elif held:
+            begun = [j for j in held if j.relative in worker.simplifying]
+            culprit = begun[-1] if begun else (held[0] if held[0].relative in worker.reading else None)
             reason = _exit_reason(worker.process.exitcode)
-            result = SceneResult(str(job.input), job.relative, "failed", worker.device,
-                                 error=f"the worker process died ({reason}); out of memory?")  # fmt: skip
-            results.append(result)
-            progress.finished(worker.name, result)
-        elif job is not None:
-            pending.appendleft(job)
-        if pending and worker.device not in broken and restarts[worker.device] < _MAX_RESTARTS:
-            restarts[worker.device] += 1
+            error = f"the worker process died ({reason}); out of memory?"
+        for job in reversed(held):
+            if job is culprit:
+                fail(worker, job, error, seconds)
+            elif handbacks.get(job.relative, 0) >= _MAX_HANDBACKS:
+                fail(worker, job, f"its worker process was stopped {_MAX_HANDBACKS + 1} times while it held this scene")
+            else:
+                handbacks[job.relative] = handbacks.get(job.relative, 0) + 1
+                pending.appendleft(job)
+        if pending and worker.device not in broken and (timed_out is not None or restarts[worker.device] < _MAX_RESTARTS):
+            if timed_out is None:
+                restarts[worker.device] += 1
             start(worker.device)
+
+    def deadline(worker: _Worker) -> float | None:
+        if not worker.jobs or worker.reaped:
+            return None
+        limit = scene_timeout(worker.jobs[0], worker.device != "cpu", timeout_s)
+        return None if limit is None else worker.head_since + limit
 
     for _ in range(workers_per_device):
         for device in devices:
@@ -157,8 +223,23 @@ def run_local(jobs: list[SceneJob], devices: list[str], workers_per_device: int,
                     progress.finished("-", result)
                 pending.clear()
                 break
+            now = time.monotonic()
+            for worker in live:
+                limit = deadline(worker)
+                if limit is not None and now >= limit:
+                    receive(worker)  # it may have just finished
+                    limit = deadline(worker)
+                    if limit is not None and now >= limit:
+                        seconds = now - worker.head_since
+                        error = f"timed out after {seconds:.0f} s (--scene-timeout); its worker process was replaced"
+                        worker.process.kill()
+                        worker.process.join()
+                        reap(worker, timed_out=(worker.jobs[0], error, seconds))
+            live = [w for w in workers.values() if not w.reaped]
+            deadlines = [d for d in map(deadline, live) if d is not None]
+            wait_s = max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
             by_handle = {w.conn: w for w in live if not w.closed} | {w.process.sentinel: w for w in live}
-            for ready in wait(list(by_handle)):
+            for ready in wait(list(by_handle), timeout=wait_s):
                 worker = by_handle[ready]
                 if worker.reaped:
                     continue
@@ -182,10 +263,12 @@ def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bo
             import warp as wp
 
             from .device import init_warp, keep_freed_host_memory
+            from .kernel_cache import load_kernels
 
             init_warp()
             keep_freed_host_memory()
             warp_device = wp.get_device("cpu" if device == "cpu" else "cuda:0")
+            load_kernels(warp_device, announce=name == "w0")  # before any scene's clock starts
         except Exception as e:  # noqa: BLE001 - reported to the parent, which fails the scenes
             conn.send(("broken", f"cannot start Warp on {device}: {type(e).__name__}: {e}"))
             return
@@ -195,20 +278,64 @@ def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bo
 
 
 def _serve(device: str, warp_device, conn, force: bool) -> None:
-    from .batch_work import process_scene
+    """Three stages on three threads, joined by queues: read (and hash) the next scene, simplify
+    the current one on the device (this thread), write the last one's outputs. At most one read
+    scene waits for the device and one simplified scene for the writer, so memory stays bounded."""
+    from .batch_work import read_scene, simplify_scene, write_scene
 
-    conn.send(("ready", None))
-    while (job := conn.recv()) is not None:
-        conn.send(("started", None))
-        last = [0.0]
+    lock = threading.Lock()
 
-        def on_pass(report, last=last):
-            now = time.monotonic()
-            if now - last[0] >= _PASS_EVENT_EVERY_S:
-                last[0] = now
-                conn.send(("pass", (report.index, report.count_before, report.count_after)))
+    def send(message) -> None:
+        """To the parent; if it is gone, the receiver sees end-of-file and the stages wind down."""
+        with lock:
+            try:
+                conn.send(message)
+            except OSError:
+                pass
 
-        conn.send(("finished", process_scene(job, warp_device, force, device_label=device, on_pass=on_pass)))
+    jobs: queue.Queue = queue.Queue()
+    read: queue.Queue = queue.Queue()
+    to_write: queue.Queue = queue.Queue(maxsize=1)
+    free_slot = threading.Semaphore(1)
+
+    def receiver() -> None:
+        try:
+            while (job := conn.recv()) is not None:
+                jobs.put(job)
+        except (EOFError, OSError):
+            pass
+        jobs.put(None)
+
+    def reader() -> None:
+        while (job := jobs.get()) is not None:
+            free_slot.acquire()
+            send(("reading", job.relative))
+            read.put(read_scene(job, force, device))
+        read.put(None)
+
+    def writer() -> None:
+        while (scene := to_write.get()) is not None:
+            send(("finished", write_scene(scene)))
+
+    threads = [threading.Thread(target=t, name=f"nanogs-batch-{t.__name__}", daemon=True) for t in (receiver, reader, writer)]
+    for thread in threads:
+        thread.start()
+    send(("ready", None))
+    last = [0.0]
+
+    def on_pass(report):
+        now = time.monotonic()
+        if now - last[0] >= _PASS_EVENT_EVERY_S:
+            last[0] = now
+            send(("pass", (report.index, report.count_before, report.count_after)))
+
+    while (scene := read.get()) is not None:
+        free_slot.release()
+        send(("started", scene.job.relative))
+        simplify_scene(scene, warp_device, on_pass)
+        to_write.put(scene)
+    to_write.put(None)
+    threads[2].join()
 
 
 def _visible_gpu(device: str) -> str | None:

@@ -5,8 +5,10 @@ results are the same. Ray is imported only here, and only when ``--ray`` is give
 from __future__ import annotations
 
 import socket
+import time
+from collections import deque
 
-from .batch_scenes import SceneJob, largest_first
+from .batch_scenes import SceneJob, largest_first, scene_timeout
 from .batch_work import SceneResult
 from .errors import InputError
 
@@ -21,11 +23,16 @@ def import_ray():
     return ray
 
 
-def run_ray(jobs: list[SceneJob], address: str, gpu: bool | None, force: bool, progress) -> list[SceneResult]:
+def run_ray(jobs: list[SceneJob], address: str, gpu: bool | None, force: bool, progress,
+            timeout_s: float | None = None) -> list[SceneResult]:
     """Runs every job as a Ray task on the cluster at ``address`` (``auto``: the one this machine
     belongs to; ``local``: a private instance started here; a connection already made by the
     caller is used as it is). ``gpu``: tasks ask for a GPU (True), a CPU (False), or a GPU when the
-    cluster has any (None). Returns the results in the order the scenes finished."""
+    cluster has any (None). Returns the results in the order the scenes finished.
+
+    At most as many tasks as the cluster has GPUs (or CPUs) are in flight, so a task starts when it
+    is submitted and its time limit (``timeout_s``, as for local workers) counts from then; a task
+    past it is cancelled, which ends its worker process, and its scene fails."""
     ray = import_ray()
     own = not ray.is_initialized()
     if own:
@@ -38,27 +45,48 @@ def run_ray(jobs: list[SceneJob], address: str, gpu: bool | None, force: bool, p
             hint = " (start a cluster with 'ray start --head', or use --ray local)" if address == "auto" else ""
             raise InputError(f"--ray {address}: cannot start or reach Ray: {' '.join(str(e).split())}{hint}") from None
     try:
-        gpus = ray.cluster_resources().get("GPU", 0)
+        resources = ray.cluster_resources()
+        gpus = resources.get("GPU", 0)
         if gpu is None:
             gpu = gpus >= 1
         elif gpu and gpus < 1:
             raise InputError("--ray: the Ray cluster has no GPU; use --devices cpu for CPU tasks")
+        slots = max(1, int(gpus if gpu else resources.get("CPU", 1)))
         # Ray starts a fresh worker process for each GPU task (max_calls=1, its default when the
         # decorator asks for GPUs), so Warp always sees the GPU that Ray gave the task.
         task = ray.remote(num_gpus=1, max_retries=2)(_scene_task) if gpu else ray.remote(num_cpus=1, max_retries=2)(_scene_task)
-        refs = {task.remote(job, force, gpu): job for job in largest_first(jobs)}
-        waiting, results = list(refs), []
-        while waiting:
-            ready, waiting = ray.wait(waiting, num_returns=1)
+        queued = deque(largest_first(jobs))
+        running: dict = {}  # ref -> (job, deadline or None)
+        results = []
+
+        def finish(result: SceneResult) -> None:
+            results.append(result)
+            progress.finished("ray", result)
+
+        while queued or running:
+            while queued and len(running) < slots:
+                job = queued.popleft()
+                limit = scene_timeout(job, gpu, timeout_s)
+                running[task.remote(job, force, gpu)] = (job, None if limit is None else time.monotonic() + limit)
+            deadlines = [d for _, d in running.values() if d is not None]
+            wait_s = max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
+            ready, _ = ray.wait(list(running), num_returns=1, timeout=wait_s)
             for ref in ready:
+                job, _ = running.pop(ref)
                 try:
                     result = ray.get(ref)
                 except Exception as e:  # noqa: BLE001 - a crashed task or worker fails its scene only
-                    job = refs[ref]
                     message = " ".join(str(e).split())[:500]
                     result = SceneResult(str(job.input), job.relative, "failed", "ray", error=f"{type(e).__name__}: {message}")
-                results.append(result)
-                progress.finished("ray", result)
+                finish(result)
+            now = time.monotonic()
+            for ref, (job, limit) in list(running.items()):
+                if limit is not None and now >= limit:
+                    ray.cancel(ref, force=True)  # kills the worker process that runs it
+                    del running[ref]
+                    seconds = now - limit + scene_timeout(job, gpu, timeout_s)
+                    finish(SceneResult(str(job.input), job.relative, "failed", "ray", round(seconds, 4),
+                                       error=f"timed out after {seconds:.0f} s (--scene-timeout); its Ray task was cancelled"))  # fmt: skip
         return results
     finally:
         if own:

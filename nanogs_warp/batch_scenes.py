@@ -14,7 +14,7 @@ from pathlib import Path
 
 from .budgets import Budget, parse_budgets
 from .errors import InputError
-from .pipeline import SimplifyConfig
+from .config import SimplifyConfig
 
 RECORD_SUFFIX = ".nanogs.json"
 _GLOB_CHARS = set("*?[")
@@ -22,6 +22,8 @@ _GLOB_CHARS = set("*?[")
 _CONFIG_KEYS = {"k": int, "prune_opacity": float, "samples": int, "seed": int,
                 "lambda_geo": float, "lambda_app": float, "cost": str, "operator": str}  # fmt: skip
 _SCENE_KEYS = {"path", "ratio", "count", "drop_invalid", *_CONFIG_KEYS}
+SCENE_SUFFIXES = (".ply", ".spz", ".sog", ".splat")  # files a directory or glob contributes
+OUTPUT_SUFFIXES = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "sog": ".sog", "splat": ".splat"}
 
 
 @dataclass(frozen=True)
@@ -35,6 +37,7 @@ class SceneJob:
     config: SimplifyConfig
     drop_invalid: bool
     size: int  # bytes; -1 when the file is missing (the scene then fails in its worker)
+    output_format: str = "ply"  # a nanogs_warp.io format other than "lod"
     refine_steps: int = 0  # refinement steps per output (0: none)
     refine_size: int = 256  # longest side of refinement's training views
 
@@ -43,7 +46,7 @@ class SceneJob:
         return Path(self.relative).stem
 
     def output_path(self, budget: Budget) -> Path:
-        return self.out_dir / f"{self.stem}_{budget.label}.ply"
+        return self.out_dir / f"{self.stem}_{budget.label}{OUTPUT_SUFFIXES[self.output_format]}"
 
     @property
     def record_path(self) -> Path:
@@ -53,6 +56,8 @@ class SceneJob:
         """What the outputs depend on besides the input's bytes; kept in the scene's record."""
         budgets = [{"ratio": b.ratio} if b.ratio is not None else {"count": b.count} for b in self.budgets]
         options = {"budgets": budgets, **vars(self.config), "drop_invalid": self.drop_invalid}
+        if self.output_format != "ply":  # records of PLY batches stay as they were
+            options["format"] = self.output_format
         if self.refine_steps > 0:
             options.update(refine_steps=self.refine_steps, refine_size=self.refine_size)
         return options
@@ -64,10 +69,11 @@ def find_scenes(
     budgets: list[Budget] | None,
     config: SimplifyConfig,
     drop_invalid: bool,
+    output_format: str = "ply",
 ) -> list[SceneJob]:
-    """The batch's scenes sorted by relative path. ``input`` is a directory (every ``*.ply`` below
-    it, leaving out ``out_dir`` if it lies inside), a glob pattern (``**`` recurses), a single
-    ``.ply`` file, or a manifest: one path per line (``#`` starts a comment line) or a JSON list
+    """The batch's scenes sorted by relative path. ``input`` is a directory (every scene file below
+    it: ``.ply``, ``.spz``, ``.sog``, ``.splat``; leaving out ``out_dir`` if it lies inside), a glob
+    pattern (``**`` recurses), a single scene file, or a manifest: one path per line (``#`` starts a comment line) or a JSON list
     of paths or ``{"path": ..., "ratio"/"count"/<simplify option>: ...}`` objects. Relative
     manifest paths start at the manifest's directory. Outputs go to ``out_dir/<relative>``, where
     ``relative`` is the path below the root: the directory, the pattern's fixed leading directories,
@@ -78,8 +84,8 @@ def find_scenes(
         if path.resolve() == out_dir.resolve():
             raise InputError(f"the output directory {out_dir} is the input directory; choose another one")
         root, entries = path, [(p, {}) for p in _walk_ply(path, skip=out_dir)]
-        what = f"no .ply files under {path}"
-    elif path.is_file() and path.suffix.lower() == ".ply":
+        what = f"no .ply files under {path} (nor .spz, .sog or .splat files)"
+    elif path.is_file() and path.suffix.lower() in SCENE_SUFFIXES:
         root, entries, what = path.parent, [(path, {})], ""
     elif path.is_file():
         entries = _read_manifest(path)
@@ -89,14 +95,15 @@ def find_scenes(
         root = _glob_root(input)
         skip = out_dir.resolve()
         entries = [(Path(p), {}) for p in glob.glob(input, recursive=True)
-                   if p.lower().endswith(".ply") and Path(p).is_file() and skip not in Path(p).resolve().parents]  # fmt: skip
-        what = f"no .ply files match {input!r}"
+                   if _is_scene(p) and Path(p).is_file() and skip not in Path(p).resolve().parents]  # fmt: skip
+        what = f"no .ply files match {input!r} (nor .spz, .sog or .splat files)"
     else:
         raise InputError(f"{input}: no such file, directory or glob pattern")
     if not entries:
         raise InputError(what)
 
-    jobs = [_make_job(p, overrides, root, out_dir, budgets, config, drop_invalid) for p, overrides in entries]
+    jobs = [replace(_make_job(p, overrides, root, out_dir, budgets, config, drop_invalid), output_format=output_format)
+            for p, overrides in entries]  # fmt: skip
     jobs.sort(key=lambda j: j.relative)
     _check_unique(jobs)
     return jobs
@@ -122,6 +129,22 @@ def select_shard(jobs: list[SceneJob], index: int, count: int) -> list[SceneJob]
     return [job for k, job in enumerate(jobs) if k % count == index]
 
 
+# The default --scene-timeout: a fixed part for starting Warp and compiling its kernels on a fresh
+# machine, plus a part per MB of input, larger on the CPU. Both are far above the measured times (a
+# 2-core CPU: about 0.03 s per MB all told; an H100: about 0.003 s per MB), so that only a scene
+# that would never end reaches them.
+TIMEOUT_BASE_S = 300.0
+TIMEOUT_PER_MB_S = {"cpu": 0.5, "gpu": 0.1}
+
+
+def scene_timeout(job: SceneJob, on_gpu: bool, seconds: float | None = None) -> float | None:
+    """How long ``job`` may take on one worker: ``seconds`` when given (0: no limit, None), else
+    TIMEOUT_BASE_S plus TIMEOUT_PER_MB_S per MB of input."""
+    if seconds is not None:
+        return seconds if seconds > 0 else None
+    return TIMEOUT_BASE_S + TIMEOUT_PER_MB_S["gpu" if on_gpu else "cpu"] * max(job.size, 0) / 1e6
+
+
 def largest_first(jobs: list[SceneJob]) -> list[SceneJob]:
     """The order in which workers take scenes: biggest file first (ties by name), so that one
     large scene does not start last and hold up the end of the batch."""
@@ -136,8 +159,12 @@ def _walk_ply(root: Path, skip: Path) -> list[Path]:
     found = []
     for directory, subdirs, files in os.walk(root):
         subdirs[:] = sorted(d for d in subdirs if (Path(directory) / d).resolve() != skip)
-        found += [Path(directory) / f for f in files if f.lower().endswith(".ply") and not f.startswith(".")]
+        found += [Path(directory) / f for f in files if _is_scene(f) and not f.startswith(".")]
     return found
+
+
+def _is_scene(name: str) -> bool:
+    return name.lower().endswith(SCENE_SUFFIXES)
 
 
 def _glob_root(pattern: str) -> Path:

@@ -17,6 +17,7 @@ import secrets
 import time
 import traceback
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -29,7 +30,8 @@ RECORD_FORMAT = 1
 
 @dataclass
 class SceneResult:
-    """What became of one scene; ``status`` is ``done``, ``skipped`` (up to date) or ``failed``."""
+    """What became of one scene; ``status`` is ``done``, ``skipped`` (up to date) or ``failed``.
+    ``stages`` holds the seconds its stages took: read (hash and parse), simplify, write."""
 
     input: str
     relative: str
@@ -39,6 +41,8 @@ class SceneResult:
     input_count: int | None = None
     outputs: list[dict] = field(default_factory=list)  # {"path", "budget", "count"}
     error: str | None = None
+    notes: list[str] = field(default_factory=list)  # rows dropped on load, what the output format drops
+    stages: dict[str, float] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -48,6 +52,27 @@ def file_sha256(path: Path) -> str:
     """The file's SHA-256, read in blocks (constant memory)."""
     with open(path, "rb") as f:
         return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+@dataclass
+class LoadedScene:
+    """A scene between its stages: read (``splats`` on the host, or ``result`` already final when
+    it was skipped or failed), then simplified (``simplified``: (target, splats on the host,
+    budgets)), then written."""
+
+    job: SceneJob
+    result: SceneResult
+    size: int = 0
+    sha: str = ""
+    splats: object = None
+    simplified: list = field(default_factory=list)
+    device_kind: str = ""
+    seconds: float = 0.0  # time spent on the scene so far, over all its stages
+
+    @property
+    def final(self) -> bool:
+        """Nothing left to do but report: skipped, or failed."""
+        return self.result.error is not None or self.result.status == "skipped"
 
 
 def process_scene(
@@ -60,40 +85,102 @@ def process_scene(
     """Simplifies ``job`` on the Warp ``device`` (Warp already initialised), or skips it when its
     record is up to date and ``force`` is false. Never raises for a bad scene: any error, out of
     memory included, comes back as a ``failed`` result."""
-    started = time.perf_counter()
-    label = device_label or str(device)
-    result = SceneResult(str(job.input), job.relative, "failed", label)
-    try:
-        _run(job, device, force, result, on_pass)
-    except InputError as e:
-        result.error = str(e)
-    except MemoryError:
-        result.error = "out of memory"
-    except Exception as e:  # noqa: BLE001 - one bad scene must not stop the batch
-        if os.environ.get("NANOGS_DEBUG"):
-            traceback.print_exc()
-        result.error = f"{type(e).__name__}: {' '.join(str(e).split())}"
+    scene = read_scene(job, force, device_label or str(device))
+    simplify_scene(scene, device, on_pass)
+    return write_scene(scene)
+
+
+def read_scene(job: SceneJob, force: bool, label: str) -> LoadedScene:
+    """Stage 1: the skip test, then the input on the host. The input is read once when it has no
+    matching record (hashed as it is parsed), twice only when a record must be checked and turns
+    out stale. Never raises."""
+    scene = LoadedScene(job, SceneResult(str(job.input), job.relative, "failed", label))
+    with _stage(scene, "read"):
+        _read(scene, force)
+    return scene
+
+
+def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) -> None:
+    """Stage 2: every budget in one progressive run on ``device``; the results come back to the
+    host."""
+    if scene.final:
+        return
+    with _stage(scene, "simplify"):
+        from .pipeline import simplify_progressively
+
+        job, splats = scene.job, scene.splats
+        by_target: dict[int, list] = {}
+        for budget in job.budgets:
+            by_target.setdefault(budget.target(splats.count), []).append(budget)
+        scene.splats = None  # the host copy is not needed again
+        scene.device_kind = getattr(device, "name", str(device))
+        on_device = splats.to(device)
+        for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
+            if job.refine_steps > 0:
+                from .refine import refine_with_report
+                from .refine_config import RefineConfig
+
+                config = RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed)
+                simplified = refine_with_report(simplified, on_device, config)[0]
+            # to the host here, so that the writer thread never touches the GPU (and its memory is freed)
+            scene.simplified.append((target, simplified.to("cpu"), by_target[target]))
+
+
+def write_scene(scene: LoadedScene) -> SceneResult:
+    """Stage 3: each output atomically, then the record; returns the scene's final result."""
+    if not scene.final:
+        with _stage(scene, "write"):
+            _write(scene)
+        scene.simplified = []
+    result = scene.result
     if result.error is not None:
         result.status = "failed"
-    result.seconds = round(time.perf_counter() - started, 4)
+    result.seconds = round(scene.seconds, 4)
     return result
 
 
-def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> None:
-    from .pipeline import simplify_progressively
-    from .ply import load_ply, save_ply
-
+@contextmanager
+def _stage(scene: LoadedScene, name: str):
+    """Times a stage into the result, and turns any error into the scene's failure."""
+    started = time.perf_counter()
     try:
-        size = job.input.stat().st_size
-        sha = file_sha256(job.input)
+        yield
+    except InputError as e:
+        scene.result.error = str(e)
+    except MemoryError:
+        scene.result.error = "out of memory"
+    except Exception as e:  # noqa: BLE001 - one bad scene must not stop the batch
+        if os.environ.get("NANOGS_DEBUG"):
+            traceback.print_exc()
+        scene.result.error = f"{type(e).__name__}: {' '.join(str(e).split())}"
+    finally:
+        seconds = time.perf_counter() - started
+        scene.seconds += seconds
+        scene.result.stages[name] = round(seconds, 4)
+        if scene.result.error is not None:
+            scene.splats, scene.simplified = None, []
+
+
+def _read(scene: LoadedScene, force: bool) -> None:
+    from .io import detect_format, load_splats
+    from .ply import load_ply
+
+    job, result = scene.job, scene.result
+    spin_if_asked(job)
+    try:
+        scene.size = job.input.stat().st_size
     except FileNotFoundError:
         raise InputError(f"{job.relative}: no such file") from None
     except OSError as e:
         raise InputError(f"{job.relative}: cannot read the file: {e.strerror or e}") from None
     options = job.options()
-    if not force:
-        record = read_record(job.record_path)
-        if record_matches(record, job, size, sha, options):
+    record = None if force else read_record(job.record_path)
+    if record_matches(record, job, scene.size, None, options):  # all but the hash: hash to be sure
+        try:
+            scene.sha = file_sha256(job.input)
+        except OSError as e:
+            raise InputError(f"{job.relative}: cannot read the file: {e.strerror or e}") from None
+        if record_matches(record, job, scene.size, scene.sha, options):
             result.status = "skipped"
             result.input_count = record["input_count"]
             result.outputs = [{"path": str(job.out_dir / o["path"]), "budget": o["budget"], "count": o["count"]}
@@ -102,22 +189,27 @@ def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> No
 
     job.out_dir.mkdir(parents=True, exist_ok=True)
     _remove_leftovers(job)  # the old record first: from here on, no record describes these outputs
-    splats = load_ply(job.input, device="cpu", drop_invalid=job.drop_invalid)
-    result.input_count = splats.count
-    by_target: dict[int, list] = {}
-    for budget in job.budgets:
-        by_target.setdefault(budget.target(splats.count), []).append(budget)
-    outputs = []
-    on_device = splats.to(device)
-    for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
-        if job.refine_steps > 0:
-            from .refine import RefineConfig, refine_with_report
+    if detect_format(job.input) == "ply":  # hashed as it is parsed
+        digest = None if scene.sha else hashlib.sha256()
+        scene.splats = load_ply(job.input, device="cpu", drop_invalid=job.drop_invalid, on_drop=result.notes.append, digest=digest)
+        if digest is not None:
+            scene.sha = digest.hexdigest()
+    else:
+        if not scene.sha:
+            scene.sha = file_sha256(job.input)
+        scene.splats = load_splats(job.input, device="cpu", drop_invalid=job.drop_invalid, on_drop=result.notes.append)
+    result.input_count = scene.splats.count
 
-            config = RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed)
-            simplified = refine_with_report(simplified, on_device, config)[0]
-        for budget in by_target[target]:
+
+def _write(scene: LoadedScene) -> None:
+    from .io import save_splats
+
+    job, result = scene.job, scene.result
+    outputs = []
+    for _, simplified, budgets in scene.simplified:
+        for budget in budgets:
             path = job.output_path(budget)
-            save_ply(simplified, path)
+            save_splats(simplified, path, job.output_format, on_loss=lambda line: _note_once(result, line))
             outputs.append({"path": path.name, "budget": budget.label, "count": simplified.count,
                             "bytes": path.stat().st_size})  # fmt: skip
     outputs.sort(key=lambda o: [b.label for b in job.budgets].index(o["budget"]))
@@ -125,16 +217,35 @@ def _run(job: SceneJob, device, force: bool, result: SceneResult, on_pass) -> No
         "format": RECORD_FORMAT,
         "tool": "nanogs-warp",
         "version": __version__,
-        "input": {"path": os.path.abspath(job.input), "relative": job.relative, "bytes": size, "sha256": sha},
-        "options": options,
-        "input_count": splats.count,
+        "input": {"path": os.path.abspath(job.input), "relative": job.relative, "bytes": scene.size, "sha256": scene.sha},
+        "options": job.options(),
+        "input_count": result.input_count,
         "outputs": outputs,
         "device": result.device,
+        "device_kind": scene.device_kind,  # e.g. "NVIDIA H100 80GB HBM3" or the CPU's
         "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
     write_json_atomic(job.record_path, record)
     result.status = "done"
     result.outputs = [{"path": str(job.out_dir / o["path"]), "budget": o["budget"], "count": o["count"]} for o in outputs]
+
+
+def _note_once(result: SceneResult, line: str) -> None:
+    """Keeps what an output format drops once per scene, not once per budget."""
+    what = line.split(": ", 1)[-1]
+    if all(n.split(": ", 1)[-1] != what for n in result.notes):
+        result.notes.append(line)
+
+
+# Tests only: a worker that reads a scene whose relative path is this variable's value spins for
+# ever (holding the CPU, deaf to everything but SIGKILL), as a scene whose kernel never ends would.
+SPIN_SCENE_VARIABLE = "NANOGS_WARP_TEST_SPIN_SCENE"
+
+
+def spin_if_asked(job: SceneJob) -> None:
+    if os.environ.get(SPIN_SCENE_VARIABLE) == job.relative:
+        while True:
+            pass
 
 
 def read_record(path: Path) -> dict | None:
@@ -145,12 +256,13 @@ def read_record(path: Path) -> dict | None:
     return record if isinstance(record, dict) else None
 
 
-def record_matches(record: dict | None, job: SceneJob, size: int, sha: str, options: dict) -> bool:
+def record_matches(record: dict | None, job: SceneJob, size: int, sha: str | None, options: dict) -> bool:
     """True when ``record`` was written by this tool version for these exact input bytes and
-    options, and every output it lists is still there with its recorded size."""
+    options, and every output it lists is still there with its recorded size (``sha`` None: any
+    input with this size)."""
     try:
         if (record["format"] != RECORD_FORMAT or record["version"] != __version__ or record["options"] != options
-                or record["input"]["bytes"] != size or record["input"]["sha256"] != sha):  # fmt: skip
+                or record["input"]["bytes"] != size or (sha is not None and record["input"]["sha256"] != sha)):  # fmt: skip
             return False
         outputs = record["outputs"]
         if sorted(o["budget"] for o in outputs) != sorted(b.label for b in job.budgets):

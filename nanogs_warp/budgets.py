@@ -2,20 +2,24 @@
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from fractions import Fraction
 from pathlib import Path
 
+from .config import exact_ratio, target_count
 from .errors import InputError
-from .pipeline import target_count
 
 
 @dataclass(frozen=True)
 class Budget:
-    """Keep a ``ratio`` of the input's splats, or an absolute ``count``."""
+    """Keep a ``ratio`` of the input's splats, or an absolute ``count``.
+
+    ``exact`` is the ratio as the user wrote it (``parse_budgets``), so that the target is
+    ceil(ratio * N) exactly; without it, the float's shortest repr is used (0.07 is 7/100)."""
 
     ratio: float | None = None
     count: int | None = None
+    exact: Fraction | None = field(default=None, compare=False, repr=False)
 
     @property
     def label(self) -> str:
@@ -24,7 +28,7 @@ class Budget:
     def target(self, input_count: int) -> int:
         """max(1, ceil(ratio * N0)), or the count itself; checked against the input's size."""
         if self.ratio is not None:
-            return target_count(input_count, self.ratio)
+            return target_count(input_count, self.exact if self.exact is not None else self.ratio)
         if self.count > input_count:
             raise InputError(f"--count {self.count} is more than the input's {input_count} splats")
         return self.count
@@ -42,12 +46,13 @@ def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
     for token in tokens:
         if ratio is not None:
             try:
-                value = float(token)
-            except ValueError:
-                raise InputError(f"--ratio {token!r} is not a number") from None
-            if not (math.isfinite(value) and 0.0 < value <= 1.0):
-                raise InputError(f"--ratio {token} must be in (0, 1]")
-            budgets.append(Budget(ratio=value))
+                exact = exact_ratio(token)
+            except InputError:
+                raise InputError(f"--ratio {token!r} must be a number in (0, 1]") from None
+            value = float(exact)
+            if value == 0.0:
+                raise InputError(f"--ratio {token} is too small to use; give --count 1 instead")
+            budgets.append(Budget(ratio=value, exact=exact))
         else:
             try:
                 value = int(token)
@@ -63,9 +68,13 @@ def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
 
 def output_paths(output: Path, budgets: list[Budget]) -> dict[Budget, Path]:
     """One budget writes ``output`` itself; several write ``<stem>_<label><suffix>`` beside it,
-    e.g. ``out.ply`` with --ratio 0.1,0.01 gives ``out_0.1.ply`` and ``out_0.01.ply``."""
+    e.g. ``out.ply`` with --ratio 0.1,0.01 gives ``out_0.1.ply`` and ``out_0.01.ply`` (and
+    ``out.compressed.ply`` gives ``out_0.1.compressed.ply``)."""
     output = Path(output)
     if len(budgets) == 1:
         return {budgets[0]: output}
     suffix = output.suffix or ".ply"
-    return {b: output.with_name(f"{output.stem}_{b.label}{suffix}") for b in budgets}
+    if output.name.lower().endswith(".compressed.ply"):  # one suffix in two parts
+        suffix = output.name[-len(".compressed.ply") :]
+    stem = output.name[: len(output.name) - len(suffix)] if output.suffix else output.name
+    return {b: output.with_name(f"{stem}_{b.label}{suffix}") for b in budgets}

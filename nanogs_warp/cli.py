@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import sys
 import time
-import traceback
+import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -18,10 +17,12 @@ from . import __version__
 from .budgets import Budget, output_paths, parse_budgets
 from .cli_batch import batch_command
 from .cli_eval import eval_command
-from .errors import InputError
-from .pipeline import SimplifyConfig
-from .refine import RefineConfig
+from .cli_errors import examples, readable_placeholders, user_errors
+from .cli_warmup import warmup_command
+from .errors import InputError, NanogsWarning
+from .refine_config import RefineConfig
 
+readable_placeholders()
 app = typer.Typer(
     name="nanogs-warp",
     help="Make trained 3D Gaussian Splatting scenes 10x-1000x smaller without training images (NanoGS).",
@@ -31,33 +32,6 @@ app = typer.Typer(
     rich_markup_mode=None,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
-
-
-def _fail(message: str, code: int) -> None:
-    typer.echo(f"nanogs-warp: error: {message}", err=True)
-    raise typer.Exit(code)
-
-
-def user_errors(command):
-    """Turns known errors into one line on stderr and exit code 2; anything else into one line and
-    exit code 1 (NANOGS_DEBUG=1 shows the traceback)."""
-
-    @functools.wraps(command)
-    def wrapper(*args, **kwargs):
-        try:
-            return command(*args, **kwargs)
-        except (typer.Exit, typer.Abort, KeyboardInterrupt):
-            raise
-        except InputError as e:
-            _fail(str(e), 2)
-        except MemoryError:
-            _fail("out of memory", 1)
-        except Exception as e:  # noqa: BLE001 - the last line of defence for a command-line tool
-            if os.environ.get("NANOGS_DEBUG"):
-                traceback.print_exc()
-            _fail(f"internal error: {type(e).__name__}: {e} (set NANOGS_DEBUG=1 for details)", 1)
-
-    return wrapper
 
 
 def _version(value: bool) -> None:
@@ -96,91 +70,177 @@ class _PassProgress:
             sys.stderr.flush()
 
 
-@app.command()
+@app.command(
+    epilog=examples(
+        "nanogs-warp simplify scene.ply -o small.ply --ratio 0.01",
+        "nanogs-warp simplify scene.ply -o lods/ --ratio 0.1,0.01,0.001   # lods/scene_0.1.ply, ...",
+        "nanogs-warp simplify --sample -o plant.ply --count 2000 --device cpu",
+    ),
+)
 @user_errors
 def simplify(
-    input: Annotated[Path, typer.Argument(help="Input 3DGS .ply file.", show_default=False)],
-    output: Annotated[Path, typer.Option("-o", "--output", help="Output .ply path. With several budgets, OUT_<budget>.ply is written for each.", show_default=False)],
+    input: Annotated[Optional[Path], typer.Argument(help="Input scene (or --sample): INRIA or compressed .ply, .spz, .sog, meta.json, lod-meta.json or .splat.", show_default=False, metavar="SCENE")] = None,
+    output: Annotated[Optional[str], typer.Option("-o", "--output", help="Output path; its name picks the format (.ply, .compressed.ply, .spz, .sog, meta.json, .splat, lod-meta.json). With several budgets OUT_<budget>.<ext> is written for each; lod-meta.json writes them as one level-of-detail set. A folder (ending in /, or an existing one) receives <input name>_<budget>.ply (or --format's extension).", show_default=False, metavar="PATH")] = None,
     ratio: opts.Ratio = None,
     count: opts.Count = None,
-    device: Annotated[str, typer.Option(help="auto (first GPU, else CPU), cpu, cuda or cuda:N.")] = "auto",
-    k: opts.K = SimplifyConfig.k,
-    prune_opacity: opts.PruneOpacity = SimplifyConfig.prune_opacity,
-    samples: opts.Samples = SimplifyConfig.samples,
-    seed: opts.Seed = SimplifyConfig.seed,
-    lambda_geo: opts.LambdaGeo = SimplifyConfig.lambda_geo,
-    lambda_app: opts.LambdaApp = SimplifyConfig.lambda_app,
-    cost: opts.Cost = SimplifyConfig.cost,
-    operator: opts.Operator = SimplifyConfig.operator,
+    device: Annotated[str, typer.Option(help="auto (first GPU, else CPU), cpu, cuda or cuda:N.", metavar="DEVICE")] = "auto",
+    preset: opts.Preset = "default",
+    k: opts.K = None,
+    prune_opacity: opts.PruneOpacity = None,
+    samples: opts.Samples = None,
+    seed: opts.Seed = None,
+    lambda_geo: opts.LambdaGeo = None,
+    lambda_app: opts.LambdaApp = None,
+    cost: opts.Cost = None,
+    operator: opts.Operator = None,
     drop_invalid: opts.DropInvalid = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
     refine_size: opts.RefineSize = RefineConfig.size,
+    output_format: opts.Format = None,
+    sample: Annotated[bool, typer.Option("--sample", help="Use the shipped 20,000-splat sample scene as the input.")] = False,
+    overwrite: Annotated[bool, typer.Option("-w", "--overwrite", help="Replace output files that already exist (by default they are an error).")] = False,
     json_output: opts.Json = False,
     quiet: opts.Quiet = False,
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
-    from .device import keep_freed_host_memory, resolve_device
-    from .pipeline import simplify_progressively
-    from .ply import load_ply, save_ply
+    from .device import WarpStart, keep_freed_host_memory
+    from .io import format_for_path, read_any_splats, save_levels
+    from .ply import splats_from_host
 
-    config = SimplifyConfig(k, prune_opacity, samples, seed, lambda_geo, lambda_app, cost, operator)
-    config.validate()
+    config = opts.method_config(
+        preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
+        lambda_app=lambda_app, cost=cost, operator=operator,
+    )
     refine_config = None
     if refine or refine_steps is not None:
-        refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size, seed=seed)
+        refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size, seed=config.seed)
         refine_config.validate()
     budgets = parse_budgets(ratio, count)
-    paths = output_paths(output, budgets)
-    _check_outputs(input, list(paths.values()))
-    target_device = resolve_device(device)
+    input = _input_path(input, sample)
+    if output is None:
+        raise InputError("give an output path with -o/--output (a file, or a folder ending in /)")
+    fmt = format_for_path(output, output_format)
+    lod_set = fmt == "lod"
+    if lod_set and Path(output).is_dir():
+        output = str(Path(output) / "lod-meta.json")
+    if fmt == "sog" and Path(output).suffix.lower() == ".json" and len(budgets) > 1:
+        raise InputError(f"{Path(output).name}: several budgets cannot share one unbundled SOG folder; "
+                         "write .sog files or a lod-meta.json set")  # fmt: skip
+    if lod_set:
+        paths, folder = {b: Path(output) for b in budgets}, None
+    else:
+        paths, folder = _output_paths(output, input, budgets, output_format)
+    _check_outputs(input, list(paths.values()), overwrite, folder)
     keep_freed_host_memory()
+    notes = _Notes(quiet or json_output)
 
     started = time.perf_counter()
-    splats = load_ply(input, device="cpu", drop_invalid=drop_invalid)
+    warp_start = WarpStart(device, prepare=lambda: _import_pipeline(config))  # while the file is read
+    try:
+        arrays, layout = read_any_splats(input, drop_invalid=drop_invalid, on_drop=notes)
+        target_device = warp_start.device()
+    except BaseException:
+        warp_start.wait()
+        raise
+    from .kernel_cache import load_kernels
+
+    load_kernels(target_device, announce=not quiet)
+    splats = splats_from_host(arrays, layout)
+    del arrays
     loaded = time.perf_counter()
     targets = {budget: budget.target(splats.count) for budget in budgets}
     progress = _PassProgress(sys.stderr.isatty() and not quiet and not json_output, max(targets.values()))
     passes = []
     written = []
+    levels = [] if lod_set else None
     budgets_for_target: dict[int, list[Budget]] = {}
     for budget, target in targets.items():
         budgets_for_target.setdefault(target, []).append(budget)
     on_device = splats.to(target_device)
-    for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=lambda r: (passes.append(r), progress(r))):
-        reached = time.perf_counter()
-        report = None
-        if refine_config is not None:
-            progress.done()
-            result, report = _refine(result, on_device, refine_config, progress.enabled)
-        for budget in budgets_for_target[target]:
-            save_ply(result, paths[budget])
-            written.append({"path": str(paths[budget]), "budget": budget.label, "count": result.count,
-                            "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
-            if report is not None:
-                written[-1]["refine"] = report.to_json()
-        smaller = [t for t in budgets_for_target if t < target]
-        progress.target = max(smaller) if smaller else target
+    with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
+        warnings.simplefilter("always", NanogsWarning)
+        _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels, refine_config)
     progress.done()
+    if lod_set:  # level 0 is the finest: the largest budget, reached first
+        for level, out in enumerate(written):
+            out["level"] = level
+        save_levels(levels, Path(output), fmt, on_loss=notes)
+    for warning in caught:
+        if not issubclass(warning.category, NanogsWarning):
+            warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
+        elif not quiet:
+            typer.echo(f"nanogs-warp: warning: {warning.message}", err=True)
     finished = time.perf_counter()
+    after_prune = passes[0].count_before if passes else (written[0]["count"] if written else splats.count)
     summary = {
-        "input": str(input),
+        "schema": opts.JSON_SCHEMA,
+        "command": "simplify",
+        "input": str(input.resolve()),
         "input_count": splats.count,
-        "after_prune_count": passes[0].count_before if passes else (written[0]["count"] if written else splats.count),
+        "after_prune_count": after_prune,
         "device": str(target_device),
+        "settings": _settings(config, after_prune, target_device),
         "passes": len(passes),
         "outputs": written,
+        "notes": notes.lines,
         "seconds": {"read": round(loaded - started, 4), "total": round(finished - started, 4)},
     }
     if json_output:
         typer.echo(json.dumps(summary, indent=2))
     elif not quiet:
         for out in written:
-            typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}, {out['passes']} passes)")
+            level = f", level {out['level']}" if "level" in out else ""
+            typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}{level}, {out['passes']} passes)")
             if "refine" in out:
                 r = out["refine"]
                 typer.echo(f"  refined: {r['steps']} steps, training loss {r['loss_before']:.5f} -> {r['loss_after']:.5f}, {r['seconds']:.2f} s")
         typer.echo(f"{splats.count:,} splats in, {len(passes)} passes on {target_device}, {finished - started:.2f} s")
+
+
+class _Notes:
+    """Warnings that are not errors (rows dropped on load, what an output format cannot hold):
+    each distinct one once on stderr (unless silenced), all kept for the --json summary."""
+
+    def __init__(self, silent: bool):
+        self.silent = silent
+        self.lines: list[str] = []
+        self._seen: set[str] = set()
+
+    def __call__(self, line: str) -> None:
+        self.lines.append(line)
+        what = line.split(": ", 1)[-1]  # the same loss for every budget's file: said once
+        if what not in self._seen and not self.silent:
+            typer.echo(f"nanogs-warp: warning: {line}", err=True)
+        self._seen.add(what)
+
+
+def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels, refine_config=None):
+    """Runs the progressive merge and writes each budget as it is reached (appending to ``written``);
+    for a level-of-detail set (``levels`` a list) keeps each level on the host instead. With
+    ``refine_config``, each budget's result is refined toward the input first."""
+    from .io import save_splats
+    from .pipeline import simplify_progressively
+
+    on_pass = lambda r: (passes.append(r), progress(r))  # noqa: E731
+    for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass):
+        reached = time.perf_counter()
+        report = None
+        if refine_config is not None:
+            progress.done()
+            result, report = _refine(result, on_device, refine_config, progress.enabled)
+        for budget in budgets_for_target[target]:
+            paths[budget].parent.mkdir(exist_ok=True)  # -o DIR/: created with the first output, not before
+            if levels is not None:
+                levels.append(result.to("cpu"))
+            else:
+                save_splats(result, paths[budget], fmt, on_loss=notes)
+            written.append({"path": str(paths[budget].resolve()), "budget": budget.label, "count": result.count,
+                            "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
+            if report is not None:
+                written[-1]["refine"] = report.to_json()
+        smaller = [t for t in budgets_for_target if t < target]
+        progress.target = max(smaller) if smaller else target
 
 
 def _refine(result, reference, config: RefineConfig, show_progress: bool):
@@ -199,36 +259,107 @@ def _refine(result, reference, config: RefineConfig, show_progress: bool):
     return refined, report
 
 
-def _check_outputs(input: Path, outputs: list[Path]) -> None:
-    """Refuses outputs that would overwrite the input or cannot be written, before any work."""
+def _import_pipeline(config) -> None:
+    """Imports the pipeline (Warp and the kernel definitions with it) and checks ``config``."""
+    from . import pipeline  # noqa: F401
+
+    config.validate()
+
+
+def _settings(config, splat_count: int, device) -> dict:
+    """The settings a run used, as --json echoes them: k resolved for the scene's size."""
+    settings = dict(vars(config))
+    settings["k"] = config.neighbours(splat_count)
+    settings["device"] = str(device)
+    return settings
+
+
+def _input_path(input: Path | None, sample: bool) -> Path:
+    if sample and input is not None:
+        raise InputError("give an input file or --sample, not both")
+    if sample:
+        from .data import sample_path
+
+        return sample_path()
+    if input is None:
+        raise InputError("give an input .ply file (or --sample for the shipped sample scene)")
+    return input
+
+
+# The file extension of each output format, for -o DIR/.
+_EXTENSIONS = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "sog": ".sog", "splat": ".splat"}
+
+
+def _output_paths(output: str, input: Path, budgets: list[Budget], output_format: str | None) -> tuple[dict[Budget, Path], Path | None]:
+    """The file of each budget, and the folder to write into when -o names one (ends in a separator
+    or is an existing directory): FOLDER/<input stem>_<budget><ext> for each budget, the extension
+    of --format (.ply without it)."""
+    if output.endswith(("/", os.sep)) or Path(output).is_dir():
+        folder = Path(output)
+        ext = _EXTENSIONS.get(output_format or "ply", ".ply")
+        stem = input.name.split(".")[0] if input.name.lower().endswith(".compressed.ply") else input.stem
+        return {b: folder / f"{stem}_{b.label}{ext}" for b in budgets}, folder
+    return output_paths(Path(output), budgets), None
+
+
+def _check_outputs(input: Path, outputs: list[Path], overwrite: bool = False, folder: Path | None = None) -> None:
+    """Refuses outputs that would overwrite the input, replace an existing file without
+    ``overwrite``, or cannot be written, before any work. ``folder`` (from -o DIR/) may be created:
+    its parent must exist."""
     input_resolved = input.resolve()
+    if folder is not None and not folder.is_dir():
+        if folder.exists():
+            raise InputError(f"output {folder} is not a folder")
+        if not folder.resolve().parent.is_dir():
+            raise InputError(f"output folder {folder} cannot be created: {folder.resolve().parent} does not exist")
     for path in outputs:
         if path.resolve() == input_resolved:
             raise InputError(f"output {path} is the input file; choose another output path")
         parent = path.resolve().parent
+        if folder is not None and not folder.is_dir():
+            parent = parent.parent  # the folder itself is created
         if not parent.is_dir():
             raise InputError(f"output directory {parent} does not exist")
         if not os.access(parent, os.W_OK):
             raise InputError(f"output directory {parent} is not writable")
         if path.is_dir():
             raise InputError(f"output {path} is a directory")
+        if path.exists() and not overwrite:
+            raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it")
 
 
-@app.command()
+@app.command(epilog=examples(
+    "nanogs-warp info scene.ply",
+    "nanogs-warp info scene.ply --json   # for scripts: see docs/json.md",
+))  # fmt: skip
 @user_errors
 def info(
-    input: Annotated[Path, typer.Argument(help="A 3DGS .ply file.", show_default=False)],
+    input: Annotated[Path, typer.Argument(help="A scene file: INRIA or compressed .ply, .spz, .sog, meta.json, lod-meta.json or .splat.", show_default=False, metavar="SCENE")],
     json_output: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
 ) -> None:
     """Describe a 3DGS scene: count, SH degree, properties, bounds, opacity and scale statistics."""
     from .info import format_info, scene_info
 
     details = scene_info(input)
+    if json_output:
+        details = {"schema": opts.JSON_SCHEMA, "command": "info", "path": str(input.resolve()), **details}
     typer.echo(json.dumps(details, indent=2) if json_output else format_info(details))
 
 
-app.command("eval")(user_errors(eval_command))
-app.command("batch")(user_errors(batch_command))
+app.command("eval", epilog=examples(
+    "nanogs-warp eval scene.ply lod_0.1.ply lod_0.01.ply                 # table of PSNR, SSIM, ...",
+    "nanogs-warp eval scene.ply lod_0.01.ply --images eval/              # + contact sheets",
+    "nanogs-warp eval scene.ply small.ply --cameras cameras.json --json  # the trainer's cameras",
+))(user_errors(eval_command))  # fmt: skip
+app.command("batch", epilog=examples(
+    "nanogs-warp batch scenes/ -o simplified/ --ratio 0.1,0.01,0.001 --devices all",
+    "nanogs-warp batch 'captures/**/point_cloud.ply' -o out/ --count 100000 --shard 0/4",
+    "nanogs-warp batch manifest.json -o out/ --ray auto --json",
+))(user_errors(batch_command))  # fmt: skip
+app.command("warmup", epilog=examples(
+    "nanogs-warp warmup                      # every kernel for this machine's devices",
+    "nanogs-warp warmup --device cpu --arch 75,80,86,89,90 --cache-dir /opt/nanogs-kernels",
+))(user_errors(warmup_command))  # fmt: skip
 
 
 def main() -> None:

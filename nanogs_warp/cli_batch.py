@@ -18,32 +18,34 @@ import typer
 
 from . import cli_options as opts
 from .errors import InputError
-from .pipeline import SimplifyConfig
-from .refine import RefineConfig
+from .refine_config import RefineConfig
 
 
 def batch_command(
-    input: Annotated[str, typer.Argument(help="A directory (every .ply below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
-    output: Annotated[Path, typer.Option("-o", "--output", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.ply, and <stem>.nanogs.json records for resuming.", show_default=False)],
+    input: Annotated[str, typer.Argument(help="A directory (every .ply, .spz, .sog and .splat below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.<ext of --format>, and <stem>.nanogs.json records for resuming.", show_default=False)],
     ratio: opts.Ratio = None,
     count: opts.Count = None,
-    devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.")] = "auto",
+    devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, all,cpu (every GPU and the CPU), or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.")] = "auto",
     workers: Annotated[int, typer.Option(help="Worker processes per device (e.g. several on the CPU).")] = 1,
     shard: Annotated[Optional[str], typer.Option(help="Only scenes i, i+n, i+2n, ... of the sorted list, as i/n (0-based), e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT.", show_default=False)] = None,
     ray: Annotated[Optional[str], typer.Option("--ray", help="Run each scene as a Ray task: auto (the cluster this machine belongs to), local (a Ray instance started here) or the head's ADDRESS. Needs nanogs-warp[ray].", show_default=False)] = None,
+    scene_timeout: Annotated[Optional[float], typer.Option("--scene-timeout", metavar="SECONDS", help="Time limit per scene; a scene past it fails and its worker process is replaced. 0: no limit. [default: 300 s plus 0.1 s per MB of input on a GPU, 0.5 s per MB on the CPU]", show_default=False)] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo every scene, even those whose outputs and record are up to date.")] = False,
-    k: opts.K = SimplifyConfig.k,
-    prune_opacity: opts.PruneOpacity = SimplifyConfig.prune_opacity,
-    samples: opts.Samples = SimplifyConfig.samples,
-    seed: opts.Seed = SimplifyConfig.seed,
-    lambda_geo: opts.LambdaGeo = SimplifyConfig.lambda_geo,
-    lambda_app: opts.LambdaApp = SimplifyConfig.lambda_app,
-    cost: opts.Cost = SimplifyConfig.cost,
-    operator: opts.Operator = SimplifyConfig.operator,
+    preset: opts.Preset = "default",
+    k: opts.K = None,
+    prune_opacity: opts.PruneOpacity = None,
+    samples: opts.Samples = None,
+    seed: opts.Seed = None,
+    lambda_geo: opts.LambdaGeo = None,
+    lambda_app: opts.LambdaApp = None,
+    cost: opts.Cost = None,
+    operator: opts.Operator = None,
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing the scene.")] = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
     refine_size: opts.RefineSize = RefineConfig.size,
+    output_format: Annotated[Optional[str], typer.Option("--format", show_default=False, help="Output format: ply (default), compressed-ply, spz, sog or splat.")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
 ) -> None:
@@ -51,19 +53,28 @@ def batch_command(
     of a Slurm array, or a Ray cluster. Finished scenes are skipped when run again; one failing
     scene is reported and the others go on (exit code 1 if any failed)."""
     from .batch import BatchProgress, find_scenes, format_summary, parse_shard, run_batch, select_shard, summary_json
+    from .batch_scenes import OUTPUT_SUFFIXES
     from .budgets import parse_budgets
 
     started = time.perf_counter()
-    config = SimplifyConfig(k, prune_opacity, samples, seed, lambda_geo, lambda_app, cost, operator)
+    config = opts.method_config(
+        preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
+        lambda_app=lambda_app, cost=cost, operator=operator,
+    )
     config.validate()
     budgets = parse_budgets(ratio, count) if ratio is not None or count is not None else None
     shard_index, shard_count = parse_shard(shard)
+    if scene_timeout is not None and not (scene_timeout >= 0 and scene_timeout < float("inf")):
+        raise InputError(f"--scene-timeout must be a number of seconds >= 0, got {scene_timeout}")
     if workers < 1:
         raise InputError(f"--workers must be at least 1, got {workers}")
     if output.exists() and not output.is_dir():
         raise InputError(f"--output {output} is not a directory")
 
-    jobs = find_scenes(input, output, budgets, config, drop_invalid)
+    fmt = output_format or "ply"
+    if fmt not in OUTPUT_SUFFIXES:
+        raise InputError(f"--format {fmt!r}: batch writes one of {', '.join(OUTPUT_SUFFIXES)}")
+    jobs = find_scenes(input, output, budgets, config, drop_invalid, fmt)
     if refine or refine_steps is not None:
         refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size)
         refine_config.validate()
@@ -84,10 +95,17 @@ def batch_command(
     progress = BatchProgress(len(selected), quiet=quiet)
     if shard_count > 1 and not quiet:
         typer.echo(f"nanogs-warp batch: shard {shard_index}/{shard_count}: {len(selected)} of {len(jobs)} scenes", err=True)
-    results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress)
+    results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress, scene_timeout)
     seconds = time.perf_counter() - started
     if json_output:
-        typer.echo(json.dumps(summary_json(results, seconds, (shard_index, shard_count)), indent=2))
+        summary = summary_json(results, seconds, (shard_index, shard_count))
+        for scene in summary["scenes"]:  # full paths, as every --json output
+            scene["input"] = os.path.abspath(scene["input"])
+            for out in scene["outputs"]:
+                out["path"] = os.path.abspath(out["path"])
+        settings = {**vars(config), "devices": devices, "workers": workers, "ray": ray, "drop_invalid": drop_invalid}
+        summary = {"schema": opts.JSON_SCHEMA, "command": "batch", "output": os.path.abspath(output), "settings": settings, **summary}
+        typer.echo(json.dumps(summary, indent=2))
     elif not quiet:
         typer.echo(format_summary(results, seconds))
     sys.stdout.flush()
@@ -106,7 +124,7 @@ def _make_output_dir(output: Path) -> None:
 
 def main() -> None:
     """``python -m nanogs_warp.cli_batch``: the batch command on its own (as ``nanogs-warp batch``)."""
-    from .cli import user_errors
+    from .cli_errors import user_errors
 
     app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None,
                       context_settings={"help_option_names": ["-h", "--help"]})  # fmt: skip

@@ -14,6 +14,7 @@ from typing import Annotated, Optional
 
 import typer
 
+from .cli_options import JSON_SCHEMA
 from .errors import InputError
 
 
@@ -45,23 +46,25 @@ def _finite_or_none(value):
 
 
 def eval_command(
-    reference: Annotated[Path, typer.Argument(help="Reference 3DGS .ply (usually the unsimplified scene).", show_default=False)],
-    tests: Annotated[list[Path], typer.Argument(help="One or more 3DGS .ply files to compare with the reference.", show_default=False)],
+    reference: Annotated[Path, typer.Argument(metavar="REFERENCE", help="Reference scene (usually the unsimplified one), in any format simplify reads.", show_default=False)],
+    tests: Annotated[list[Path], typer.Argument(metavar="TEST", help="One or more scenes (any format simplify reads) to compare with the reference.", show_default=False)],
     views: Annotated[int, typer.Option(help="Number of orbit views (ignored with --cameras).")] = 16,
     size: Annotated[int, typer.Option(help="Image side in pixels: orbit views are square; --cameras views are scaled to this longest side (0 keeps their sizes).")] = 256,
     device: Annotated[str, typer.Option(help="auto (first GPU, else CPU), cpu, cuda or cuda:N.")] = "auto",
-    cameras: Annotated[Optional[Path], typer.Option(help="The INRIA trainer's cameras.json to render from instead of orbit views.", show_default=False)] = None,
+    cameras: Annotated[Optional[Path], typer.Option(metavar="CAMERAS.JSON", help="The INRIA trainer's cameras.json to render from instead of orbit views.", show_default=False)] = None,
     up: Annotated[str, typer.Option(help="World up axis of the orbit views: +x, -x, +y, -y, +z or -z (INRIA/COLMAP scenes are -y).")] = "-y",
-    background: Annotated[str, typer.Option(help="Background colour R,G,B in [0, 1] (or black, white).")] = "0,0,0",
-    images: Annotated[Optional[Path], typer.Option(help="Write reference | test | difference x4 PNGs per view and a contact sheet into this directory (one sub-directory per test scene).", show_default=False)] = None,
+    background: Annotated[str, typer.Option(metavar="R,G,B", help="Background colour R,G,B in [0, 1] (or black, white).")] = "0,0,0",
+    images: Annotated[Optional[Path], typer.Option(metavar="FOLDER", help="Write reference | test | difference x4 PNGs per view and a contact sheet into this directory (one sub-directory per test scene).", show_default=False)] = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print machine-readable results (JSON) instead of the table.")] = False,
+    quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
 ) -> None:
     """Render the reference and each test scene from identical cameras and report PSNR, SSIM,
     foreground PSNR and colour shift (mean and worst view)."""
     from .cameras import load_cameras_json, orbit_cameras, parse_up
     from .device import resolve_device
     from .evaluate import evaluate, format_table, write_images
-    from .ply import load_ply
+    from .io import load_splats
+    from .kernel_cache import EVAL_MODULES, load_kernels
 
     if not tests:
         raise InputError("give at least one test scene to compare with the reference")
@@ -73,34 +76,95 @@ def eval_command(
     parse_up(up)
     target = resolve_device(device)
     for path in [reference, *tests]:
-        if not path.is_file():
+        if not path.exists():
             raise InputError(f"{path}: no such file")
     if images is not None and images.exists() and not images.is_dir():
         raise InputError(f"--images {images}: exists and is not a directory")
+    load_kernels(target, EVAL_MODULES)  # says so in one line when they must be compiled first
 
-    ref_splats = load_ply(reference, device=target)
+    ref_splats = load_splats(reference, device=target)
     if cameras is not None:
         camera_list = load_cameras_json(cameras, size=size or None)
     else:
         camera_list = orbit_cameras(ref_splats, views=views, size=size, up=up)
-    test_splats = [load_ply(path, device=target) for path in tests]
+    test_splats = [load_splats(path, device=target) for path in tests]
     rendered: dict = {}
-    result = evaluate(ref_splats, test_splats, camera_list, target, bg, names=[str(p) for p in tests], images=rendered)
-    result["reference"]["path"] = str(reference)
-    result["cameras"] = str(cameras) if cameras is not None else {"orbit": {"views": views, "size": size, "up": up}}
+    progress = _Progress(sys.stderr.isatty() and not quiet)
+    result = evaluate(ref_splats, test_splats, camera_list, target, bg, names=[str(p) for p in tests], images=rendered,
+                      progress=progress)  # fmt: skip
+    progress.done()
+    labels = scene_labels(tests)
+    result["reference"]["path"] = str(reference.resolve())
+    result["cameras"] = str(cameras.resolve()) if cameras is not None else {"orbit": {"views": views, "size": size, "up": up}}
+    for t, path, label in zip(result["tests"], tests, labels):
+        t["path"] = str(path.resolve())
+        t["label"] = label
+    settings = {"views": len(camera_list), "size": size, "up": up, "background": list(bg), "device": str(target),
+                "cameras": result["cameras"] if cameras is not None else "orbit"}  # fmt: skip
+    result = {"schema": JSON_SCHEMA, "command": "eval", "settings": settings, **result}
     for t in result["tests"]:
         t["identical"] = all(v["psnr"] == math.inf for v in t["views"])
 
     if images is not None:
-        used: set[str] = set()
-        for k, (path, test_images) in enumerate(zip(tests, rendered["tests"])):
-            sub = path.stem if path.stem not in used else f"{path.stem}_{k}"
-            used.add(sub)
-            written = write_images(images / sub, rendered["reference"], test_images, result["view_names"])
-            result["tests"][k]["images"] = str(images / sub)
-            print(f"wrote {len(written)} images to {images / sub}", file=sys.stderr)
+        for k, (label, test_images) in enumerate(zip(labels, rendered["tests"])):
+            folder = images / label.replace("/", "_")
+            t = result["tests"][k]
+            title = [f"REFERENCE {_scene_label(reference)} | {label} | DIFFERENCE ×4",
+                     f"{t['count']:,} SPLATS  PSNR {_number(t['psnr']['mean'], 2)}  SSIM {_number(t['ssim']['mean'], 3)} (MEAN)"]  # fmt: skip
+            written = write_images(folder, rendered["reference"], test_images, result["view_names"], comparison=t, title=title)
+            t["images"] = str(folder.resolve())
+            if not quiet:
+                print(f"wrote {len(written)} images to {folder}", file=sys.stderr)
 
     if json_output:
         typer.echo(json.dumps(_finite_or_none(result), indent=2))
-    else:
+    elif not quiet:
         typer.echo(format_table(result))
+
+
+def _scene_label(path: Path) -> str:
+    return path.name[: -len(".ply")] if path.name.lower().endswith(".ply") else path.name
+
+
+def _number(value, digits: int) -> str:
+    if value is None or math.isnan(value):
+        return "-"
+    return "inf" if math.isinf(value) else f"{value:.{digits}f}"
+
+
+def scene_labels(paths: list[Path]) -> list[str]:
+    """Short, distinct names for the test scenes: the file name without .ply; where names repeat,
+    as many parent folders in front as tell them apart (and a number where nothing does)."""
+    full = [Path(p).resolve() for p in paths]
+    unique = list(dict.fromkeys(full))
+    names = [_scene_label(p) for p in unique]
+    depth = 0
+    while len(set(names)) < len(names) and depth < 64:
+        depth += 1
+        repeated = {name for name in names if names.count(name) > 1}
+        for k, p in enumerate(unique):
+            if names[k] in repeated:
+                names[k] = "/".join([*p.parent.parts[1:][-depth:], _scene_label(p)])
+    of_path = dict(zip(unique, names))
+    labels, seen = [], {}
+    for p in full:  # the same file given twice
+        seen[p] = seen.get(p, 0) + 1
+        labels.append(of_path[p] if seen[p] == 1 else f"{of_path[p]} ({seen[p]})")
+    return labels
+
+
+class _Progress:
+    """One status line on stderr, rewritten; silent unless stderr is a terminal."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+
+    def __call__(self, text: str) -> None:
+        if self.enabled:
+            sys.stderr.write(f"\r{text}\033[K")
+            sys.stderr.flush()
+
+    def done(self) -> None:
+        if self.enabled:
+            sys.stderr.write("\r\033[K")
+            sys.stderr.flush()

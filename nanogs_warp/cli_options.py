@@ -1,5 +1,6 @@
-"""Command-line options shared by ``simplify`` and ``batch``; defaults come from SimplifyConfig.
-The paper's configuration: --operator mpmm --cost idiv --prune-opacity 0.1 --k 16."""
+"""Command-line options shared by ``simplify`` and ``batch``. Method options left unset take the
+preset's value (``--preset default``: SimplifyConfig's defaults; ``--preset paper``: the NanoGS
+paper's configuration, --operator mpmm --cost idiv --prune-opacity 0.1 --k 16)."""
 
 from __future__ import annotations
 
@@ -7,24 +8,36 @@ from typing import Annotated, Optional
 
 import typer
 
-from .refine import RefineConfig
+from .refine_config import RefineConfig
 
-Ratio = Annotated[Optional[str], typer.Option(help="Fraction of the input's splats to keep, in (0, 1]; several as 0.1,0.01,0.001.")]
-Count = Annotated[Optional[str], typer.Option(help="Number of splats to keep; several as 100000,10000.")]
+# The version of every --json output's layout (docs/json.md): raised when a field changes meaning or goes.
+JSON_SCHEMA = 1
+
+Ratio = Annotated[Optional[str], typer.Option(metavar="RATIOS", help="Fraction of the input's splats to keep, in (0, 1]; several as 0.1,0.01,0.001. The output has exactly ceil(ratio x N) splats.")]
+Count = Annotated[Optional[str], typer.Option(metavar="COUNTS", help="Number of splats to keep; several as 100000,10000.")]
 K = Annotated[
     Optional[int],
-    typer.Option("--k", show_default=False, help="Neighbours per splat in the candidate graph [default: 24 below 65,536 splats, 16 from there on]."),
+    typer.Option("--k", metavar="NEIGHBOURS", show_default=False, help="Neighbours per splat in the candidate graph [default: 24 below 65,536 splats, 16 from there on]."),
 ]
-PruneOpacity = Annotated[float, typer.Option(help="Prune splats with opacity below min(this, median opacity) first; 0 disables.")]
-Samples = Annotated[int, typer.Option(help="Monte Carlo samples per edge for the I-divergence.")]
-Seed = Annotated[int, typer.Option(help="Seed of the common random numbers.")]
-LambdaGeo = Annotated[float, typer.Option(help="Weight of the geometric (I-divergence) cost.")]
-LambdaApp = Annotated[float, typer.Option(help="Weight of the appearance cost ||f_i - f_j||^2.")]
-Cost = Annotated[str, typer.Option(help="Cost objective: runnalls (closed-form mixture-reduction bound), idiv (the paper's Monte Carlo I-divergence) or mse (the paper's ablation surrogate).")]
-Operator = Annotated[str, typer.Option(help="Merge operator: coverage (keeps the pair's coverage), area (opacity x surface-area weights) or mpmm (the paper's mass-preserving moment matching).")]
-DropInvalid = Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing.")]
+Preset = Annotated[str, typer.Option(metavar="PRESET", help="Method configuration: default (the measured best) or paper (the NanoGS paper's: mpmm, idiv, prune 0.1, k 16); the options below override it.")]
+PruneOpacity = Annotated[Optional[float], typer.Option(metavar="OPACITY", show_default=False, help="Prune splats with opacity below min(this, median opacity) first; 0 disables [default: 0].")]
+Samples = Annotated[Optional[int], typer.Option(metavar="SAMPLES", show_default=False, help="Monte Carlo samples per edge; used only by --cost idiv (the default cost draws none) [default: 1].")]
+Seed = Annotated[Optional[int], typer.Option(metavar="SEED", show_default=False, help="Seed of the common random numbers; used only by --cost idiv (the default cost is deterministic) [default: 0].")]
+LambdaGeo = Annotated[Optional[float], typer.Option(metavar="WEIGHT", show_default=False, help="Weight of the geometric term of the cost: for the default field cost, the change of the opacity field a merge makes; for runnalls the merged Gaussian's extra volume (Runnalls' bound), for idiv the I-divergence, for mse the mean and covariance distance [default: 1].")]
+LambdaApp = Annotated[Optional[float], typer.Option(metavar="WEIGHT", show_default=False, help="Weight of the appearance term: for the default field cost, the change of the colour field (SH, averaged over view directions); for the other costs the SH difference ||f_i - f_j||^2 (runnalls scales it by 4 pi (1 - pi), so absorbing a light splat into a heavy one is cheap) [default: 1].")]
+Cost = Annotated[Optional[str], typer.Option(metavar="COST", show_default=False, help="Cost objective: field (change of the projected emitted field under the operator's own merge, for mpmm and coverage; default), runnalls (closed-form mixture-reduction bound), idiv (the paper's Monte Carlo I-divergence) or mse (the paper's ablation surrogate).")]
+Operator = Annotated[Optional[str], typer.Option(metavar="OPERATOR", show_default=False, help="Merge operator: coverage (keeps the pair's coverage; default), area (opacity x surface-area weights) or mpmm (the paper's mass-preserving moment matching).")]
+DropInvalid = Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing (says how many and why). Opacity logits of +-Inf (alpha 1 or 0) are valid.")]
+Format = Annotated[Optional[str], typer.Option("--format", metavar="FORMAT", show_default=False, help="Output format, whatever the output's name: ply, compressed-ply, spz, sog, splat or lod [default: by the output's name, else ply].")]
 Json = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]
 Quiet = Annotated[bool, typer.Option("-q", "--quiet", help="Print nothing but errors (and --json).")]
+
+
+def method_config(preset: str, **options):
+    """The SimplifyConfig of ``preset`` with every option that was given (not None)."""
+    from .config import SimplifyConfig
+
+    return SimplifyConfig.preset(preset, **{name: value for name, value in options.items() if value is not None})
 Refine = Annotated[bool, typer.Option("--refine", help=f"Refine each output toward the input's appearance ({RefineConfig.steps} steps of Adam on renders from training cameras; the count is kept).")]
 RefineSteps = Annotated[Optional[int], typer.Option(help=f"Refinement steps (implies --refine) [default: {RefineConfig.steps}].", show_default=False)]
 RefineSize = Annotated[int, typer.Option(help="Longest side in pixels of the training views of refinement.")]

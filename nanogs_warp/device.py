@@ -1,4 +1,4 @@
-"""Warp start-up and the user's choice of device."""
+"""Warp start-up and the user's choice of device (Warp is imported only by the functions that need it)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import ctypes
 import os
 import sys
 import tempfile
-
-import warp as wp
+import threading
+from collections.abc import Callable
 
 from .errors import InputError
 
@@ -16,10 +16,25 @@ from .errors import InputError
 _NO_DRIVER_NOTICE = "Could not find or load the NVIDIA CUDA driver"
 
 
+def quiet_warp() -> None:
+    """Warp's start-up banner and module-load lines off (on with NANOGS_DEBUG=1), and the kernel
+    cache at $NANOGS_WARP_CACHE when that is set and no directory was chosen before."""
+    import warp as wp
+
+    from .kernel_cache import cache_dir_from_environment, use_cache_dir
+
+    wp.config.log_level = wp.LOG_INFO if os.environ.get("NANOGS_DEBUG") else wp.LOG_WARNING
+    if wp.config.kernel_cache_dir is None:
+        use_cache_dir(cache_dir_from_environment())
+
+
 def init_warp() -> None:
-    """Initialises Warp once, quietly: the expected no-driver notice is dropped, anything else
-    Warp's native code prints is passed on to stderr."""
-    wp.config.log_level = wp.LOG_WARNING
+    """Initialises Warp once, quietly (NANOGS_DEBUG=1: with Warp's own messages): the expected
+    no-driver notice is dropped, anything else Warp's native code prints is passed on to stderr.
+    The kernel cache is $NANOGS_WARP_CACHE when set and no directory was chosen before."""
+    import warp as wp
+
+    quiet_warp()
     sys.stderr.flush()
     saved = os.dup(2)
     with tempfile.TemporaryFile(mode="w+b") as captured:
@@ -50,8 +65,10 @@ def keep_freed_host_memory() -> bool:
     return bool(mallopt(m_mmap_threshold, 1 << 30)) and bool(mallopt(m_trim_threshold, (1 << 31) - 1))
 
 
-def resolve_device(name: str) -> wp.Device:
-    """``auto`` (the first GPU, else the CPU), ``cpu``, ``cuda`` or ``cuda:N``."""
+def resolve_device(name: str):
+    """``auto`` (the first GPU, else the CPU), ``cpu``, ``cuda`` or ``cuda:N`` -> a Warp device."""
+    import warp as wp
+
     init_warp()
     name = name.strip().lower()
     gpus = wp.get_cuda_device_count()
@@ -67,3 +84,34 @@ def resolve_device(name: str) -> wp.Device:
             raise InputError(f"--device {name}: this machine has {gpus} CUDA GPU(s), cuda:0 to cuda:{gpus - 1}")
         return wp.get_device(f"cuda:{int(ordinal)}")
     raise InputError(f"--device {name!r}: expected auto, cpu, cuda or cuda:N")
+
+
+class WarpStart:
+    """Imports and initialises Warp and resolves ``--device`` on a background thread (after
+    ``prepare``, e.g. importing the pipeline), so that a command can read its input meanwhile:
+    half a second to a second of start-up (more with CUDA) hidden behind the read. ``device()``
+    waits and returns the device, or raises what the thread raised; call ``wait()`` before
+    reporting an error of your own (the thread briefly redirects stderr while Warp starts)."""
+
+    def __init__(self, name: str, prepare: Callable[[], None] | None = None):
+        self._device = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, args=(name, prepare), name="nanogs-warp-start", daemon=True)
+        self._thread.start()
+
+    def _run(self, name: str, prepare) -> None:
+        try:
+            if prepare is not None:
+                prepare()
+            self._device = resolve_device(name)
+        except BaseException as e:  # noqa: BLE001 - handed to the caller by device()
+            self._error = e
+
+    def wait(self) -> None:
+        self._thread.join()
+
+    def device(self):
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._device

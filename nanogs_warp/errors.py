@@ -3,3 +3,8 @@
 
 class InputError(Exception):
     """Bad input or an impossible request: the message is shown to the user as one line."""
+
+
+class NanogsWarning(UserWarning):
+    """Something the user should know that does not stop the work (e.g. PLY elements dropped): the
+    commands show it as one line on stderr."""

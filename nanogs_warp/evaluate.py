@@ -20,6 +20,7 @@ import warp as wp
 from . import metrics
 from .cameras import Camera
 from .errors import InputError
+from .glyphs import GLYPH_HEIGHT, draw_text, text_width
 from .render import render_views
 from .splats import SplatSet
 
@@ -96,13 +97,15 @@ def evaluate(
     background=(0.0, 0.0, 0.0),
     names: Sequence[str] | None = None,
     images: dict | None = None,
+    progress=None,
 ) -> dict:
     """Renders ``reference`` and each of ``tests`` from ``cameras`` on ``device`` (default: the
     reference's) and compares them. Returns a dict: ``reference`` {count, sh_degree}, ``views``,
     ``view_names``, ``background``, ``device``, ``seconds`` and ``tests``, a list with per test scene
     {name, count, sh_degree, ratio, psnr, ssim, fg_psnr, colour_shift, views} (see ``compare_images``).
     Pass a dict as ``images`` to receive the rendered images: ``reference`` (list of (H, W, 3)) and
-    ``tests`` (one such list per test scene)."""
+    ``tests`` (one such list per test scene). ``progress`` (optional) is called with a short line
+    before each scene is rendered."""
     cameras = list(cameras)
     if not cameras:
         raise InputError("no cameras to evaluate with")
@@ -112,10 +115,14 @@ def evaluate(
     if names is None:
         names = [f"test_{k}" for k in range(len(tests))]
     started = time.perf_counter()
+    if progress is not None:
+        progress(f"rendering the reference, {len(cameras)} views")
     reference_images = render_all(reference.to(device), cameras, background)
     results = []
     all_test_images = []
-    for name, test in zip(names, tests):
+    for k, (name, test) in enumerate(zip(names, tests)):
+        if progress is not None:
+            progress(f"rendering test scene {k + 1}/{len(tests)}: {name}")
         test_images = render_all(test.to(device), cameras, background)
         all_test_images.append(test_images)
         results.append(
@@ -223,18 +230,52 @@ def comparison_strip(reference: np.ndarray, test: np.ndarray, gap: int = 2) -> n
     return strip
 
 
-def contact_sheet(strips: Sequence[np.ndarray], gap: int = 4) -> np.ndarray:
-    """Strips on a grid of ceil(sqrt(V)) columns, each cell the size of the largest strip."""
+LABEL_COLOUR = (0, 0, 0)
+WORST_COLOUR = (220, 0, 0)
+
+
+def contact_sheet(
+    strips: Sequence[np.ndarray],
+    gap: int = 4,
+    labels: Sequence[str] | None = None,
+    worst: int | None = None,
+    title: Sequence[str] = (),
+) -> np.ndarray:
+    """Strips on a grid of ceil(sqrt(V)) columns, each cell the size of the largest strip. With
+    ``labels``, a line of text under each strip; strip ``worst`` is framed and labelled in red; the
+    ``title`` lines head the sheet."""
     count = len(strips)
     columns = max(1, math.ceil(math.sqrt(count)))
     rows = math.ceil(count / columns)
-    cell_h = max(s.shape[0] for s in strips)
     cell_w = max(s.shape[1] for s in strips)
-    sheet = np.full((rows * cell_h + (rows - 1) * gap, columns * cell_w + (columns - 1) * gap, 3), 255, np.uint8)
+    scale = 2 if cell_w >= 2 * text_width("VIEW_000  PSNR 00.00  SSIM 0.000  WORST") + 8 else 1
+    line = (GLYPH_HEIGHT + 4) * scale
+    label_h = line if labels is not None else 0
+    cell_h = max(s.shape[0] for s in strips) + label_h
+    title_h = len(title) * line + (gap if title else 0)
+    width = columns * cell_w + (columns - 1) * gap
+    sheet = np.full((title_h + rows * cell_h + (rows - 1) * gap, width, 3), 255, np.uint8)
+    for t, text in enumerate(title):
+        draw_text(sheet, text, 2, 2 * scale + t * line, LABEL_COLOUR, scale)
     for k, strip in enumerate(strips):
-        y, x = (k // columns) * (cell_h + gap), (k % columns) * (cell_w + gap)
+        y, x = title_h + (k // columns) * (cell_h + gap), (k % columns) * (cell_w + gap)
         sheet[y : y + strip.shape[0], x : x + strip.shape[1]] = strip
+        colour = WORST_COLOUR if k == worst else LABEL_COLOUR
+        if labels is not None:
+            text = labels[k] + ("  WORST" if k == worst else "")
+            draw_text(sheet, text, x + 1, y + strip.shape[0] + 2 * scale, colour, scale)
+        if k == worst:  # a frame in the gap around the cell
+            y0, y1, x0, x1 = max(y - 2, 0), min(y + cell_h + 1, sheet.shape[0]), max(x - 2, 0), min(x + cell_w + 1, width)
+            sheet[y0:y1, x0 : x0 + 2] = colour
+            sheet[y0:y1, x1 - 2 : x1] = colour
+            sheet[y0 : y0 + 2, x0:x1] = colour
+            sheet[y1 - 2 : y1, x0:x1] = colour
     return sheet
+
+
+def view_label(name: str, psnr: float, ssim: float) -> str:
+    """``VIEW_003  PSNR 23.41  SSIM 0.812`` (inf for identical views)."""
+    return f"{name}  PSNR {_fmt(psnr, 2)}  SSIM {_fmt(ssim, 3)}"
 
 
 def write_images(
@@ -242,9 +283,14 @@ def write_images(
     reference_images: Sequence[np.ndarray],
     test_images: Sequence[np.ndarray],
     names: Sequence[str],
+    comparison: dict | None = None,
+    title: Sequence[str] = (),
 ) -> list[Path]:
     """Writes ``<name>.png`` per view (reference | test | difference x 4) and ``contact_sheet.png``
-    (every view's strip on a grid) into ``directory`` (created if missing). Returns the paths."""
+    (every view's strip on a grid) into ``directory`` (created if missing). With ``comparison``
+    (``compare_images``' result for these images), each cell of the sheet is labelled with its view,
+    PSNR and SSIM and the worst view by PSNR is marked; ``title`` lines head the sheet (the scene
+    names). Returns the paths."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     written, strips, used = [], [], {"contact_sheet"}
@@ -259,8 +305,15 @@ def write_images(
         write_png(path, strip)
         written.append(path)
     if strips:
+        labels, worst = None, None
+        if comparison is not None:
+            views = comparison["views"]
+            labels = [view_label(v["name"], v["psnr"], v["ssim"]) for v in views]
+            worst_name = comparison["psnr"]["worst_view"]
+            identical = all(v["psnr"] == math.inf for v in views)
+            worst = None if identical else next((k for k, v in enumerate(views) if v["name"] == worst_name), None)
         path = directory / "contact_sheet.png"
-        write_png(path, contact_sheet(strips))
+        write_png(path, contact_sheet(strips, labels=labels, worst=worst, title=title))
         written.append(path)
     return written
 

@@ -1,4 +1,4 @@
-"""``nanogs-warp info``: what a 3DGS PLY file holds, including the values that would fail a load."""
+"""``nanogs-warp info``: what a splat file holds, including the values that would fail a load."""
 
 from __future__ import annotations
 
@@ -6,23 +6,26 @@ from pathlib import Path
 
 import numpy as np
 
-from .ply import check_values, read_ply_arrays, sh_degree_for_rest_count
+from .io import read_splat_arrays
+from .ply import check_values, sh_degree_for_rest_count
 
 
 def scene_info(path) -> dict:
-    """Facts about a 3DGS PLY file as a JSON-ready dict.
+    """Facts about a splat file (any format :func:`nanogs_warp.io.load_splats` reads) as a JSON-ready dict.
 
     Keys: ``file``, ``file_bytes``, ``format``, ``count``, ``sh_degree``, ``properties`` (list of
     ``{"name", "dtype"}`` in file order), ``extra_properties``, ``bbox`` (``min``/``max`` xyz over
     rows with finite means), ``opacity`` (sigmoid of the logits: min, median, mean, max),
     ``scale`` (exp of the log scales over all three axes: min, median, max), ``nonfinite``
     (property -> rows with NaN/Inf, extras included, only non-zero counts), ``nonfinite_rows``
-    (rows with NaN/Inf in a 3DGS property, which a load rejects), ``zero_norm_quaternions``,
+    (rows with NaN/Inf in a 3DGS property, which a load rejects), ``infinite_opacity``
+    (``{"+inf": rows, "-inf": rows}``: opacity logits of alpha 1 and 0, valid), ``zero_norm_quaternions``,
     ``comments``, ``obj_info`` and ``other_elements`` (``{"name", "count", "properties"}``).
     Statistics skip non-finite values and are None when no finite value is left.
-    Raises InputError for files that are not readable 3DGS PLY files; never for bad values.
+    For non-PLY formats ``properties`` lists the decoded attributes in INRIA order.
+    Raises InputError for files that are not readable splat files; never for bad values.
     """
-    data = read_ply_arrays(path)
+    data = read_splat_arrays(path)
     a = data.arrays
     layout = data.layout
     model = check_values(a)
@@ -30,7 +33,8 @@ def scene_info(path) -> dict:
     means = a["means"]
     finite_means = means[np.isfinite(means).all(axis=1)]
     with np.errstate(all="ignore"):
-        logits = _finite(a["opacities"]).astype(np.float64)
+        logits = a["opacities"].reshape(-1).astype(np.float64)
+        logits = logits[~np.isnan(logits)]  # +-Inf count: alpha 1 and 0
         opacity = np.exp(-np.logaddexp(0.0, -logits))  # sigmoid without overflow
         scales = np.exp(_finite(a["log_scales"]).astype(np.float64))
     return {
@@ -49,6 +53,7 @@ def scene_info(path) -> dict:
         "scale": _stats(scales, ("min", "median", "max")),
         "nonfinite": with_extras.nonfinite_by_property,
         "nonfinite_rows": int(np.count_nonzero(model.nonfinite_rows)),
+        "infinite_opacity": {"+inf": model.infinite_opacities[0], "-inf": model.infinite_opacities[1]},
         "zero_norm_quaternions": int(np.count_nonzero(model.zero_quat_rows)),
         "comments": list(layout.comments),
         "obj_info": list(layout.obj_info),
@@ -85,6 +90,9 @@ def format_info(info: dict) -> str:
         lines.append(f"NaN/Inf     {info['nonfinite_rows']:,} splats; per property: {shown}")
     else:
         lines.append("NaN/Inf     none")
+    pos, neg = info["infinite_opacity"]["+inf"], info["infinite_opacity"]["-inf"]
+    if pos or neg:
+        lines.append(f"opacity Inf {pos:,} logits +Inf (alpha 1), {neg:,} -Inf (alpha 0); valid")
     lines.append(f"zero quats  {info['zero_norm_quaternions']:,}")
     for e in info["other_elements"]:
         lines.append(f"element     {e['name']} ({e['count']:,} rows: {', '.join(e['properties'])})")

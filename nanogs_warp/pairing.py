@@ -9,11 +9,31 @@ from typing import TYPE_CHECKING
 import numpy as np
 import warp as wp
 
+from .errors import InputError
 from .kernels import pairing as kernels
 from .parallel import MIN_ROWS_TO_SPLIT, cpu_workers, launch_rows_from, worker_pool
 
 if TYPE_CHECKING:
     from .topology import Edges
+
+
+# The sequential pairing sorts the edges in buckets of twice their length (the radix sort's second
+# buffer), indexed with int32 as Warp's array lengths are: 2 E must stay below this. A module
+# constant so that tests can lower it.
+INDEX_LIMIT = 2**31
+
+
+def check_sequential_fits(edge_count: int, vertex_count: int, limit: int | None = None) -> None:
+    """Refuses ``edge_count`` edges whose sort buffers (2 E slots) would not fit int32 indices; the
+    message says about how many splats of this scene (edges per splat as here) fit."""
+    limit = INDEX_LIMIT if limit is None else limit
+    if 2 * edge_count >= limit:
+        fits = (limit - 1) // 2 * vertex_count // max(edge_count, 1)
+        raise InputError(
+            f"{vertex_count:,} splats give {edge_count:,} candidate edges; the CPU pairing sorts 2 x that many, "
+            f"more than the {limit - 1:,} that 32-bit indices address: about {fits:,} splats of this scene fit "
+            f"on the CPU (a smaller --k or a GPU fits more)"
+        )
 
 
 @dataclass
@@ -44,6 +64,7 @@ def select_pairs(edges: Edges, costs: wp.array, vertex_count: int, cap: int, met
     pair_i = wp.full(cap, -1, dtype=wp.int32, device=device)
     pair_j = wp.full(cap, -1, dtype=wp.int32, device=device)
     if method == "sequential":
+        check_sequential_fits(edges.count, vertex_count)
         count = _greedy_in_rank_order(edges, costs, vertex_count, cap, pair_i, pair_j)
     else:
         count = _locally_dominant_pairs(edges, costs, vertex_count, cap, pair_i, pair_j)

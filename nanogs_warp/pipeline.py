@@ -3,78 +3,30 @@ kNN graph -> edge costs -> disjoint greedy pairs -> merge, until the target coun
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import numbers
+import warnings
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import warp as wp
 
 from .compact import remove_rows
-from .cost import COSTS
-from .errors import InputError
+from .config import K_LARGE_SCENE, K_SMALL_SCENE, PRESETS, SMALL_SCENE_SPLATS, SimplifyConfig, exact_ratio, target_count  # noqa: F401
+from .cost import COSTS, FieldCost
+from .errors import InputError, NanogsWarning
 from .operators import OPERATORS
 from .pairing import select_pairs
 from .prune import prune_low_opacity
-from .splats import SplatSet
+from .splats import PlyLayout, SplatSet
 from .timing import StageClock, no_clock
 from .topology import KnnTopology
 
 
-# Neighbours per splat when k is not set: more for small scenes, where they are cheap (docs/quality.md:
-# the one shared scene below the threshold, 4,721 splats, needs 24 at rho = 0.1 to beat the top-k
-# baseline; the four above it, 91k to 500k splats, measure the same mean PSNR at 16 and 24, and 16 is
-# about 1.3x faster). The measurements put the threshold anywhere from 4,722 to 90,854 splats.
-SMALL_SCENE_SPLATS = 65_536
-K_SMALL_SCENE = 24
-K_LARGE_SCENE = 16
-
-
-@dataclass(frozen=True)
-class SimplifyConfig:
-    """Every constant of the method.
-
-    The defaults are the configuration with the best measured mean PSNR over the shared scenes and
-    budgets (docs/quality.md): the coverage merge operator, the Runnalls cost, no opacity pruning
-    and k = None: 24 neighbours below 65,536 splats, 16 from there on. ``SimplifyConfig.paper()`` is
-    the NanoGS paper's configuration.
-    """
-
-    k: int | None = None
-    prune_opacity: float = 0.0
-    samples: int = 1
-    seed: int = 0
-    lambda_geo: float = 1.0
-    lambda_app: float = 1.0
-    cost: str = "runnalls"
-    operator: str = "coverage"
-
-    @staticmethod
-    def paper(**overrides) -> SimplifyConfig:
-        """The paper's configuration: MPMM, Monte Carlo I-divergence, pruning at 0.1, k = 16."""
-        return SimplifyConfig(**{"k": 16, "prune_opacity": 0.1, "cost": "idiv", "operator": "mpmm", **overrides})
-
-    def neighbours(self, splat_count: int) -> int:
-        """k for a scene of ``splat_count`` splats (after pruning): k itself, or when unset 24 below
-        SMALL_SCENE_SPLATS splats and 16 from there on."""
-        if self.k is not None:
-            return self.k
-        return K_SMALL_SCENE if splat_count < SMALL_SCENE_SPLATS else K_LARGE_SCENE
-
-    def validate(self) -> None:
-        if self.k is not None and not 1 <= self.k <= KnnTopology.MAX_K:
-            raise InputError(f"--k must be between 1 and {KnnTopology.MAX_K}, got {self.k}")
-        if not 0.0 <= self.prune_opacity <= 1.0:
-            raise InputError(f"--prune-opacity must be in [0, 1], got {self.prune_opacity}")
-        if not 1 <= self.samples <= 1024:
-            raise InputError(f"--samples must be between 1 and 1024, got {self.samples}")
-        if self.cost not in COSTS:
-            raise InputError(f"unknown cost {self.cost!r}; choose one of {', '.join(COSTS)}")
-        if self.operator not in OPERATORS:
-            raise InputError(f"unknown operator {self.operator!r}; choose one of {', '.join(OPERATORS)}")
-        for name in ("lambda_geo", "lambda_app"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}")
+# The kNN table (N x k neighbour slots) and the edge offsets are indexed with int32, as Warp's
+# array lengths are: N k must stay below this. A module constant so that tests can lower it.
+INDEX_LIMIT = 2**31
 
 
 @dataclass(frozen=True)
@@ -87,11 +39,42 @@ class PassReport:
     edges: int
 
 
-def target_count(input_count: int, ratio: float) -> int:
-    """N_tgt = max(1, ceil(ratio * N_0))."""
-    if not (0.0 < ratio <= 1.0):
-        raise InputError(f"ratio must be in (0, 1], got {ratio}")
-    return max(1, math.ceil(ratio * input_count))
+def check_index_limits(splat_count: int, k: int, limit: int | None = None) -> None:
+    """Refuses a scene whose kNN graph would not fit int32 indices: N k neighbour slots must be
+    below ``limit`` (default INDEX_LIMIT, 2^31). The message says how many splats fit at this k."""
+    limit = INDEX_LIMIT if limit is None else limit
+    slots = splat_count * k
+    if slots >= limit:
+        fits = (limit - 1) // k
+        raise InputError(
+            f"{splat_count:,} splats x {k} neighbours = {slots:,} neighbour slots, more than the {limit - 1:,} "
+            f"that 32-bit indices address: at k = {k} at most {fits:,} splats fit (a smaller --k fits more; "
+            f"or split the scene)"
+        )
+
+
+# Other PLY elements that refer to vertices by row (meshes' faces and edges): simplification renumbers
+# the vertices, so these would point at the wrong splats.
+_VERTEX_INDEX_PROPERTIES = {"vertex_indices", "vertex_index", "vertex1", "vertex2", "vertex"}
+_VERTEX_INDEXED_ELEMENTS = {"face", "edge", "tristrips"}
+
+
+def without_vertex_indexed(layout: PlyLayout | None) -> PlyLayout | None:
+    """``layout`` without the other elements that index vertices (``face``, ``edge``, ``tristrips``
+    or any element with a ``vertex_indices``-like property), with a one-line warning naming them;
+    ``layout`` itself when it has none."""
+    if layout is None:
+        return None
+    stale = [
+        e for e in layout.other_elements
+        if e.name in _VERTEX_INDEXED_ELEMENTS or any(p.name in _VERTEX_INDEX_PROPERTIES for p in e.properties)
+    ]  # fmt: skip
+    if not stale:
+        return layout
+    names = ", ".join(f"'{e.name}' ({e.count:,} rows)" for e in stale)
+    warnings.warn(f"dropped PLY element(s) {names}: they index vertices, which simplification renumbers",
+                  NanogsWarning, stacklevel=3)  # fmt: skip
+    return replace(layout, other_elements=[e for e in layout.other_elements if e not in stale])
 
 
 def simplify_progressively(
@@ -111,13 +94,17 @@ def simplify_progressively(
     if not targets or targets[-1] < 1 or targets[0] > splats.count:
         raise InputError(f"target counts must be between 1 and the input's {splats.count} splats, got {targets}")
     cost = COSTS[config.cost](config.lambda_geo, config.lambda_app, config.samples, config.seed)
+    if isinstance(cost, FieldCost):
+        cost = dataclasses.replace(cost, operator=config.operator)  # it scores the operator's own merge
     merge = OPERATORS[config.operator]()
 
     stage = clock.stage if clock is not None else no_clock
 
     with stage("prune"):
         current = prune_low_opacity(splats, config.prune_opacity, keep_at_least=targets[0])
+    renumbered_layout = None  # the layout of outputs whose rows are not the input's
     topology = KnnTopology(config.neighbours(current.count))
+    check_index_limits(current.count, min(topology.k, max(current.count - 1, 0)))
     pass_index = 0
     for target in targets:
         while current.count > target:
@@ -129,7 +116,8 @@ def simplify_progressively(
                 costs = cost(current, edges, pass_index)
             edge_count = edges.count
             with stage("pairing"):
-                pairs = select_pairs(edges, costs, n, cap=n - target)
+                cap = min(n - target, max(1, math.ceil(config.pass_fraction * n)))
+                pairs = select_pairs(edges, costs, n, cap=cap)
                 del edges, costs
             if pairs.count == 0:  # cannot happen with n >= 2 (a kNN graph has edges); guards the loop
                 raise RuntimeError(f"no merge possible at {n} splats")
@@ -142,24 +130,59 @@ def simplify_progressively(
             current = merged
             del pairs, destination, merged  # free this pass's scratch before the next kNN
             pass_index += 1
+        if current is not splats:  # pruned or merged: rows renumbered
+            if renumbered_layout is None:
+                renumbered_layout = without_vertex_indexed(splats.layout)
+            if renumbered_layout is not current.layout:
+                current = replace(current, layout=renumbered_layout)
         yield target, current
 
 
 def simplify(
     splats: SplatSet,
-    ratio: float | None = None,
-    count: int | None = None,
+    ratio: float | str | Sequence[float | str] | None = None,
+    count: int | Sequence[int] | None = None,
     device=None,
     config: SimplifyConfig = SimplifyConfig(),
-) -> SplatSet:
-    """Simplifies ``splats`` to ``count`` splats, or to max(1, ceil(ratio * N)).
+    *,
+    ratios: Sequence[float | str] | None = None,
+    counts: Sequence[int] | None = None,
+) -> SplatSet | list[SplatSet]:
+    """Simplifies ``splats`` to ``count`` splats, or to max(1, ceil(ratio * N)) (exactly: the ratio
+    as written, a float through its shortest repr).
 
-    ``device`` is where the work runs ("cpu", "cuda:0", ...; None: the splats' own device); the
-    result stays there.
+    Several budgets (``ratio=[0.1, 0.01]``, ``ratios=...``, ``count=[5000, 500]`` or ``counts=...``)
+    continue one progressive merge, as the command line does, and give a list of splat sets in the
+    order the budgets were given. ``device`` is where the work runs ("auto", "cpu", "cuda",
+    "cuda:0", a ``wp.Device``; None: the splats' own device); the results stay there. A device that
+    is not on this machine raises InputError.
     """
+    if ratios is not None:
+        if ratio is not None:
+            raise InputError("give ratio or ratios, not both")
+        ratio = list(ratios)
+    if counts is not None:
+        if count is not None:
+            raise InputError("give count or counts, not both")
+        count = list(counts)
     if (ratio is None) == (count is None):
         raise InputError("give exactly one of ratio or count")
-    target = target_count(splats.count, ratio) if ratio is not None else int(count)
+    several = not isinstance(ratio if ratio is not None else count, (str, numbers.Number))
+    budgets = list(ratio if ratio is not None else count) if several else [ratio if ratio is not None else count]
+    if not budgets:
+        raise InputError("give at least one budget")
+    if ratio is not None:
+        targets = [target_count(splats.count, r) for r in budgets]
+    else:
+        targets = []
+        for c in budgets:
+            if isinstance(c, bool) or int(c) != c:
+                raise InputError(f"count must be a whole number, got {c!r}")
+            targets.append(int(c))
+    if isinstance(device, str):
+        from .device import resolve_device
+
+        device = resolve_device(device)
     on_device = splats.to(wp.get_device(device) if device is not None else splats.device)
-    _, result = next(simplify_progressively(on_device, [target], config))
-    return result
+    results = dict(simplify_progressively(on_device, targets, config))
+    return [results[t] for t in targets] if several else results[targets[0]]

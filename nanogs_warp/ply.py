@@ -14,10 +14,10 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import plyfile
-import warp as wp
 
 from .errors import InputError
 from .ply_header import (
@@ -40,7 +40,10 @@ from .ply_header import (
 )
 from .ply_write import atomic_write, output_properties
 from .ply_write import write_ply_stream as _write_ply_stream  # by this name: the tests patch it here
-from .splats import PlyLayout, SplatSet
+from .ply_layout import PlyLayout
+
+if TYPE_CHECKING:
+    from .splats import SplatSet
 
 DROP_HINT = "load with drop_invalid (CLI: --drop-invalid) to drop them"
 
@@ -49,29 +52,69 @@ DROP_HINT = "load with drop_invalid (CLI: --drop-invalid) to drop them"
 # Public API
 
 
-def load_ply(path, device="cpu", drop_invalid: bool = False) -> SplatSet:
+def load_ply(path, device="cpu", drop_invalid: bool = False, on_drop=None, digest=None) -> SplatSet:
     """Reads a 3DGS PLY file into a :class:`SplatSet` on ``device`` with its layout filled in.
 
     Quaternions are normalised (left bit-exact when already unit to float32 precision, so that
     load -> save -> load is bitwise stable). Rows with NaN/Inf in a 3DGS property or a zero-norm
-    quaternion raise :class:`InputError`, or are dropped when ``drop_invalid`` is true.
+    quaternion raise :class:`InputError`, or are dropped when ``drop_invalid`` is true (then
+    ``on_drop``, if given, is called with one line saying how many rows went and why). Opacity
+    logits of +Inf (alpha = 1) and -Inf (alpha = 0) are valid: see :func:`saturate_opacity_logits`.
+    ``digest`` (a :mod:`hashlib` object) is fed every byte of the file, in order, as it is read.
     """
-    data = read_ply_arrays(path)
-    name = Path(path).name
-    a = data.arrays
+    arrays, layout = read_splats(path, drop_invalid, digest, on_drop)
+    return _to_splat_set(arrays, layout, device)
+
+
+def read_splats(path, drop_invalid: bool = False, digest=None, on_drop=None) -> tuple[dict[str, np.ndarray], PlyLayout]:
+    """load_ply's part on the host, without Warp: the checked host arrays (``PlyArrays`` names,
+    quaternions normalised) and the layout; ``splats_from_host`` makes them a :class:`SplatSet`."""
+    data = read_ply_arrays(path, digest)
+    a = checked_rows(data.arrays, Path(path).name, drop_invalid, on_drop)
+    a["rotations"] = normalize_quaternions(a["rotations"])
+    return a, data.layout
+
+
+def splats_from_host(arrays: dict[str, np.ndarray], layout: PlyLayout, device="cpu") -> SplatSet:
+    """A :class:`SplatSet` on ``device`` from :func:`read_splats`' arrays (shared, not copied, on
+    the CPU)."""
+    return _to_splat_set(arrays, layout, device)
+
+
+def checked_rows(a: dict[str, np.ndarray], name: str, drop_invalid: bool, on_drop=None) -> dict[str, np.ndarray]:
+    """The host arrays with invalid rows refused (InputError) or dropped, and infinite opacity
+    logits saturated; shared by every format's reader."""
+    count = a["means"].shape[0]
     check = check_values(a)
     bad = check.nonfinite_rows | check.zero_quat_rows
     n_bad = int(np.count_nonzero(bad))
     if n_bad:
         what = _describe_invalid(check)
         if not drop_invalid:
-            raise InputError(f"{name}: {n_bad} of {data.count} splats are invalid ({what}); {DROP_HINT}")
-        if n_bad == data.count:
-            raise InputError(f"{name}: all {data.count} splats are invalid ({what}); none left after dropping them")
+            raise InputError(f"{name}: {n_bad} of {count} splats are invalid ({what}); {DROP_HINT}")
+        if n_bad == count:
+            raise InputError(f"{name}: all {count} splats are invalid ({what}); none left after dropping them")
         keep = ~bad
         a = {k: v[keep] for k, v in a.items()}
-    a["rotations"] = normalize_quaternions(a["rotations"])
-    return _to_splat_set(a, data.layout, device)
+        if on_drop is not None:
+            on_drop(f"{name}: dropped {n_bad} of {count} splats ({what})")
+    a["opacities"] = saturate_opacity_logits(a["opacities"])
+    return a
+
+
+def saturate_opacity_logits(logits: np.ndarray) -> np.ndarray:
+    """Opacity logits with +Inf / -Inf (alpha exactly 1 / 0) replaced by +/- the largest float32.
+
+    The activated opacity is the same (sigmoid gives exactly 1 and 0 in float32), but the merge and
+    cost kernels' log-sigmoid arithmetic stays finite: two -Inf logits would make the pair's mass
+    weights 0/0. Finite logits are returned bit for bit unchanged.
+    """
+    infinite = np.isinf(logits)
+    if not infinite.any():
+        return logits
+    out = np.array(logits, dtype=np.float32, copy=True)
+    out[infinite] = np.copysign(np.finfo(np.float32).max, out[infinite])
+    return out
 
 
 def save_ply(splats: SplatSet, path) -> None:
@@ -84,14 +127,27 @@ def save_ply(splats: SplatSet, path) -> None:
     vertex element. The data goes to a temporary file beside ``path`` that then replaces it, so a
     failure never leaves a partial file and never touches an existing one.
     """
-    host = splats.to_numpy()
+    host = _host_arrays(splats)
     props = output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1])
     atomic_write(Path(path), lambda stream: _write_ply_stream(stream, host, props, splats.layout, _CHUNK_BYTES))
+
+
+def _host_arrays(splats: SplatSet) -> dict[str, np.ndarray]:
+    """The splats' arrays as 2D host arrays for writing: views of the Warp arrays on the CPU (no
+    copy), one device-to-host copy each from a GPU; quaternions in Warp's x, y, z, w order."""
+    n = splats.count
+    arrays = {"means": splats.means, "quats_xyzw": splats.rotations, "log_scales": splats.log_scales,
+              "opacities": splats.opacities, "features": splats.features, "extras": splats.extras}  # fmt: skip
+    return {key: a.numpy().reshape(n, -1) for key, a in arrays.items()}
 
 
 def _to_splat_set(a: dict[str, np.ndarray], layout: PlyLayout, device) -> SplatSet:
     """SplatSet.from_numpy, but on the CPU the fresh host arrays become the Warp arrays without a
     copy (Warp keeps a reference to them); this saves a quarter of the load time."""
+    import warp as wp  # here, not at the top: reading a file's header and values needs no Warp
+
+    from .splats import SplatSet
+
     device = wp.get_device(device)
     if not device.is_cpu:
         return SplatSet.from_numpy(a["means"], a["rotations"], a["log_scales"], a["opacities"],
@@ -136,15 +192,18 @@ class PlyArrays:
 
 @dataclass
 class ValueCheck:
-    """Which rows hold non-finite values (and in which properties) or zero-norm quaternions."""
+    """Which rows hold non-finite values (and in which properties) or zero-norm quaternions, and
+    how many opacity logits are +Inf / -Inf (valid: alpha 1 / 0, not counted as non-finite)."""
 
     nonfinite_rows: np.ndarray  # bool (N,)
     nonfinite_by_property: dict[str, int]  # property name -> rows with NaN/Inf, only those > 0
     zero_quat_rows: np.ndarray  # bool (N,), finite quaternions with norm 0
+    infinite_opacities: tuple[int, int] = (0, 0)  # rows with opacity logit +Inf (alpha 1), -Inf (alpha 0): valid
 
 
-def read_ply_arrays(path) -> PlyArrays:
-    """Reads and structurally checks a 3DGS PLY file; values are not checked (see check_values)."""
+def read_ply_arrays(path, digest=None) -> PlyArrays:
+    """Reads and structurally checks a 3DGS PLY file; values are not checked (see check_values).
+    ``digest`` (a :mod:`hashlib` object), when given, is fed the whole file in the same pass."""
     path = Path(path)
     name = path.name
     header = None
@@ -159,7 +218,7 @@ def read_ply_arrays(path) -> PlyArrays:
         ply = plyfile.PlyData.read(str(path), mmap="r")
         check_agreement(header, ply, name)
         with np.errstate(all="ignore"):
-            return _extract(header, vertex_h, ply, path, file_bytes)
+            return _extract(header, vertex_h, ply, path, file_bytes, digest)
     except (InputError, MemoryError):
         raise
     except OSError as e:
@@ -192,7 +251,7 @@ def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = 
         values = arrays[key].reshape(n, -1)
         if np.isfinite(values).all():  # the common case, ~5x faster than the row-wise test
             continue
-        bad = ~np.isfinite(values)
+        bad = np.isnan(values) if key == "opacities" else ~np.isfinite(values)  # +-Inf opacity: alpha 1 / 0
         rows |= bad.any(axis=1)
         for prop, count in zip(names, np.count_nonzero(bad, axis=0)):
             if count:
@@ -200,7 +259,9 @@ def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = 
     q = arrays["rotations"].astype(np.float64)
     with np.errstate(all="ignore"):
         zero = np.einsum("ij,ij->i", q, q) == 0  # exact in float64 for float32 inputs
-    return ValueCheck(rows, by_prop, zero)
+    logits = arrays["opacities"].reshape(n)
+    infinite = (int(np.count_nonzero(np.isposinf(logits))), int(np.count_nonzero(np.isneginf(logits))))
+    return ValueCheck(rows, by_prop, zero, infinite)
 
 
 def normalize_quaternions(q: np.ndarray) -> np.ndarray:
@@ -219,7 +280,8 @@ def sh_degree_for_rest_count(count: int) -> int:
     return REST_COUNTS[count]
 
 
-def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path, file_bytes: int) -> PlyArrays:
+def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path, file_bytes: int,
+             digest=None) -> PlyArrays:
     n = vertex_h.count
     data = ply["vertex"].data
     if data.shape != (n,):
@@ -239,11 +301,11 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     }
     arrays = {key: np.empty((n, len(group)), np.float32) for key, group in groups.items()}
     plans = [(arrays[key], _runs(fields, group)) for key, group in groups.items()]
-    for start, rows in _vertex_chunks(header, data, path):
+    for start, rows in _vertex_chunks(header, data, path, digest):
         stop = start + rows.shape[0]
         for out, runs in plans:
             for i, j, dt, off in runs:
-                out[start:stop, i:j] = rows[:, off : off + (j - i) * dt.itemsize].view(dt)
+                _copy_run(out[start:stop, i:j], rows[:, off : off + (j - i) * dt.itemsize], dt)
     arrays["opacities"] = arrays["opacities"].reshape(n)
 
     others = []
@@ -264,6 +326,17 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
 _CHUNK_BYTES = 4 << 20  # rows are converted (and written, by save_ply) in chunks of about this size
 
 
+def _copy_run(out: np.ndarray, raw: np.ndarray, dt: np.dtype) -> None:
+    """``out`` ((rows, k) float32) = ``raw`` ((rows, k * itemsize) bytes of records) read as ``dt``.
+    Float32 runs are copied row by row as one opaque item, about twice as fast as numpy's
+    element-wise strided copy of short rows."""
+    if dt == out.dtype and raw.strides[-1] == 1 and out.strides[-1] == out.itemsize:
+        run = np.dtype((np.void, raw.shape[1]))
+        out.view(run)[:, 0] = raw.view(run)[:, 0]
+    else:
+        out[...] = raw.view(dt)
+
+
 def _runs(fields, names) -> list[tuple[int, int, np.dtype, int]]:
     """Runs [i, j) of properties adjacent in the record with one dtype: (i, j, dtype, byte offset)."""
     runs = []
@@ -278,10 +351,12 @@ def _runs(fields, names) -> list[tuple[int, int, np.dtype, int]]:
     return runs
 
 
-def _vertex_chunks(header: Header, data: np.ndarray, path: Path):
+def _vertex_chunks(header: Header, data: np.ndarray, path: Path, digest=None):
     """(first row, (rows, itemsize) uint8 view) chunks of the vertex records. A binary vertex
-    element at a known offset is read from the file into one reused cache-sized buffer (about
-    twice as fast as touching plyfile's memory map); otherwise plyfile's array is sliced."""
+    element at a known offset is read from the file into reused cache-sized buffers (about twice
+    as fast as touching plyfile's memory map); otherwise plyfile's array is sliced. ``digest`` is
+    fed the whole file: in the first case the bytes as they are read (hashed on another thread
+    while the next chunk is converted), else in a separate pass."""
     n, itemsize = data.shape[0], data.dtype.itemsize
     step = max(1, _CHUNK_BYTES // itemsize)
     offset = _binary_offset(header, "vertex")
@@ -290,19 +365,77 @@ def _vertex_chunks(header: Header, data: np.ndarray, path: Path):
             f.seek(offset)
             # plyfile found the same first record there: trust the offset (else use plyfile's array)
             if f.read(itemsize) == data[:1].view(np.uint8).tobytes():
-                f.seek(offset)
-                buffer = np.empty((min(step, n), itemsize), np.uint8)
-                for start in range(0, n, step):
-                    rows = buffer[: min(step, n - start)]
-                    if f.readinto(memoryview(rows).cast("B")) != rows.nbytes:
-                        raise ValueError("the file changed while it was read")
-                    yield start, rows
+                with _Hasher(digest) as hasher:
+                    f.seek(0)
+                    hasher.feed_from(f, offset)  # the header and any element before the vertices
+                    buffers = [np.empty((min(step, n), itemsize), np.uint8) for _ in range(2 if digest else 1)]
+                    for k, start in enumerate(range(0, n, step)):
+                        buffer = buffers[k % len(buffers)]
+                        hasher.wait_for(buffer)
+                        rows = buffer[: min(step, n - start)]
+                        if f.readinto(memoryview(rows).cast("B")) != rows.nbytes:
+                            raise ValueError("the file changed while it was read")
+                        hasher.feed(rows, buffer)
+                        yield start, rows
+                    hasher.feed_from(f, None)  # the elements after the vertices
                 return
+    if digest is not None:
+        with open(path, "rb") as f:
+            while chunk := f.read(_CHUNK_BYTES):
+                digest.update(chunk)
     if not data.flags.c_contiguous:
         data = np.ascontiguousarray(data)
     rows = data.view(np.uint8).reshape(n, itemsize)
     for start in range(0, n, step):
         yield start, rows[start : start + step]
+
+
+class _Hasher:
+    """Feeds a digest on one background thread (hashlib releases the GIL on large buffers), in
+    order; ``wait_for(buffer)`` returns once no pending update still reads ``buffer``."""
+
+    def __init__(self, digest):
+        self.digest = digest
+        self.pool = None
+        self.pending: dict[int, object] = {}
+
+    def __enter__(self):
+        if self.digest is not None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self.pool = ThreadPoolExecutor(1, thread_name_prefix="nanogs-hash")
+        return self
+
+    def __exit__(self, *exc):
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
+        return False
+
+    def feed(self, rows: np.ndarray, buffer: np.ndarray) -> None:
+        if self.pool is not None:
+            self.pending[id(buffer)] = self.pool.submit(self.digest.update, memoryview(rows).cast("B"))
+
+    def wait_for(self, buffer: np.ndarray) -> None:
+        future = self.pending.pop(id(buffer), None)
+        if future is not None:
+            future.result()
+
+    def feed_from(self, f, length: int | None) -> None:
+        """Reads ``length`` bytes (None: to the end) from ``f`` into the digest, in order."""
+        if self.pool is None:
+            if length is not None:
+                f.seek(length, os.SEEK_CUR)
+            return
+        for future in self.pending.values():
+            future.result()
+        self.pending.clear()
+        while length is None or length > 0:
+            chunk = f.read(_CHUNK_BYTES if length is None else min(length, _CHUNK_BYTES))
+            if not chunk:
+                break
+            self.digest.update(chunk)
+            if length is not None:
+                length -= len(chunk)
 
 
 def _binary_offset(header: Header, name: str) -> int | None:

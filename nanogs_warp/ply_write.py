@@ -10,6 +10,7 @@ import errno
 import io
 import os
 import secrets
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ from .ply_header import (
     SCALE_NAMES,
     one_line,
 )
-from .splats import PlyLayout
+from .ply_layout import PlyLayout
 
 _INRIA_HEAD = MEAN_NAMES + NORMAL_NAMES + DC_NAMES
 _INRIA_TAIL = OPACITY_NAMES + SCALE_NAMES + ROT_NAMES
@@ -59,7 +60,10 @@ def output_properties(layout: PlyLayout | None, n_rest: int, n_extra: int) -> li
 def write_ply_stream(stream, host: dict[str, np.ndarray], props: list[tuple[str, str]], layout,
                      chunk_bytes: int) -> None:
     """Writes the header (via plyfile), the vertex rows in packed chunks of about ``chunk_bytes``,
-    then the other elements (serialised by plyfile) to a binary stream."""
+    then the other elements (serialised by plyfile) to a binary stream. ``host`` holds 2D float32
+    arrays ``means``, ``log_scales``, ``opacities``, ``features``, ``extras`` and the quaternions,
+    as ``rotations`` (w first, as in the file) or ``quats_xyzw`` (Warp's order). One chunk is
+    written on a background thread while the next is packed."""
     n = host["means"].shape[0]
     dtype = np.dtype([(nm, "<" + dt) for nm, dt in props])
     others = list(layout.other_elements) if layout is not None else []
@@ -74,11 +78,26 @@ def write_ply_stream(stream, host: dict[str, np.ndarray], props: list[tuple[str,
     stream.write(ply.header.encode("ascii") + b"\n")
     plan = _pack_plan(host, props, layout, dtype)
     step = max(1, chunk_bytes // dtype.itemsize)
-    buffer = np.empty(min(step, n), dtype)
-    for start in range(0, n, step):
-        rows = buffer[: min(step, n - start)]
-        _pack_rows(plan, rows, start)
+    chunks = range(0, n, step)
+    if len(chunks) == 1:
+        rows = np.empty(n, dtype)
+        _pack_rows(plan, rows, 0)
         stream.write(memoryview(rows.view(np.uint8)))
+    else:
+        with ThreadPoolExecutor(1, thread_name_prefix="nanogs-write") as pool:
+            buffers = [np.empty(step, dtype) for _ in range(2)]
+            writing = [None, None]  # the pending write of each buffer
+            try:
+                for k, start in enumerate(chunks):
+                    if writing[k % 2] is not None:
+                        writing[k % 2].result()
+                    rows = buffers[k % 2][: min(step, n - start)]
+                    _pack_rows(plan, rows, start)
+                    writing[k % 2] = pool.submit(stream.write, memoryview(rows.view(np.uint8)))
+            finally:
+                for pending in writing:  # wait for both (and raise the first error) before returning
+                    if pending is not None:
+                        pending.result()
     if others:
         tail = plyfile.PlyData(others, text=False, byte_order="<")
         body = io.BytesIO()
@@ -94,6 +113,8 @@ def _pack_plan(host, props, layout, dtype) -> list[tuple[int, np.dtype, int, np.
     for group, names in (("means", MEAN_NAMES), ("rotations", ROT_NAMES), ("log_scales", SCALE_NAMES),
                          ("opacities", OPACITY_NAMES)):
         where.update({nm: (group, i) for i, nm in enumerate(names)})
+    if "quats_xyzw" in host:  # rot_0 (w) is the last column; rot_1..rot_3 the first three
+        where.update({nm: ("quats_xyzw", (i + 3) % 4) for i, nm in enumerate(ROT_NAMES)})
     for i in range(host["features"].shape[1]):
         where[DC_NAMES[i] if i < 3 else f"f_rest_{i - 3}"] = ("features", i)
     extra_names = layout.extra_names if layout is not None else [f"extra_{i}" for i in range(host["extras"].shape[1])]
@@ -118,7 +139,7 @@ def _pack_rows(plan, rows: np.ndarray, start: int) -> None:
     raw = rows.view(np.uint8).reshape(rows.shape[0], rows.dtype.itemsize)
     stop = start + rows.shape[0]
     for off, dt, k, columns in plan:
-        block = raw[:, off : off + k * dt.itemsize].view(dt)
+        block = raw[:, off : off + k * dt.itemsize]
         if columns is None:
             block[...] = 0
             continue
@@ -126,7 +147,18 @@ def _pack_rows(plan, rows: np.ndarray, start: int) -> None:
         if dt.kind in "iu":  # integer extras: round and clip the float32 values to the type
             info = np.iinfo(dt)
             values = np.clip(np.rint(np.nan_to_num(values.astype(np.float64))), info.min, info.max)
-        block[...] = values
+        copy_columns(block, values, dt)
+
+
+def copy_columns(block: np.ndarray, values: np.ndarray, dt: np.dtype) -> None:
+    """``block`` ((rows, k * itemsize) bytes of packed records) = ``values`` (rows, k) as ``dt``.
+    When no conversion is needed each row's run is copied as one opaque item, about twice as fast
+    as numpy's element-wise strided copy of short rows."""
+    if values.dtype == dt and values.strides[-1] == dt.itemsize and block.strides[-1] == 1:
+        run = np.dtype((np.void, values.shape[1] * dt.itemsize))
+        block.view(run)[:, 0] = values.view(run)[:, 0]
+    else:
+        block.view(dt)[...] = values
 
 
 def atomic_write(path: Path, write) -> None:

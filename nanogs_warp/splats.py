@@ -2,27 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
-
-@dataclass
-class PlyLayout:
-    """How the splats were stored in their file, so that output keeps names, order and types.
-
-    ``properties`` lists the vertex properties in file order as (name, numpy dtype string).
-    ``extra_names`` are the vertex properties that are not part of the 3DGS model; they are carried
-    through as ``SplatSet.extras`` columns in this order. ``other_elements``, ``comments`` and
-    ``obj_info`` are kept verbatim from the input file.
-    """
-
-    properties: list[tuple[str, str]]
-    extra_names: list[str]
-    other_elements: list = field(default_factory=list)
-    comments: list[str] = field(default_factory=list)
-    obj_info: list[str] = field(default_factory=list)
+from .ply_layout import PlyLayout  # noqa: F401 - where it was defined before
 
 
 @dataclass
@@ -36,6 +21,9 @@ class SplatSet:
     - ``features``: (N, F) spherical-harmonics coefficients in file order, f_dc_0..2 then f_rest_*
       (channel-major: all R coefficients, then G, then B).
     - ``extras``: (N, E) other per-vertex properties carried through a simplification (E may be 0).
+
+    Every array's layout here, in ``to_numpy()`` and in ``to_torch()`` (gsplat's: w-first
+    quaternions, SH as (N, K, 3)) is described in one place, docs/api.md.
     """
 
     means: wp.array
@@ -49,6 +37,9 @@ class SplatSet:
     @property
     def count(self) -> int:
         return self.means.shape[0]
+
+    def __len__(self) -> int:
+        return self.count
 
     @property
     def device(self) -> wp.Device:
@@ -101,6 +92,37 @@ class SplatSet:
             "features": self.features.numpy().reshape(self.count, -1).copy(),
             "extras": self.extras.numpy().reshape(self.count, -1).copy(),
         }
+
+    def to_gsplat_numpy(self) -> dict[str, np.ndarray]:
+        """Host arrays in gsplat's layout (docs/api.md): ``means`` (N, 3); ``quats`` (N, 4) w-first;
+        ``scales`` (N, 3) natural-log; ``opacities`` (N,) logits; ``sh`` (N, K, 3) with K = (d + 1)^2,
+        coefficient-major (``sh[:, 0]`` the DC term, as gsplat's sh0 = sh[:, :1], shN = sh[:, 1:]);
+        ``extras`` (N, E). float32, fresh copies."""
+        host = self.to_numpy()
+        n, f = host["features"].shape
+        k = f // 3
+        sh = np.empty((n, k, 3), np.float32)
+        sh[:, 0, :] = host["features"][:, :3]
+        sh[:, 1:, :] = host["features"][:, 3:].reshape(n, 3, k - 1).transpose(0, 2, 1)
+        return {
+            "means": host["means"],
+            "quats": host["rotations"],
+            "scales": host["log_scales"],
+            "opacities": host["opacities"],
+            "sh": sh,
+            "extras": host["extras"],
+        }
+
+    def to_torch(self, device=None) -> dict:
+        """``to_gsplat_numpy()``'s arrays as torch tensors on ``device`` (default: this splat set's
+        device, e.g. "cuda:0" or "cpu"). PyTorch is imported here and is not a dependency of this
+        package: without it this raises ImportError."""
+        try:
+            import torch
+        except ImportError:
+            raise ImportError("SplatSet.to_torch() needs PyTorch (pip install torch)") from None
+        target = str(device if device is not None else self.device)
+        return {name: torch.from_numpy(array).to(target) for name, array in self.to_gsplat_numpy().items()}
 
     def to(self, device) -> SplatSet:
         """This splat set on ``device`` (itself when it is already there)."""

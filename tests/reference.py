@@ -44,6 +44,10 @@ def log_normal(x: np.ndarray, mu: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return -0.5 * (d * sol).sum(-1) - 0.5 * logdet - 1.5 * LOG_2PI
 
 
+# Merged opacities stay at or below 254/255, the largest 8-bit alpha that is not an infinite logit.
+MERGED_ALPHA_MAX = 254.0 / 255.0
+
+
 def mpmm(s: dict, i: int, j: int) -> dict:
     """Mass-preserving moment matching of rows i and j (NanoGS eq. 6-9), float64."""
     lw = log_masses(s["opacities"][[i, j]], s["log_scales"][[i, j]])
@@ -54,7 +58,7 @@ def mpmm(s: dict, i: int, j: int) -> dict:
     d = mu - mu_m
     cov_m = pi * (cov[0] + np.outer(d[0], d[0])) + (1 - pi) * (cov[1] + np.outer(d[1], d[1]))
     a = sigmoid(s["opacities"][[i, j]])
-    alpha_m = 1 - (1 - a[0]) * (1 - a[1])
+    alpha_m = min(1 - (1 - a[0]) * (1 - a[1]), MERGED_ALPHA_MAX)
     out = {
         "mean": mu_m,
         "cov": cov_m,
@@ -110,7 +114,7 @@ def area_merge(s: dict, i: int, j: int) -> dict:
     area_m = sc[0] * sc[1] + sc[0] * sc[2] + sc[1] * sc[2]
     out["mass"] = w.sum()
     out["alpha_unclamped"] = w.sum() / area_m
-    out["alpha"] = min(out["alpha_unclamped"], 1.0)
+    out["alpha"] = min(out["alpha_unclamped"], MERGED_ALPHA_MAX)
     return out
 
 
@@ -133,7 +137,7 @@ def coverage_merge(s: dict, i: int, j: int, growth: float = 0.25) -> dict:
     out["cov"] = vectors @ np.diag(values) @ vectors.T
     out["coverage"] = coverage
     out["ratio"] = ratio
-    out["alpha"] = min(ratio / grow, 1.0)
+    out["alpha"] = min(ratio / grow, MERGED_ALPHA_MAX)
     return out
 
 
@@ -202,3 +206,42 @@ def prune_keep(opacity_logits: np.ndarray, threshold: float, keep_at_least: int)
         order = np.argsort(alpha, kind="stable")
         keep = np.sort(order[len(alpha) - keep_at_least :])
     return keep
+
+
+def field_cost(s: dict, i: int, j: int, merged: dict, lambda_geo=1.0, lambda_app=1.0) -> float:
+    """The field cost, float64: the squared L2 change of the opacity field and of the direction-averaged
+    SH colour field, every Gaussian projected onto the face plane of the merged splat ``merged``
+    (mean, cov, alpha, pi), each a peak-one 2D Gaussian; integrals by brute-force quadrature."""
+    values, vectors = np.linalg.eigh(merged["cov"])
+    plane = np.stack([vectors[:, 2], vectors[:, 1]])
+    cov = covariances(s["rotations"][[i, j]], s["log_scales"][[i, j]])
+    mus = [s["means"][i].astype(np.float64), s["means"][j].astype(np.float64), merged["mean"]]
+    covs = [plane @ c @ plane.T for c in (cov[0], cov[1], merged["cov"])]
+    a = list(sigmoid(s["opacities"][[i, j]])) + [merged["alpha"]]
+    f = s["features"].astype(np.float64)
+    fm = merged["pi"] * f[i] + (1 - merged["pi"]) * f[j]
+    feats = [f[i], f[j], fm]
+    sign = [1.0, 1.0, -1.0]
+    # quadrature grid around the pair, in plane coordinates
+    centre = plane @ merged["mean"]
+    reach = 6.0 * np.sqrt(max(np.linalg.eigvalsh(c).max() for c in covs)) + max(np.abs(plane @ (m - merged["mean"])).max() for m in mus)
+    t = np.linspace(-reach, reach, 801)
+    gx, gy = np.meshgrid(t, t, indexing="ij")
+    pts = np.stack([gx, gy], -1) + centre
+    dA = (t[1] - t[0]) ** 2
+    fields = []
+    for mu, c in zip(mus, covs):
+        d = pts - plane @ mu
+        q = np.einsum("...i,ij,...j->...", d, np.linalg.inv(c), d)
+        fields.append(np.exp(-0.5 * q))
+    opacity = sum(sg * ak * g for sg, ak, g in zip(sign, a, fields))
+    geo = (opacity**2).sum() * dA
+
+    def dot(fa, fb):
+        return ((0.5 + 0.28209479177387814 * fa[:3]) * (0.5 + 0.28209479177387814 * fb[:3])).sum() + (fa[3:] * fb[3:]).sum() / (4 * np.pi)
+
+    col = 0.0
+    for x in range(3):
+        for y in range(3):
+            col += sign[x] * sign[y] * a[x] * a[y] * dot(feats[x], feats[y]) * (fields[x] * fields[y]).sum() * dA
+    return lambda_geo * max(geo, 0.0) + lambda_app * max(col, 0.0)

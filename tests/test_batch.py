@@ -303,3 +303,77 @@ def test_a_dead_worker_fails_its_scene_and_is_replaced(tmp_path):
     assert summary["big.ply"]["status"] == "done"
     assert summary["a_fifo.ply"]["error"] == "the worker process died (killed by SIGKILL); out of memory?"
     assert summary["z_empty.ply"]["status"] == "failed" and "died" not in summary["z_empty.ply"]["error"]
+
+
+def test_default_time_limit_scales_with_the_scene():
+    from nanogs_warp.batch_scenes import scene_timeout
+
+    job = SceneJob(Path("a.ply"), "a.ply", Path("o"), (), SimplifyConfig(), False, 1_500_000_000)
+    assert scene_timeout(job, on_gpu=True) == pytest.approx(450.0)  # docs/batch.md's example
+    assert scene_timeout(job, on_gpu=False) == pytest.approx(1050.0)
+    assert scene_timeout(job, on_gpu=True, seconds=12.5) == 12.5 and scene_timeout(job, True, seconds=0) is None
+
+
+def test_devices_every_gpu_and_the_cpu():
+    import warp as wp
+
+    from nanogs_warp.batch_local import parse_devices
+    from nanogs_warp.errors import InputError
+
+    gpus = [f"cuda:{i}" for i in range(wp.get_cuda_device_count())]
+    assert parse_devices("auto,cpu") == gpus + ["cpu"]
+    if gpus:
+        assert parse_devices("all,cpu") == gpus + ["cpu"]
+    else:
+        with pytest.raises(InputError, match="no CUDA GPU"):
+            parse_devices("all,cpu")
+
+
+SPIN = "NANOGS_WARP_TEST_SPIN_SCENE"  # batch_work.SPIN_SCENE_VARIABLE: a worker spins on this scene
+
+
+@pytest.fixture(scope="module")
+def scenes_and_a_spinner(tmp_path_factory):
+    """Three scenes (the largest, taken first, is the one a worker will spin on) and their outputs
+    from a batch without the spinner."""
+    root, clean = tmp_path_factory.mktemp("in"), tmp_path_factory.mktemp("clean")
+    for i, (name, n) in enumerate({"spin.ply": 900, "a.ply": 400, "b.ply": 300}.items()):
+        random_splats_ply(root / name, n, sh_degree=i % 2, seed=i)
+    run_json(root, "-o", clean, "--ratio", "0.1,0.01")
+    return root, clean
+
+
+def check_spinner_timed_out(summary, clean: Path, out: Path, timeout: float, what: str):
+    spin = summary["spin.ply"]
+    assert spin["status"] == "failed" and f"timed out after {timeout:.0f} s (--scene-timeout)" in spin["error"]
+    assert what in spin["error"] and timeout <= spin["seconds"] < timeout + 10
+    assert {summary[name]["status"] for name in ("a.ply", "b.ply")} == {"done"}
+    assert not list(out.glob("spin*")) and not list(out.rglob(".*"))
+    done = sorted(p.name for p in out.glob("[ab]_*.ply"))
+    assert len(done) == 4
+    for name in done:
+        assert (out / name).read_bytes() == (clean / name).read_bytes(), name
+
+
+def test_a_scene_past_its_time_limit_fails_alone(scenes_and_a_spinner, tmp_path, monkeypatch):
+    """The worker spinning on one scene is killed at the time limit and replaced; the scene it had
+    read next is handed back, and every other output is the same bytes as without the spinner."""
+    (root, clean), out = scenes_and_a_spinner, tmp_path / "out"
+    monkeypatch.setenv(SPIN, "spin.ply")
+    started = time.monotonic()
+    summary = run_json(root, "-o", out, "--ratio", "0.1,0.01", "--scene-timeout", "6", code=1)
+    assert time.monotonic() - started < 60
+    check_spinner_timed_out(summary, clean, out, 6, "its worker process was replaced")
+
+
+def test_ray_task_past_its_time_limit_is_cancelled(scenes_and_a_spinner, tmp_path, monkeypatch):
+    """As above with Ray tasks (a private local Ray started with the spinning scene named in its
+    environment; kept last in this file, since it shuts down the shared Ray first)."""
+    ray = pytest.importorskip("ray")
+    (root, clean), out = scenes_and_a_spinner, tmp_path / "out"
+    monkeypatch.setenv(SPIN, "spin.ply")
+    if ray.is_initialized():
+        ray.shutdown()
+    summary = run_json(root, "-o", out, "--ratio", "0.1,0.01", "--scene-timeout", "6", "--ray", "local", code=1)
+    check_spinner_timed_out(summary, clean, out, 6, "its Ray task was cancelled")
+

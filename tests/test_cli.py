@@ -145,3 +145,22 @@ def test_installed_command_on_the_shipped_sample(tmp_path):
     for ratio in (0.1, 0.01, 0.001):
         assert load_ply(tmp_path / f"plant_{ratio:g}.ply").count == max(1, math.ceil(ratio * n))
     assert json.loads(done.stdout)["input_count"] == n
+
+
+def test_preset_paper_is_the_papers_flags_and_flags_override_it(scene, tmp_path):
+    flags = ["--operator", "mpmm", "--cost", "idiv", "--prune-opacity", "0.1", "--k", "16"]
+    common = ["--ratio", "0.1", "--device", "cpu", "-q"]
+    assert run("simplify", scene, "-o", tmp_path / "flags.ply", *common, *flags).exit_code == 0
+    assert run("simplify", scene, "-o", tmp_path / "preset.ply", *common, "--preset", "paper").exit_code == 0
+    assert run("simplify", scene, "-o", tmp_path / "k8.ply", *common, "--preset", "paper", "--k", "8").exit_code == 0
+    assert run("simplify", scene, "-o", tmp_path / "k8flags.ply", *common, *flags[:-1], "8").exit_code == 0
+    assert (tmp_path / "flags.ply").read_bytes() == (tmp_path / "preset.ply").read_bytes()
+    assert (tmp_path / "k8.ply").read_bytes() == (tmp_path / "k8flags.ply").read_bytes()
+    assert (tmp_path / "k8.ply").read_bytes() != (tmp_path / "preset.ply").read_bytes()
+
+
+def test_unknown_preset_and_field_cost_with_area_are_input_errors(scene, tmp_path):
+    for extra in (["--preset", "nope"], ["--cost", "field", "--operator", "area"]):
+        result = run("simplify", scene, "-o", tmp_path / "x.ply", "--ratio", "0.1", "--device", "cpu", *extra)
+        assert result.exit_code == 2, result.output
+        assert not (tmp_path / "x.ply").exists()

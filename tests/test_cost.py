@@ -172,3 +172,42 @@ def test_runnalls_zero_for_identical_and_scale_free(device, rng):
     a = runnalls(arrays, ei, ej, device, mass_exponent=0.0)
     b = runnalls(scaled, ei, ej, device, mass_exponent=0.0)
     np.testing.assert_allclose(a, b, rtol=2e-4, atol=1e-6 * a.max())
+
+
+@pytest.mark.parametrize("operator", ["coverage", "mpmm"])
+def test_field_cost_matches_quadrature(device, rng, operator):
+    """The closed-form field cost of the operator's own merged splat against float64 quadrature."""
+    from nanogs_warp.cost import FieldCost
+    from nanogs_warp.kernels import field_cost
+
+    arrays = random_splat_arrays(24, sh_degree=2, seed=int(rng.integers(1 << 30)))
+    ei, ej = near_pairs(rng, arrays, 12)
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    covariances = wp.array(reference.covariances(arrays["rotations"], arrays["log_scales"]), dtype=wp.mat33d, device=device)
+    costs = wp.full(len(ei), np.nan, dtype=float, device=device)  # poisoned
+    wp.launch(
+        field_cost.field_costs, len(ei),
+        inputs=[wp.array(ei, device=device), wp.array(ej, device=device), splats.kernel_view(), covariances,
+                FieldCost.OPERATOR_IDS[operator], 0.25, 1.0, 0.5],
+        outputs=[costs], device=device,
+    )  # fmt: skip
+    merge = reference.coverage_merge if operator == "coverage" else reference.mpmm
+    want = [reference.field_cost(arrays, i, j, merge(arrays, i, j), 1.0, 0.5) for i, j in zip(ei, ej)]
+    np.testing.assert_allclose(costs.numpy(), want, rtol=2e-3, atol=1e-9)
+
+
+def test_field_cost_is_zero_for_a_merge_that_changes_nothing(device):
+    """Two identical splats of alpha 0.45 become one of the same shape with alpha 0.9 under the
+    coverage operator: the field does not change, so the cost is 0."""
+    from nanogs_warp.cost import FieldCost
+
+    arrays = random_splat_arrays(2, sh_degree=0, seed=3)
+    arrays["means"][1] = arrays["means"][0]
+    arrays["rotations"][1] = arrays["rotations"][0]
+    arrays["log_scales"][1] = arrays["log_scales"][0]
+    arrays["features"][1] = arrays["features"][0]
+    arrays["opacities"][:] = np.log(0.45 / 0.55)
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    edges = Edges(wp.array(np.int32([0]), device=device), wp.array(np.int32([1]), device=device), 1)
+    got = FieldCost(operator="coverage")(splats, edges, 0).numpy()[0]
+    assert got < 1e-12 * np.exp(2 * arrays["log_scales"][0]).max()

@@ -7,10 +7,11 @@ import zlib
 
 import numpy as np
 import pytest
+import skimage.metrics as skimage_metrics
 import typer
 from typer.testing import CliRunner
 
-from nanogs_warp import metrics
+from nanogs_warp import metrics, ply
 from nanogs_warp.cameras import orbit_cameras
 from nanogs_warp.cli_eval import eval_command, parse_background
 from nanogs_warp.errors import InputError
@@ -29,7 +30,6 @@ def test_psnr_by_hand():
 
 
 def skimage_ssim(a, b):
-    skimage_metrics = pytest.importorskip("skimage.metrics")
     channel_axis = -1 if a.ndim == 3 else None
     return skimage_metrics.structural_similarity(
         a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0, channel_axis=channel_axis
@@ -146,9 +146,6 @@ def test_parse_background():
 
 
 def test_eval_cli(tmp_path, rng):
-    ply = pytest.importorskip("nanogs_warp.ply")
-    if not hasattr(ply, "save_ply"):
-        pytest.skip("nanogs_warp.ply.save_ply is not there yet")
     reference = small_scene(rng, 150)
     arrays = reference.to_numpy()
     fewer = SplatSet.from_numpy(*(arrays[k][:100] for k in ("means", "rotations", "log_scales", "opacities", "features")))

@@ -176,3 +176,23 @@ def test_stage_clock_times_every_stage_of_every_pass(device):
         assert list(times) == ["knn", "edges", "cost", "pairing", "compaction", "merge"]
         assert all(seconds > 0.0 for seconds in times.values())
     assert list(clock.setup) == ["prune"]
+
+
+@pytest.mark.parametrize("operator", ["coverage", "mpmm"])
+def test_field_cost_and_pass_fraction_reach_the_target(device, operator):
+    """The field cost with either operator, merging at most a quarter of the splats a pass: exact
+    counts at every budget, finite values, and more passes than taking whole matchings."""
+    from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively
+
+    splats = SplatSet.from_numpy(**random_splat_arrays(3000, sh_degree=1, seed=11), device=device)
+    passes = {}
+    for fraction in (0.5, 0.25):
+        config = SimplifyConfig(cost="field", operator=operator, pass_fraction=fraction)
+        reports = []
+        for target, result in simplify_progressively(splats, [300, 30], config, on_pass=reports.append):
+            assert result.count == target
+            a = result.to_numpy()
+            assert all(np.isfinite(v).all() for v in a.values())
+        passes[fraction] = len(reports)
+        assert all(r.count_before - r.count_after <= math.ceil(fraction * r.count_before) for r in reports)
+    assert passes[0.25] > passes[0.5]

@@ -172,6 +172,28 @@ def test_many_chunks(tmp_path, monkeypatch):
     assert out.read_bytes() == src.read_bytes()
 
 
+@pytest.mark.parametrize("layout", ["binary", "ascii", "element_after", "list_before", "many_chunks"])
+def test_digest_sees_the_whole_file_once(tmp_path, monkeypatch, layout):
+    """load_ply(digest=...) hashes the file in the pass that parses it (or in a pass of its own
+    when the vertex offset is unknown): the digest is the file's SHA-256 in every layout."""
+    import hashlib
+
+    src = tmp_path / "in.ply"
+    want = random_splats_ply(src, 300, sh_degree=1, seed=5, text=layout == "ascii")
+    if layout in ("element_after", "list_before"):
+        data = plyfile.PlyData.read(str(src), mmap=False)
+        other = np.empty(3, [("vertex_indices", "O")])
+        other["vertex_indices"] = [np.array([0, 1, 2], "i4"), np.array([5], "i4"), np.array([], "i4")]
+        element = plyfile.PlyElement.describe(other, "face")
+        data.elements = [*data.elements, element] if layout == "element_after" else [element, *data.elements]
+        data.write(str(src))
+    if layout == "many_chunks":
+        monkeypatch.setattr(ply, "_CHUNK_BYTES", 7 * 68)
+    digest = hashlib.sha256()
+    assert_bitwise_equal(load_ply(src, digest=digest).to_numpy(), want)
+    assert digest.hexdigest() == hashlib.sha256(src.read_bytes()).hexdigest()
+
+
 def test_integer_extras_are_rounded_and_clipped(tmp_path):
     src, out = tmp_path / "in.ply", tmp_path / "out.ply"
     random_splats_ply(src, 5, extra_props=(("red", "u1"), ("temp", "i2")))

@@ -182,11 +182,28 @@ def test_knn_deterministic(knn_device):
     assert first.tobytes() == second.tobytes()
 
 
-def test_knn_same_on_every_device():
-    points = lattice_points(2000, seed=9)
-    results = [run_knn(points, 16, device) for device in DEVICES]
-    for other in results[1:]:
-        np.testing.assert_array_equal(other, results[0])
+def off_lattice_points(n, seed):
+    """Clustered points scaled and shifted off any grid: float32 squared distances round, so a
+    back-end that computes them differently (fused multiply-adds, another order) can rank them
+    differently."""
+    return (clustered_points(n, seed) * np.float32(0.7310585) + np.float32(0.1234567)).astype(np.float32)
+
+
+HAS_CUDA = wp.get_cuda_device_count() > 0
+
+
+@pytest.mark.skipif(not HAS_CUDA, reason="compares the CPU with a CUDA GPU")
+def test_knn_same_on_cpu_and_cuda():
+    """The CPU and CUDA kNN graphs are identical on inputs where distances round."""
+    for points in (off_lattice_points(6000, seed=9), uniform_points(4000, seed=19) * np.float32(1e3) + np.float32(7.3)):
+        np.testing.assert_array_equal(run_knn(points, 16, "cuda:0"), run_knn(points, 16, "cpu"))
+
+
+def test_knn_off_lattice_matches_float64_reference(knn_device):
+    """Without a second device to compare with, each one is held to the float64 brute force on the
+    same off-lattice inputs."""
+    points = off_lattice_points(3000, seed=9)
+    check_against_reference(points, run_knn(points, 16, knn_device), 16)
 
 
 def test_knn_candidates(knn_device):
@@ -419,12 +436,32 @@ def test_edges_deterministic(device, rng):
     assert first.j.numpy().tobytes() == second.j.numpy().tobytes()
 
 
-def test_edges_same_on_every_device(rng):
+def knn_edges_of(points, device):
+    means = wp.array(points, dtype=wp.vec3, device=device)
+    reach = wp.full(len(points), -1, dtype=wp.int64, device=device)
+    neighbours = knn_graph(means, 16, reach=reach)
+    return neighbours.numpy(), candidate_edges(neighbours, means, reach)
+
+
+@pytest.mark.skipif(not HAS_CUDA, reason="compares the CPU with a CUDA GPU")
+def test_edges_same_on_cpu_and_cuda(rng):
+    """Edges of a hand-made table and of an off-lattice kNN graph (the reach comparison, which
+    recomputes distances): identical on the CPU and CUDA."""
     neighbours = random_neighbours(20000, 24, rng)
-    results = [edges_of(neighbours, d) for d in DEVICES]
-    for other in results[1:]:
-        np.testing.assert_array_equal(other.i.numpy(), results[0].i.numpy())
-        np.testing.assert_array_equal(other.j.numpy(), results[0].j.numpy())
+    cpu, gpu = edges_of(neighbours, "cpu"), edges_of(neighbours, "cuda:0")
+    np.testing.assert_array_equal(gpu.i.numpy(), cpu.i.numpy())
+    np.testing.assert_array_equal(gpu.j.numpy(), cpu.j.numpy())
+    points = off_lattice_points(6000, seed=21)
+    (_, cpu), (_, gpu) = knn_edges_of(points, "cpu"), knn_edges_of(points, "cuda:0")
+    np.testing.assert_array_equal(gpu.i.numpy(), cpu.i.numpy())
+    np.testing.assert_array_equal(gpu.j.numpy(), cpu.j.numpy())
+
+
+def test_edges_off_lattice_match_reference(knn_device):
+    """Without a second device: the edges of an off-lattice kNN graph, through the reach comparison,
+    against the reference built from the table."""
+    table, edges = knn_edges_of(off_lattice_points(6000, seed=21), knn_device)
+    check_edges(edges, table)
 
 
 def test_edges_empty_and_too_wide(device):

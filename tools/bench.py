@@ -1,12 +1,15 @@
 """Benchmark the simplification: per-stage wall times per pass, passes, throughput, memory.
 
-    python tools/bench.py ~/.cache/nanogs-scenes/*.ply --device cpu --ratio 0.1 --repeat 5
+    python tools/bench.py SCENES/*.ply --device cpu --ratio 0.1 --repeat 5
     python tools/bench.py playbot.ply --tile 6000000 --device cuda:0 --ratio 0.1,0.001 --json
 
 Per scene and budget list: read time, first run (kernel compile + load included), then --repeat
 runs with state on the device: the plain wall time (median and spread) and, in separate runs, the
 per-stage times with the device synchronised around each stage. Writing is timed once. JSON lines
 are appended to --log (default tools/bench.jsonl) with device and commit.
+
+SCENES is any folder of 3DGS .ply files; docs/scenes.md lists the public scenes the published
+figures use and how they were converted.
 """
 
 from __future__ import annotations
@@ -119,7 +122,7 @@ def commit() -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("scenes", nargs="+", type=Path)
+    parser.add_argument("scenes", nargs="+", type=Path, help="3DGS .ply files to benchmark")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--ratio", default="0.1")
     parser.add_argument("--repeat", type=int, default=3)

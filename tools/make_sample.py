@@ -1,8 +1,8 @@
 """Crops the shipped sample scene, ``nanogs_warp/data/plant_crop.ply``, from a real 3DGS capture.
 
-Source: ``plant.ply`` from the shared developer scenes (``bash ../shared/data/unpack.sh`` unpacks
-it), a potted plant captured by Marcel Padilla, CC-BY-4.0 (github.com/marcelpadilla/splats,
-``data/plant/plant.splat``). Coordinates are y-down (COLMAP/INRIA), as in the source.
+Source: ``plant.ply``, a potted plant captured by Marcel Padilla, CC-BY-4.0
+(github.com/marcelpadilla/splats, ``data/plant/plant.splat``), converted to an INRIA PLY as
+docs/scenes.md describes. Coordinates are y-down (COLMAP/INRIA), as in the source.
 
 How the box is chosen (deterministic, no randomness):
 1. Take the robust extent of the splat centres, the 0.5th..99.5th percentile per axis, and count
@@ -70,7 +70,7 @@ def crop(input_path: Path, output_path: Path, count: int) -> tuple[int, np.ndarr
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("input", type=Path, help="source scene, e.g. ~/.cache/nanogs-scenes/plant.ply")
+    parser.add_argument("input", type=Path, help="source scene: plant.ply (docs/scenes.md)")
     parser.add_argument("output", type=Path, help="where to write the crop")
     parser.add_argument("--count", type=int, default=20000, help="splats to keep (default 20000)")
     args = parser.parse_args(argv)

@@ -1,7 +1,7 @@
 """Quality sweep: every scene in a folder x budgets x configurations, evaluated against the original.
 
-    python tools/quality_sweep.py ~/.cache/nanogs-scenes -o sweep/ --device cpu
-    python tools/quality_sweep.py ~/.cache/nanogs-scenes -o sweep/ --configs paper,area --scenes guitar
+    python tools/quality_sweep.py SCENES/ -o sweep/ --device cpu
+    python tools/quality_sweep.py SCENES/ -o sweep/ --configs paper,area --scenes guitar
     python tools/quality_sweep.py -o sweep/ --table-only          # rebuild the markdown from the JSON lines
 
 Per scene: the reference is loaded once, its orbit cameras (16 views, 256 x 256 by default, black
@@ -44,7 +44,7 @@ from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively, target_
 from nanogs_warp.ply import load_ply, save_ply  # noqa: E402
 
 RATIOS = (0.1, 0.01, 0.001)
-PAPER = {"k": 16, "prune_opacity": 0.1, "samples": 1, "seed": 0, "lambda_geo": 1.0, "lambda_app": 1.0, "cost": "idiv", "operator": "mpmm"}
+PAPER = {"k": 16, "prune_opacity": 0.1, "samples": 1, "seed": 0, "lambda_geo": 1.0, "lambda_app": 1.0, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5}
 
 
 def nanogs(**changes) -> dict:
@@ -52,9 +52,11 @@ def nanogs(**changes) -> dict:
     return {"kind": "nanogs", **PAPER, **changes}
 
 
-# The configuration recommended as the default (docs/quality.md): coverage operator, Runnalls cost
-# (mass exponent 0.25), no opacity pruning, k by scene size (None: 24 below 65,536 splats, else 16).
-RECOMMENDED = {"operator": "coverage", "cost": "runnalls", "prune_opacity": 0.0, "k": None}
+# The default (docs/quality.md): coverage operator, field cost, no opacity pruning, k by scene size
+# (None: 24 below 65,536 splats, else 16), at most 35 % of the splats merged a pass.
+RECOMMENDED = {"operator": "coverage", "cost": "field", "prune_opacity": 0.0, "k": None, "pass_fraction": 0.35}
+# The previous default: the Runnalls cost and whole matchings.
+RUNNALLS_DEFAULT = {"operator": "coverage", "cost": "runnalls", "prune_opacity": 0.0, "k": None, "pass_fraction": 0.5}
 
 # name -> definition. "paper" is the paper's configuration (SimplifyConfig's defaults when this was written).
 CONFIGS: dict[str, dict] = {
@@ -74,7 +76,10 @@ CONFIGS: dict[str, dict] = {
     "area+runnalls+prune0": nanogs(operator="area", cost="runnalls", prune_opacity=0.0),
     "coverage+runnalls": nanogs(operator="coverage", cost="runnalls"),
     "coverage+runnalls+prune0": nanogs(operator="coverage", cost="runnalls", prune_opacity=0.0),
-    "recommended": nanogs(**RECOMMENDED),
+    "default": nanogs(**RECOMMENDED),
+    "runnalls-default": nanogs(**RUNNALLS_DEFAULT),
+    "default-f0.25": nanogs(**{**RECOMMENDED, "pass_fraction": 0.25}),
+    "default-f0.5": nanogs(**{**RECOMMENDED, "pass_fraction": 0.5}),
     # the recommended configuration with one change back, or one neighbour
     "rec-prune0.1": nanogs(**{**RECOMMENDED, "prune_opacity": 0.1}),
     "rec-k16": nanogs(**{**RECOMMENDED, "k": 16}),
@@ -234,7 +239,7 @@ MOONSHOT = {
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("scenes_dir", type=Path, nargs="?", help="folder of .ply scenes")
+    parser.add_argument("scenes_dir", type=Path, nargs="?", help="folder of .ply scenes (docs/scenes.md: the published ones)")
     parser.add_argument("-o", "--out", type=Path, required=True, help="output folder (sweep.jsonl, sweep.md)")
     parser.add_argument("--configs", default=",".join(DEFAULT_CONFIGS), help=f"comma-separated, from: {', '.join(CONFIGS)}")
     parser.add_argument("--scenes", help="comma-separated scene names (file stems); default: every .ply in the folder")

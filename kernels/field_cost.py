@@ -1,0 +1,120 @@
+"""Field cost: how much the emitted field changes when a pair becomes the merged splat that the merge
+operator actually produces (``mpmm_merged`` / ``coverage_merged``: one device function for the cost
+and the merge, so the cost always scores the merge that happens).
+
+A splat k emits a_k c_k(d) G_k(x): opacity a_k, SH colour c_k in view direction d and a peak-one
+Gaussian G_k. Seen along the merged splat's normal, each G_k is the peak-one 2D Gaussian of its
+covariance projected onto the merged face plane (c0, c1), as a rasteriser draws it. The cost is the
+squared L2 change of that projected field, for the opacity and for the colour averaged over view
+directions:
+
+    C = lambda_geo  int (a_i G_i + a_j G_j - a_m G_m)^2 dA
+      + lambda_app  int mean_d |a_i c_i G_i + a_j c_j G_j - a_m c_m G_m|^2 dA,
+
+from the closed-form overlaps int G_a G_b dA = 2 pi sqrt(det A det B / det(A + B)) exp(-d^T (A + B)^-1 d / 2).
+It weighs a merge by the area and opacity it disturbs (in scene units squared), unlike the
+scale-free divergences.
+"""
+
+import warp as wp
+
+from .cost import UNMERGEABLE, finite_cost
+from .field import overlap2, project2
+from .merge import MERGED_ALPHA_MAX, coverage_merged, mpmm_merged
+from .splat_math import Splats, covariance, face_plane, to_vec3d
+
+
+@wp.kernel
+def splat_covariances(rotations: wp.array(dtype=wp.quat), log_scales: wp.array(dtype=wp.vec3), covariances: wp.array(dtype=wp.mat33d)):
+    """Sigma per splat, once per pass (every edge reads two)."""
+    i = wp.tid()
+    covariances[i] = covariance(rotations[i], log_scales[i])
+
+wp.set_module_options({"enable_backward": False})
+
+SH_C0 = wp.constant(0.28209479177387814)
+
+# Merge operators the field cost can score (``FieldCost.operator``).
+MPMM = wp.constant(0)
+COVERAGE = wp.constant(1)
+
+
+@wp.func
+def operator_merged(operator_id: int, i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, growth: float):
+    """The operator's merged splat as (pi, mu_m, Sigma_m, alpha_m, c0, c1), (c0, c1) an orthonormal
+    basis of its face plane."""
+    if operator_id == MPMM:
+        pi, mu_m, cov_m, logit_m = mpmm_merged(i, j, src)
+        n, c0, c1, face = face_plane(cov_m)
+        return pi, mu_m, cov_m, wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(logit_m))), c0, c1
+    pi, mu_m, cov_m, c0, c1, ratio = coverage_merged(i, j, src, cov_i, cov_j, growth)
+    return pi, mu_m, cov_m, wp.min(ratio, wp.float64(MERGED_ALPHA_MAX)), c0, c1
+
+
+@wp.func
+def colour_dot(features: wp.array2d(dtype=float), a: int, b: int):
+    """mean_d c_a(d) . c_b(d) for SH colours c(d) = 0.5 + sum_lm f_lm Y_lm(d): the real SH basis is
+    orthonormal, so the DC terms give (0.5 + C0 f_a)(0.5 + C0 f_b) and every other coefficient
+    C0^2 f_a f_b (C0^2 = 1 / 4 pi)."""
+    dot = wp.float64(0.0)
+    for ch in range(3):
+        dot += (wp.float64(0.5) + wp.float64(SH_C0) * wp.float64(features[a, ch])) * (
+            wp.float64(0.5) + wp.float64(SH_C0) * wp.float64(features[b, ch])
+        )
+    rest = wp.float64(0.0)
+    for c in range(3, features.shape[1]):
+        rest += wp.float64(features[a, c]) * wp.float64(features[b, c])
+    return dot + wp.float64(SH_C0) * wp.float64(SH_C0) * rest
+
+
+@wp.kernel
+def field_costs(
+    edge_i: wp.array(dtype=wp.int32),
+    edge_j: wp.array(dtype=wp.int32),
+    src: Splats,
+    covariances: wp.array(dtype=wp.mat33d),
+    operator_id: int,
+    growth: float,
+    lambda_geo: float,
+    lambda_app: float,
+    costs: wp.array(dtype=float),
+):
+    """The field cost of each edge (module docstring); the merged colour c_m = pi c_i + (1 - pi) c_j
+    is linear in the features, so every colour product follows from c_i.c_i, c_i.c_j, c_j.c_j."""
+    e = wp.tid()
+    i = int(edge_i[e])
+    j = int(edge_j[e])
+    cov_i = covariances[i]
+    cov_j = covariances[j]
+    pi, mu_m, cov_m, alpha_m, c0, c1 = operator_merged(operator_id, i, j, src, cov_i, cov_j, growth)
+    if not (wp.isfinite(alpha_m) and wp.isfinite(wp.determinant(cov_m))):
+        costs[e] = wp.float32(UNMERGEABLE)
+        return
+    mu_i = to_vec3d(src.means[i])
+    mu_j = to_vec3d(src.means[j])
+    p_i = project2(cov_i, c0, c1)
+    p_j = project2(cov_j, c0, c1)
+    p_m = project2(cov_m, c0, c1)
+    o_ii = overlap2(mu_i, p_i, mu_i, p_i, c0, c1)
+    o_jj = overlap2(mu_j, p_j, mu_j, p_j, c0, c1)
+    o_mm = overlap2(mu_m, p_m, mu_m, p_m, c0, c1)
+    o_ij = overlap2(mu_i, p_i, mu_j, p_j, c0, c1)
+    o_im = overlap2(mu_i, p_i, mu_m, p_m, c0, c1)
+    o_jm = overlap2(mu_j, p_j, mu_m, p_m, c0, c1)
+    a_i = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(src.opacities[i])))
+    a_j = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(src.opacities[j])))
+    two = wp.float64(2.0)
+    geo = a_i * a_i * o_ii + a_j * a_j * o_jj + alpha_m * alpha_m * o_mm + two * (a_i * a_j * o_ij - a_i * alpha_m * o_im - a_j * alpha_m * o_jm)
+    pj = wp.float64(1.0) - pi
+    d_ii = colour_dot(src.features, i, i)
+    d_jj = colour_dot(src.features, j, j)
+    d_ij = colour_dot(src.features, i, j)
+    d_im = pi * d_ii + pj * d_ij
+    d_jm = pi * d_ij + pj * d_jj
+    d_mm = pi * d_im + pj * d_jm
+    col = (
+        a_i * a_i * d_ii * o_ii + a_j * a_j * d_jj * o_jj + alpha_m * alpha_m * d_mm * o_mm
+        + two * (a_i * a_j * d_ij * o_ij - a_i * alpha_m * d_im * o_im - a_j * alpha_m * d_jm * o_jm)
+    )  # fmt: skip
+    total = wp.float64(lambda_geo) * wp.max(geo, wp.float64(0.0)) + wp.float64(lambda_app) * wp.max(col, wp.float64(0.0))
+    costs[e] = finite_cost(total)

@@ -1,0 +1,73 @@
+"""How the commands fail and show examples: known errors as one line on stderr and exit code 2,
+anything else as one line and exit code 1. Shared by every command module (no command imports another)."""
+
+from __future__ import annotations
+
+import functools
+import os
+import traceback
+
+import typer
+
+from .errors import InputError
+
+
+def examples(*lines: str) -> str:
+    """A help epilog listing example commands, kept as written (click's \\b: no rewrapping)."""
+    return "Examples:\n\n\b\n" + "\n".join(f"  {line}" for line in lines)
+
+
+def _fail(message: str, code: int) -> None:
+    typer.echo(f"nanogs-warp: error: {message}", err=True)
+    raise typer.Exit(code)
+
+
+def user_errors(command):
+    """Turns known errors into one line on stderr and exit code 2; anything else into one line and
+    exit code 1 (NANOGS_DEBUG=1 shows the traceback)."""
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except (typer.Exit, typer.Abort, KeyboardInterrupt):
+            raise
+        except InputError as e:
+            _fail(str(e), 2)
+        except MemoryError:
+            _fail("out of memory", 1)
+        except Exception as e:  # noqa: BLE001 - the last line of defence for a command-line tool
+            if os.environ.get("NANOGS_DEBUG"):
+                traceback.print_exc()
+            _fail(f"internal error: {type(e).__name__}: {e} (set NANOGS_DEBUG=1 for details)", 1)
+
+    return wrapper
+
+
+def readable_placeholders() -> None:
+    """Help shows value placeholders as words (``--views VIEWS``, ``SCENE``) rather than this typer
+    version's ``<int>`` types and ``{input}`` braces. Options and arguments with their own metavar
+    keep it. Does nothing on typer versions without these hooks."""
+    try:
+        from typer.core import TyperArgument, TyperOption
+    except ImportError:
+        return
+    if not all(hasattr(c, "display_type_rich") for c in (TyperArgument, TyperOption)) or not hasattr(
+        TyperArgument, "_usage_display_name"
+    ):
+        return
+
+    def option_placeholder(self, ctx):
+        word = self.metavar if self.metavar is not None else (self.name or "value").upper()
+        return word + ("..." if self.nargs != 1 else "")
+
+    def argument_usage(self):
+        word = self.metavar if self.metavar is not None else (self.name or "value").upper()
+        word += "..." if self.nargs != 1 else ""
+        return word if self.required else f"[{word}]"
+
+    TyperOption.display_type_rich = option_placeholder
+    TyperArgument.display_type_rich = lambda self, ctx: None
+    TyperArgument._usage_display_name = argument_usage
+    if hasattr(TyperArgument, "display_name_raw"):
+        TyperArgument.display_name_raw = property(lambda self: self.metavar if self.metavar is not None else (self.name or "value").upper())

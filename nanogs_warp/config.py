@@ -1,0 +1,127 @@
+"""The method's settings (:class:`SimplifyConfig`, named presets) and the target count of a ratio,
+without Warp: the command line reads them before it decides whether it needs Warp at all."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from decimal import Decimal, InvalidOperation
+from fractions import Fraction
+
+from .errors import InputError
+
+# Neighbours per splat when k is not set: more for small scenes, where they are cheap (docs/quality.md:
+# the one shared scene below the threshold, 4,721 splats, needs 24 at rho = 0.1 to beat the top-k
+# baseline; the four above it, 91k to 500k splats, measure the same mean PSNR at 16 and 24, and 16 is
+# about 1.3x faster). The measurements put the threshold anywhere from 4,722 to 90,854 splats.
+SMALL_SCENE_SPLATS = 65_536
+K_SMALL_SCENE = 24
+K_LARGE_SCENE = 16
+
+
+@dataclass(frozen=True)
+class SimplifyConfig:
+    """Every constant of the method.
+
+    The defaults are the configuration chosen by leave-one-scene-out over the shared scenes and
+    generated stress scenes (docs/quality.md): the coverage merge operator, the field cost, at most
+    35 % of the splats merged a pass, no opacity pruning and k = None: 24 neighbours below 65,536
+    splats, 16 from there on. ``SimplifyConfig.paper()`` is
+    the NanoGS paper's configuration (``--preset paper``).
+
+    ``pass_fraction``: at most this fraction of the current splats merge in one pass, the cheapest
+    pairs of the matching first; 0.5 takes the whole matching as the paper does, smaller values merge
+    cheap regions first over more passes.
+    """
+
+    k: int | None = None
+    prune_opacity: float = 0.0
+    samples: int = 1
+    seed: int = 0
+    lambda_geo: float = 1.0
+    lambda_app: float = 1.0
+    cost: str = "field"
+    operator: str = "coverage"
+    pass_fraction: float = 0.35
+
+    def __post_init__(self):
+        self.validate()  # a bad configuration fails where it is built, not where it runs
+
+    @staticmethod
+    def paper(**overrides) -> SimplifyConfig:
+        """The paper's configuration: MPMM, Monte Carlo I-divergence, pruning at 0.1, k = 16."""
+        return SimplifyConfig.preset("paper", **overrides)
+
+    @staticmethod
+    def preset(name: str, **overrides) -> SimplifyConfig:
+        """A named configuration with ``overrides``: "default" (this class's defaults) or "paper"."""
+        if name not in PRESETS:
+            raise InputError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+        return SimplifyConfig(**{**PRESETS[name], **overrides})
+
+    def neighbours(self, splat_count: int) -> int:
+        """k for a scene of ``splat_count`` splats (after pruning): k itself, or when unset 24 below
+        SMALL_SCENE_SPLATS splats and 16 from there on."""
+        if self.k is not None:
+            return self.k
+        return K_SMALL_SCENE if splat_count < SMALL_SCENE_SPLATS else K_LARGE_SCENE
+
+    def validate(self) -> None:
+        from .cost import COSTS, FieldCost  # the registries hold Warp kernels: imported when needed
+        from .operators import OPERATORS
+        from .topology import KnnTopology
+
+        if self.k is not None and not 1 <= self.k <= KnnTopology.MAX_K:
+            raise InputError(f"--k must be between 1 and {KnnTopology.MAX_K}, got {self.k}")
+        if not 0.0 <= self.prune_opacity <= 1.0:
+            raise InputError(f"--prune-opacity must be in [0, 1], got {self.prune_opacity}")
+        if not 1 <= self.samples <= 1024:
+            raise InputError(f"--samples must be between 1 and 1024, got {self.samples}")
+        if self.cost not in COSTS:
+            raise InputError(f"unknown cost {self.cost!r}; choose one of {', '.join(COSTS)}")
+        if self.operator not in OPERATORS:
+            raise InputError(f"unknown operator {self.operator!r}; choose one of {', '.join(OPERATORS)}")
+        if self.cost == "field" and self.operator not in FieldCost.OPERATOR_IDS:
+            raise InputError(f"--cost field scores the mpmm and coverage operators, not {self.operator!r}")
+        if not (0.0 < self.pass_fraction <= 0.5):
+            raise InputError(f"pass_fraction must be in (0, 0.5], got {self.pass_fraction}")
+        for name in ("lambda_geo", "lambda_app"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}")
+
+
+# Named configurations (``--preset``): the measured default and the NanoGS paper's own.
+PRESETS: dict[str, dict] = {
+    "default": {},
+    "paper": {"k": 16, "prune_opacity": 0.1, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5},
+}
+
+
+def exact_ratio(ratio: float | str | Decimal | Fraction) -> Fraction:
+    """The ratio as an exact fraction in (0, 1]: text ("0.07", "7e-2") and Decimals as written, a
+    float as its shortest repr (0.07 is 7/100, not the binary double just below it)."""
+    if isinstance(ratio, Fraction):
+        value = ratio
+    else:
+        text = repr(ratio) if isinstance(ratio, float) else str(ratio).strip()
+        try:
+            decimal = Decimal(text)
+        except (InvalidOperation, ValueError):
+            raise InputError(f"ratio {ratio!r} is not a number") from None
+        if not decimal.is_finite():
+            raise InputError(f"ratio must be in (0, 1], got {ratio}")
+        # beyond 1e-60 every scene below 1e60 splats keeps one splat: spare Fraction a huge denominator
+        if decimal > 0 and decimal.adjusted() < -60:
+            decimal = Decimal("1e-61")
+        value = Fraction(decimal)
+    if not 0 < value <= 1:
+        raise InputError(f"ratio must be in (0, 1], got {ratio}")
+    return value
+
+
+def target_count(input_count: int, ratio: float | str | Decimal | Fraction) -> int:
+    """N_tgt = max(1, ceil(ratio * N_0)), exactly: integer arithmetic on the ratio as written
+    (``exact_ratio``), so target_count(100, 0.07) is 7."""
+    value = exact_ratio(ratio)
+    return max(1, -(-int(input_count) * value.numerator // value.denominator))

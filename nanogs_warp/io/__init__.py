@@ -1,0 +1,206 @@
+"""Splat files in the formats people ship: reading detects the format by content (the extension
+is a hint), writing picks it by ``format`` or by the output's name.
+
+Formats: ``ply`` (INRIA 3DGS PLY, :mod:`nanogs_warp.ply`), ``compressed-ply`` (PlayCanvas),
+``spz`` (Niantic, versions 2 and 3), ``sog`` (PlayCanvas; bundled ``.sog`` zip or unbundled
+``meta.json``), ``splat`` (antimatter15) and ``lod`` (a PlayCanvas ``lod-meta.json`` set of SOG
+levels). What each keeps and loses: docs/formats.md.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..errors import InputError
+from ..ply import PlyArrays, checked_rows, normalize_quaternions, read_ply_arrays, read_splats, save_ply, splats_from_host
+from ..ply_layout import PlyLayout
+from ..ply_write import atomic_write
+from . import compressed_ply, lod, sog, spz, splat
+from .common import dropped_parts, plain_layout, read_file_bytes
+
+if TYPE_CHECKING:
+    from ..splats import SplatSet
+
+FORMATS = ("ply", "compressed-ply", "spz", "sog", "splat", "lod")
+GENERATOR = "nanogs-warp"
+_MAX_SH = {"compressed-ply": 3, "spz": 3, "sog": 3, "lod": 3, "splat": 0}
+_TITLE = {"ply": "PLY", "compressed-ply": "compressed PLY", "spz": "SPZ", "sog": "SOG", "splat": ".splat",
+          "lod": "SOG LOD set"}  # fmt: skip
+_READABLE = "INRIA or compressed PLY, SPZ v2/v3, SOG (.sog or meta.json), lod-meta.json or .splat"
+
+
+def format_for_path(path, format: str | None = None) -> str:
+    """The output format: ``format`` when given, else by the name (``.compressed.ply``, ``.spz``,
+    ``.sog``, ``.splat``, ``lod-meta.json``, other ``.json``: unbundled SOG), else PLY."""
+    if format is not None:
+        if format not in FORMATS:
+            raise InputError(f"--format {format!r}: expected one of {', '.join(FORMATS)}")
+        return format
+    name = Path(path).name.lower()
+    if name == "lod-meta.json":
+        return "lod"
+    for suffix, fmt in ((".compressed.ply", "compressed-ply"), (".spz", "spz"), (".sog", "sog"),
+                        (".splat", "splat"), (".json", "sog")):  # fmt: skip
+        if name.endswith(suffix):
+            return fmt
+    return "ply"
+
+
+def detect_format(path) -> str:
+    """The format of an existing file (or SOG/LOD folder), by content; the extension decides only
+    when the content has no signature (.splat has none)."""
+    path = Path(path)
+    name = path.name
+    if path.is_dir():
+        for inner, fmt in (("lod-meta.json", "lod"), ("meta.json", "sog")):
+            if (path / inner).is_file():
+                return fmt
+        raise InputError(f"{name}: is a directory without meta.json or lod-meta.json")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+            size = f.seek(0, 2)
+    except FileNotFoundError:
+        raise InputError(f"{name}: no such file") from None
+    except PermissionError:
+        raise InputError(f"{name}: permission denied") from None
+    except OSError as e:
+        raise InputError(f"{name}: cannot read the file: {e.strerror or e}") from e
+    if size == 0:
+        raise InputError(f"{name}: the file is empty")
+    if head.startswith(b"ply"):
+        return "compressed-ply" if compressed_ply.looks_compressed(head) else "ply"
+    if spz.looks_like_spz(head):
+        return "spz"
+    if sog.looks_bundled(head):
+        return "sog"
+    if head.lstrip()[:1] == b"{":
+        if b'"lodLevels"' in head:
+            return "lod"
+        if sog.looks_like_meta(head):
+            return "sog"
+    hinted = format_for_path(path)
+    if name.lower().endswith(".ply") or hinted in ("spz", "sog", "lod", "splat") or name.lower().endswith(".json"):
+        return hinted  # that reader says what is wrong with the file
+    if size % splat.ROW.itemsize == 0:
+        return "splat"
+    raise InputError(f"{name}: not a splat file this tool reads ({_READABLE})")
+
+
+def read_splat_arrays(path) -> PlyArrays:
+    """A splat file's host arrays (before value checks), its layout, format and size in bytes."""
+    with np.errstate(all="ignore"):  # malformed values are found by the checks, not as warnings
+        return _read_splat_arrays(Path(path))
+
+
+def _read_splat_arrays(path: Path) -> PlyArrays:
+    fmt = detect_format(path)
+    if fmt == "ply":
+        return read_ply_arrays(path)
+    if fmt == "lod":
+        meta_path = path / "lod-meta.json" if path.is_dir() else path
+        inner = lod.finest_level_meta(meta_path, read_file_bytes(meta_path, lod.META_LIMIT))
+        arrays = sog.read_unbundled(inner)
+        label, size = "SOG LOD set, level 0", meta_path.stat().st_size
+    elif fmt == "sog" and (path.is_dir() or not sog.looks_bundled(_head(path))):
+        arrays = sog.read_unbundled(path)
+        label, size = "SOG (meta.json)", (path / "meta.json" if path.is_dir() else path).stat().st_size
+    elif fmt == "sog":
+        arrays, label, size = sog.read_bundled(path), "SOG (.sog)", path.stat().st_size
+    else:
+        data = read_file_bytes(path)
+        module = {"spz": spz, "compressed-ply": compressed_ply, "splat": splat}[fmt]
+        arrays, label, size = module.read_arrays(path, data), _TITLE[fmt], len(data)
+    return PlyArrays(arrays, plain_layout(arrays["features"].shape[1] - 3), label, size)
+
+
+def load_splats(path, device="cpu", drop_invalid: bool = False, on_drop=None) -> SplatSet:
+    """Reads a splat file of any supported format into a :class:`SplatSet` on ``device``.
+
+    Values are checked as :func:`nanogs_warp.ply.load_ply` checks them (``drop_invalid`` and
+    ``on_drop`` likewise). Scenes from non-PLY files get the plain INRIA layout.
+    """
+    arrays, layout = read_any_splats(path, drop_invalid, on_drop)
+    return splats_from_host(arrays, layout, device)
+
+
+def read_any_splats(path, drop_invalid: bool = False, on_drop=None) -> tuple[dict[str, np.ndarray], PlyLayout]:
+    """load_splats' part on the host, without Warp: the checked host arrays (quaternions
+    normalised) and the layout; :func:`nanogs_warp.ply.splats_from_host` makes them a SplatSet."""
+    path = Path(path)
+    if detect_format(path) == "ply":
+        return read_splats(path, drop_invalid=drop_invalid, on_drop=on_drop)
+    data = read_splat_arrays(path)
+    a = checked_rows(data.arrays, path.name, drop_invalid, on_drop)
+    a["rotations"] = normalize_quaternions(a["rotations"])
+    return a, data.layout
+
+
+def save_splats(splats: SplatSet, path, format: str | None = None, on_loss=None) -> None:
+    """Writes ``splats`` in ``format`` (by default: by the name, :func:`format_for_path`), each
+    file atomically. ``on_loss``, if given, is called with one line naming what the format could
+    not hold (SH bands, extra properties, PLY elements), when anything."""
+    save_levels([splats], path, format, on_loss)
+
+
+def save_levels(levels: list[SplatSet], path, format: str | None = None, on_loss=None) -> None:
+    """Writes one scene (``levels`` of one) or, for the ``lod`` format, a level-of-detail set of
+    several, finest first."""
+    path = Path(path)
+    fmt = format_for_path(path, format)
+    if fmt != "lod" and len(levels) != 1:
+        raise ValueError("several levels need the lod format")
+    if fmt == "ply":
+        save_ply(levels[0], path)
+        return
+    with np.errstate(all="ignore"):  # out-of-range values clip, by design
+        _write_levels([s.to_numpy() for s in levels], levels, path, fmt, on_loss)
+
+
+def _write_levels(hosts, levels, path: Path, fmt: str, on_loss) -> None:
+    lost = []
+    for s, host in zip(levels, hosts):
+        lost += [p for p in dropped_parts(host, s.layout, _MAX_SH[fmt]) if p not in lost]
+    if fmt == "splat":
+        _write(path, splat.encode(hosts[0]))
+    elif fmt == "compressed-ply":
+        _write(path, compressed_ply.encode(hosts[0], f"Generated by {GENERATOR}"))
+    elif fmt == "spz":
+        data, notes = spz.encode(hosts[0])
+        lost += notes
+        _write(path, data)
+    elif fmt == "sog" and path.suffix.lower() == ".json":
+        files = sog.encode(hosts[0], GENERATOR)
+        for name, data in files.items():  # meta.json last: the images are in place when it appears
+            _write(path if name == "meta.json" else path.with_name(name), data)
+    elif fmt == "sog":
+        _write(path, sog.bundle(sog.encode(hosts[0], GENERATOR)))
+    else:
+        folder = path.parent if path.name.lower() == "lod-meta.json" else path
+        if folder.exists() and not folder.is_dir():
+            raise InputError(f"{folder.name}: exists and is not a directory")
+        for relative, data in lod.encode(hosts, GENERATOR).items():
+            target = folder / relative
+            try:
+                target.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                raise InputError(f"{target.parent}: cannot create the directory: {e.strerror or e}") from e
+            _write(target, data)
+    if lost and on_loss is not None:
+        on_loss(f"{path.name}: {_TITLE[fmt]} cannot hold {'; '.join(lost)}: dropped")
+
+
+def _write(path: Path, data: bytes) -> None:
+    atomic_write(path, lambda stream: stream.write(data))
+
+
+def _head(path: Path) -> bytes:
+    with open(path, "rb") as f:
+        return f.read(4)
+
+
+__all__ = ["FORMATS", "detect_format", "format_for_path", "load_splats", "read_splat_arrays", "save_levels",
+           "save_splats"]  # fmt: skip

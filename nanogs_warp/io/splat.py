@@ -1,0 +1,51 @@
+"""antimatter15 ``.splat``: 32-byte rows with no header, SH degree 0 only.
+
+Each row: position float32 x3, linear scale float32 x3, colour RGBA uint8 (RGB = 255 (0.5 +
+SH_C0 f_dc), A = 255 sigmoid(opacity)), rotation uint8 x4 (w, x, y, z as 128 + 128 q). Positions
+and scales are exact (scales as exp of the log scales, float32); colour, opacity and rotation are
+8-bit. The file is recognised by its size (a multiple of 32 bytes) when nothing else matches.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .common import SH_C0, byte_to_opacity_logit, host_arrays, opacity_to_byte, unit_quaternions
+
+ROW = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rotation", "u1", 4)])
+MAX_SH_DEGREE = 0
+
+
+def read_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
+    """Decodes a .splat file's bytes into host arrays (values not checked)."""
+    name = path.name
+    if len(data) == 0:
+        raise InputError(f"{name}: the file is empty")
+    if len(data) % ROW.itemsize:
+        raise InputError(f"{name}: not a .splat file ({len(data)} bytes is not a multiple of 32)")
+    rows = np.frombuffer(data, ROW)
+    scale = rows["scale"].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # a scale of exactly 0 is a splat too small for float32's exp: the smallest normal float32
+        log_scales = np.log(np.where(scale == 0.0, np.finfo(np.float32).tiny, scale))
+    rgba = rows["rgba"]
+    features = (rgba[:, :3].astype(np.float64) / 255.0 - 0.5) / SH_C0
+    rotations = (rows["rotation"].astype(np.float64) - 128.0) / 128.0
+    return host_arrays(rows["position"], rotations, log_scales, byte_to_opacity_logit(rgba[:, 3]), features)
+
+
+def encode(host: dict[str, np.ndarray]) -> bytes:
+    """The .splat bytes of host arrays (rows in their order; SH bands above 0 are not written)."""
+    n = host["means"].shape[0]
+    rows = np.zeros(n, ROW)
+    rows["position"] = host["means"]
+    with np.errstate(over="ignore"):
+        rows["scale"] = np.exp(host["log_scales"].astype(np.float64)).astype(np.float32)
+    colour = 255.0 * (0.5 + SH_C0 * host["features"][:, :3].astype(np.float64))
+    rows["rgba"][:, :3] = np.clip(np.rint(colour), 0, 255)
+    rows["rgba"][:, 3] = opacity_to_byte(host["opacities"])
+    rows["rotation"] = np.clip(np.rint(128.0 + 128.0 * unit_quaternions(host["rotations"])), 0, 255)
+    return rows.tobytes()

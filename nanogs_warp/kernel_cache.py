@@ -1,0 +1,136 @@
+"""The package's Warp kernels and Warp's kernel cache: where the cache is, whether it already holds
+the kernels a command needs, loading (or compiling) them in parallel, and ``nanogs-warp warmup``,
+which compiles every kernel ahead of time, for instance while a farm's container image is built.
+
+Warp compiles each kernel module the first time it is used on a device and keeps the binary in its
+kernel cache: ``$NANOGS_WARP_CACHE`` if set (this package's own variable), else Warp's
+``$WARP_CACHE_PATH``, else ``~/.cache/warp/<version>``. Binaries are keyed by the module's
+content, the device kind and (for CUDA) the GPU architecture, so one cache directory can serve
+several GPU generations once it holds a binary for each.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+import time
+from pathlib import Path
+
+CACHE_VARIABLE = "NANOGS_WARP_CACHE"
+
+# The kernel modules each command launches (their Warp helpers come with them).
+SIMPLIFY_MODULES = ("knn", "edges", "cost", "pairing", "compact", "merge", "prune")
+EVAL_MODULES = ("render",)
+ALL_MODULES = SIMPLIFY_MODULES + EVAL_MODULES
+
+# GPU architectures compiled by `warmup` on a machine without a GPU (Turing to Hopper).
+DEFAULT_ARCHS = (75, 80, 86, 89, 90)
+
+
+def cache_dir_from_environment() -> str | None:
+    """The kernel cache directory the user asked for ($NANOGS_WARP_CACHE), if any."""
+    return os.environ.get(CACHE_VARIABLE) or None
+
+
+def use_cache_dir(path: str | os.PathLike | None) -> None:
+    """Points Warp's kernel cache at ``path`` (created if needed); call before Warp initialises.
+    None leaves Warp's own choice ($WARP_CACHE_PATH or its default)."""
+    if path is None:
+        return
+    import warp as wp
+
+    from .errors import InputError
+
+    path = Path(path).expanduser()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise InputError(f"kernel cache {path}: cannot create the directory: {e.strerror or e}") from None
+    if not os.access(path, os.W_OK):
+        raise InputError(f"kernel cache {path}: the directory is not writable")
+    wp.config.kernel_cache_dir = str(path.resolve())
+
+
+def warp_modules(names=ALL_MODULES) -> list:
+    """The Warp modules of the named kernel files (importing them registers their kernels)."""
+    import warp as wp
+
+    modules = []
+    for name in names:
+        python_module = importlib.import_module(f"nanogs_warp.kernels.{name}")
+        modules.append(wp.get_module(python_module.__name__))
+    return modules
+
+
+def missing_modules(modules: list, device) -> list:
+    """Those of ``modules`` that the kernel cache holds no binary of for ``device``."""
+    import warp as wp
+
+    from warp._src.context import _resolve_launch_block_dim  # the block size a launch would use
+
+    root = Path(wp.config.kernel_cache_dir)
+    missing = []
+    for module in modules:
+        try:
+            block_dim = _resolve_launch_block_dim(device, None if device.is_cpu else module.options["block_dim"])
+            name = module._get_compile_output_name(device, block_dim=block_dim)
+            present = (root / module.get_module_identifier(block_dim) / name).exists()
+        except Exception:  # noqa: BLE001 - a Warp internal changed: say nothing rather than fail
+            present = True
+        if not present:
+            missing.append(module)
+    return missing
+
+
+def load_kernels(device, names=SIMPLIFY_MODULES, announce: bool = True) -> float:
+    """Loads the named kernel modules on ``device`` (a Warp device), compiling those the cache
+    lacks, several at once; when some must be compiled and ``announce`` is true, one line on stderr
+    says so first. Returns the seconds it took."""
+    import warp as wp
+
+    started = time.perf_counter()
+    modules = warp_modules(names)
+    missing = missing_modules(modules, device)
+    if missing and announce:
+        print(f"nanogs-warp: compiling {len(missing)} kernel module(s) for {device} (once; they are kept in "
+              f"{wp.config.kernel_cache_dir}; 'nanogs-warp warmup' does this ahead of time)", file=sys.stderr)  # fmt: skip
+        sys.stderr.flush()
+    _force_load(modules, [device], len(missing))
+    return time.perf_counter() - started
+
+
+def warmup(devices: list, archs: list[int], names=ALL_MODULES) -> list[tuple[str, int, float]]:
+    """Compiles every kernel module for each Warp device in ``devices`` (as the commands will load
+    them there) and, with no GPU needed, for each CUDA architecture in ``archs``, both as the CUBIN
+    and as the PTX that Warp picks on that GPU with an older or a newer driver. Returns (target,
+    modules compiled, seconds) per target."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import warp as wp
+
+    modules = warp_modules(names)
+    report = []
+    for device in devices:
+        started = time.perf_counter()
+        missing = len(missing_modules(modules, device))
+        _force_load(modules, [device], missing)
+        report.append((str(device), missing, time.perf_counter() - started))
+    for arch in archs:
+        started = time.perf_counter()
+        jobs = [(m, ptx) for m in modules for ptx in (False, True)]
+        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+            list(pool.map(lambda job: wp.compile_aot_module(job[0], arch=arch, use_ptx=job[1]), jobs))
+        report.append((f"sm_{arch}", len(jobs), time.perf_counter() - started))
+    return report
+
+
+def _force_load(modules: list, devices: list, to_compile: int) -> None:
+    """Loads ``modules`` on ``devices``, compiling up to one module per CPU core at once when
+    several must be compiled. (Warp's options, precompiled headers included, are left as they are:
+    they are part of each binary's key in the cache, so a different setting would compile
+    binaries that the commands never load.)"""
+    import warp as wp
+
+    workers = min(to_compile, os.cpu_count() or 1)
+    wp.force_load(device=devices, modules=modules, max_workers=workers if workers > 1 else 0)

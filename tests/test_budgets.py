@@ -1,0 +1,85 @@
+"""Budgets: ceil(ratio * N) exactly, for every ratio a user can type."""
+
+from decimal import Decimal
+from fractions import Fraction
+
+import pytest
+
+from nanogs_warp.budgets import parse_budgets
+from nanogs_warp.errors import InputError
+from nanogs_warp.pipeline import exact_ratio, target_count
+
+
+def exact_target(n, text):
+    value = Fraction(Decimal(text))
+    return max(1, -(-n * value.numerator // value.denominator))
+
+
+@pytest.mark.parametrize(
+    "n, ratio, expected",
+    [
+        (100, 0.07, 7),  # 0.07 * 100 is 7.000000000000001 in floating point
+        (100, 0.29, 29),  # 28.999999999999996
+        (1000, 0.001, 1),
+        (3, 1 / 3, 1),  # the float 1/3 is 0.3333333333333333 as written: 3 times that is below 1
+        (10, 0.1, 1),
+        (10, 0.11, 2),
+        (1, 0.5, 1),
+        (7, 1.0, 7),
+        (123_456_789, 0.1, 12_345_679),
+        (2**40, 0.5, 2**39),
+        (2**53 + 1, 1.0, 2**53 + 1),
+    ],
+)
+def test_target_count_is_exact(n, ratio, expected):
+    assert target_count(n, ratio) == expected
+    assert target_count(n, repr(ratio)) == expected
+    assert target_count(n, Decimal(repr(ratio))) == expected
+
+
+def test_every_two_decimal_ratio_of_small_scenes():
+    """Every ratio 0.01 .. 1.00 on every scene of 1 .. 300 splats: integer arithmetic agrees."""
+    for n in range(1, 301):
+        for hundredths in range(1, 101):
+            text = f"{hundredths / 100:.2f}"
+            want = max(1, -(-n * hundredths // 100))
+            assert target_count(n, float(text)) == want, (n, text)
+            assert target_count(n, text) == want, (n, text)
+
+
+@pytest.mark.parametrize("text", ["0.07", "7e-2", "0.0700", "1", "1.0", "0.333333333333333333333", "1e-9", "0.123456789012345678901234567890"])
+def test_parsed_ratio_is_the_typed_decimal(text):
+    (budget,) = parse_budgets(text, None)
+    for n in (1, 7, 100, 999_983, 10**12 + 7):
+        assert budget.target(n) == exact_target(n, text)
+
+
+def test_typed_digits_beyond_a_float_count():
+    """0.1000000000000000000001 is above 0.1, so 10 splats keep 2; as a float it would be 0.1 (1)."""
+    (budget,) = parse_budgets("0.1000000000000000000001", None)
+    assert budget.target(10) == 2
+    assert target_count(10, 0.1) == 1
+
+
+def test_float_api_converts_through_its_shortest_repr():
+    assert exact_ratio(0.07) == Fraction(7, 100)
+    assert exact_ratio("0.07") == Fraction(7, 100)
+    assert exact_ratio(Fraction(1, 3)) == Fraction(1, 3)
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.1, 1.0000001, float("nan"), float("inf"), "abc", "", "1/2"])
+def test_bad_ratios(bad):
+    with pytest.raises(InputError):
+        target_count(100, bad)
+
+
+@pytest.mark.parametrize("bad", ["0", "-0.5", "1.01", "nan", "inf", "x", "0.1,", "0.1,0.10"])
+def test_bad_budget_text(bad):
+    with pytest.raises(InputError):
+        parse_budgets(bad, None)
+
+
+def test_tiny_typed_ratio_keeps_one_splat():
+    (budget,) = parse_budgets("1e-300", None)
+    assert budget.target(10**9) == 1
+    assert target_count(10**9, "1e-999999999") == 1  # no giant denominator

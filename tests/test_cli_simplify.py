@@ -1,0 +1,105 @@
+"""simplify's outputs: no silent overwrite, -o DIR/ writes inside the folder, --sample; help text
+with examples and word placeholders."""
+
+import json
+import re
+
+import pytest
+from scene_factory import random_splats_ply
+from typer.testing import CliRunner
+
+from nanogs_warp.cli import app
+from nanogs_warp.data import sample_path
+from nanogs_warp.ply import load_ply
+
+
+def run(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture
+def scene(tmp_path):
+    path = tmp_path / "scene.ply"
+    random_splats_ply(path, 400, seed=6)
+    return path
+
+
+def test_existing_output_needs_overwrite(scene, tmp_path):
+    out = tmp_path / "out.ply"
+    assert run("simplify", scene, "-o", out, "--count", "40", "--device", "cpu", "-q").exit_code == 0
+    first = out.read_bytes()
+    again = run("simplify", scene, "-o", out, "--count", "20", "--device", "cpu", "-q")
+    assert again.exit_code == 2
+    assert again.stderr.strip() == f"nanogs-warp: error: output {out} already exists; pass --overwrite (-w) to replace it"
+    assert out.read_bytes() == first
+    for flag in ("--overwrite", "-w"):
+        replaced = run("simplify", scene, "-o", out, "--count", "20", "--device", "cpu", "-q", flag)
+        assert replaced.exit_code == 0, replaced.output
+        assert load_ply(out).count == 20
+
+
+def test_one_existing_output_of_several_stops_before_any_work(scene, tmp_path):
+    (tmp_path / "out_0.01.ply").write_bytes(b"keep me")
+    result = run("simplify", scene, "-o", tmp_path / "out.ply", "--ratio", "0.1,0.01", "--device", "cpu")
+    assert result.exit_code == 2 and "out_0.01.ply already exists" in result.stderr
+    assert not (tmp_path / "out_0.1.ply").exists() and (tmp_path / "out_0.01.ply").read_bytes() == b"keep me"
+
+
+@pytest.mark.parametrize("existing", [True, False])
+def test_output_folder_receives_every_budget(scene, tmp_path, existing):
+    folder = tmp_path / "lods"
+    if existing:
+        folder.mkdir()
+    target = folder if existing else f"{folder}/"
+    result = run("simplify", scene, "-o", target, "--ratio", "0.1,0.01", "--device", "cpu", "--json")
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in folder.iterdir()) == ["scene_0.01.ply", "scene_0.1.ply"]
+    assert not list(tmp_path.glob("lods_*"))  # inside the folder, not beside it
+    assert [o["path"] for o in json.loads(result.stdout)["outputs"]] == [str(folder / "scene_0.1.ply"), str(folder / "scene_0.01.ply")]
+    single = run("simplify", scene, "-o", f"{folder}/", "--count", "7", "--device", "cpu", "-q")
+    assert single.exit_code == 0 and load_ply(folder / "scene_7.ply").count == 7
+
+
+def test_output_folder_whose_parent_is_missing(scene, tmp_path):
+    result = run("simplify", scene, "-o", f"{tmp_path}/no/lods/", "--ratio", "0.1", "--device", "cpu")
+    assert result.exit_code == 2 and "cannot be created" in result.stderr
+    assert not (tmp_path / "no").exists()
+
+
+def test_sample_input(tmp_path):
+    assert sample_path().is_file() and load_ply(sample_path()).count == 20_000
+    result = run("simplify", "--sample", "-o", tmp_path / "plant.ply", "--count", "2000,200", "--device", "cpu", "--json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert summary["input"] == str(sample_path().resolve()) and summary["input_count"] == 20_000
+    assert load_ply(tmp_path / "plant_200.ply").count == 200
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [(["--sample", "SCENE"], "not both"), ([], "give an input .ply file"), (["--sample", "--no-output"], None)],
+)
+def test_input_or_sample(tmp_path, scene, args, message):
+    args = [scene if a == "SCENE" else a for a in args]
+    if "--no-output" in args:
+        result = run("simplify", "--sample", "--ratio", "0.1")
+        assert result.exit_code == 2 and "give an output path" in result.stderr
+        return
+    result = run("simplify", *args, "-o", tmp_path / "o.ply", "--ratio", "0.1")
+    assert result.exit_code == 2 and message in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("command", ["simplify", "eval", "batch", "info"])
+def test_help_has_examples_and_word_placeholders(command):
+    result = run(command, "--help")
+    assert result.exit_code == 0
+    text = result.stdout
+    assert "Examples:" in text and len(re.findall(r"^\s+nanogs-warp " + command, text, flags=re.MULTILINE)) >= 2
+    assert not re.search(r"<(str|int|float|path)>|\{input\}|TEXT|INTEGER|FLOAT", text), text
+
+
+def test_help_describes_the_default_cost():
+    text = run("simplify", "--help").stdout
+    lambda_geo = text[text.index("--lambda-geo") : text.index("--lambda-app")]
+    assert "runnalls" in lambda_geo and "default" in lambda_geo

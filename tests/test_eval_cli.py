@@ -1,0 +1,104 @@
+"""nanogs-warp eval as a person meets it: quiet mode, distinct labels for test scenes of the same
+file name, and a contact sheet whose cells are labelled, the worst view marked in red."""
+
+import json
+import shutil
+import zlib
+
+import numpy as np
+import pytest
+from scene_factory import random_splats_ply
+from typer.testing import CliRunner
+
+from nanogs_warp.cli import app
+from nanogs_warp.cli_eval import scene_labels
+from nanogs_warp.evaluate import WORST_COLOUR, contact_sheet, view_label
+from nanogs_warp.glyphs import draw_text, text_width
+
+
+def read_png(path):
+    """The RGB pixels of a PNG written by nanogs_warp.evaluate.write_png (filter 0, 8-bit RGB)."""
+    data = path.read_bytes()
+    width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    at, idat = 8, b""
+    while at < len(data):
+        length = int.from_bytes(data[at : at + 4], "big")
+        if data[at + 4 : at + 8] == b"IDAT":
+            idat += data[at + 8 : at + 8 + length]
+        at += 12 + length
+    raw = np.frombuffer(zlib.decompress(idat), np.uint8).reshape(height, 1 + 3 * width)
+    return raw[:, 1:].reshape(height, width, 3)
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval")
+    random_splats_ply(root / "ref.ply", 200, seed=4)
+    for folder, count in (("paper", 120), ("ours", 80)):
+        (root / folder).mkdir()
+        random_splats_ply(root / folder / "scene_0.1.ply", count, seed=4)
+    return root
+
+
+def run(*args):
+    return CliRunner().invoke(app, ["eval", *(str(a) for a in args)])
+
+
+def test_same_file_names_get_distinct_labels(scenes, tmp_path):
+    tests = [scenes / "paper" / "scene_0.1.ply", scenes / "ours" / "scene_0.1.ply"]
+    result = run(scenes / "ref.ply", *tests, "--views", "4", "--size", "24", "--device", "cpu", "--json", "--images", tmp_path)
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.stdout)
+    assert [t["label"] for t in out["tests"]] == ["paper/scene_0.1", "ours/scene_0.1"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ours_scene_0.1", "paper_scene_0.1"]
+    assert "wrote 5 images" in result.stderr and "\r" not in result.stderr  # no progress off a terminal
+
+
+def test_scene_labels():
+    assert scene_labels(["a/x.ply", "b/y.ply"]) == ["x", "y"]
+    assert scene_labels(["p/a/x.ply", "q/a/x.ply", "b/z.ply"]) == ["p/a/x", "q/a/x", "z"]
+    assert scene_labels(["a/x.ply", "a/x.ply"]) == ["x", "x (2)"]
+
+
+def test_quiet_prints_nothing_but_json(scenes, tmp_path):
+    args = [scenes / "ref.ply", scenes / "ours" / "scene_0.1.ply", "--views", "2", "--size", "16", "--device", "cpu"]
+    quiet = run(*args, "-q", "--images", tmp_path)
+    assert quiet.exit_code == 0 and quiet.stdout == "" and quiet.stderr == ""
+    assert (tmp_path / "scene_0.1" / "contact_sheet.png").is_file()
+    loud = run(*args)
+    assert "PSNR" in loud.stdout
+    as_json = run(*args, "-q", "--json")
+    assert json.loads(as_json.stdout)["command"] == "eval" and as_json.stderr == ""
+
+
+def test_contact_sheet_is_labelled_and_marks_the_worst_view(scenes, tmp_path):
+    result = run(scenes / "ref.ply", scenes / "ours" / "scene_0.1.ply", "--views", "4", "--size", "40", "--device", "cpu",
+                 "--json", "--images", tmp_path)  # fmt: skip
+    assert result.exit_code == 0, result.output
+    test = json.loads(result.stdout)["tests"][0]
+    sheet = read_png(tmp_path / "scene_0.1" / "contact_sheet.png")
+    strip = read_png(tmp_path / "scene_0.1" / "view_000.png")
+    # the label band under each cell holds dark text; the worst view's cell is framed in red
+    red = np.all(sheet == WORST_COLOUR, axis=2)
+    assert red.sum() > 4 * strip.shape[1]
+    worst = [v["name"] for v in test["views"]].index(test["psnr"]["worst_view"])
+    columns = 2  # ceil(sqrt(4))
+    dark = np.all(sheet < 64, axis=2)
+    title_rows = np.flatnonzero(dark[:, : strip.shape[1]].any(axis=1))
+    assert title_rows.min() < 12  # the scene names on top
+    ys, xs = np.nonzero(red)
+    cell_x = xs.min() + 2
+    assert (cell_x // (strip.shape[1] + 4)) == worst % columns
+
+
+def test_contact_sheet_text_matches_the_metrics():
+    """The label drawn under a cell is exactly view_label's text for that view."""
+    strips = [np.zeros((10, 300, 3), np.uint8) for _ in range(2)]
+    labels = [view_label("view_000", 23.4142, 0.81234), view_label("view_001", float("inf"), 1.0)]
+    assert labels == ["view_000  PSNR 23.41  SSIM 0.812", "view_001  PSNR inf  SSIM 1.000"]
+    sheet = contact_sheet(strips, labels=labels, worst=0)
+    expected = np.full((11, 300, 3), 255, np.uint8)
+    draw_text(expected, labels[1], 1, 2)
+    cell = sheet[-11:, 300 + 4 : 600 + 4]
+    assert np.array_equal(np.all(cell < 64, axis=2), np.all(expected < 64, axis=2))
+    assert text_width(labels[0]) < 300

@@ -1,0 +1,236 @@
+"""Encode -> decode round trips of every format within its documented error (docs/formats.md), on
+generated scenes of SH degree 0-3 and the shipped sample; detection by content; what is dropped."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scene_factory import random_splat_arrays
+
+from nanogs_warp import SplatSet
+from nanogs_warp.io import detect_format, format_for_path, load_splats, save_splats
+from nanogs_warp.io.common import SH_C0, morton_order
+from nanogs_warp.io.spz import encode as spz_encode
+from nanogs_warp.ply import load_ply
+
+SAMPLE = Path(str(resources.files("nanogs_warp.data") / "plant_crop.ply"))
+ALPHA_ERROR = 0.5 / 255 + 1e-6  # every format: alpha in 8 bits
+
+
+def scene(n: int, degree: int, seed: int) -> dict[str, np.ndarray]:
+    a = random_splat_arrays(n, degree, seed)
+    a["features"] *= 0.4  # keep most SH values inside the 8-bit formats' ranges; clipping is tested apart
+    return a
+
+
+def sample() -> dict[str, np.ndarray]:
+    a = load_ply(SAMPLE).to_numpy()
+    a["extras"] = a["extras"][:, :0]
+    return a
+
+
+def round_trip(tmp_path, arrays, name: str, **kwargs) -> dict[str, np.ndarray]:
+    path = tmp_path / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_splats(SplatSet.from_numpy(**arrays), path, **kwargs)
+    return load_splats(path).to_numpy()
+
+
+def sigmoid(x):
+    return 1.0 / (1.0 + np.exp(-np.asarray(x, dtype=np.float64)))
+
+
+def angle_deg(q0, q1):
+    q0 = q0 / np.linalg.norm(q0, axis=1, keepdims=True)
+    q1 = q1 / np.linalg.norm(q1, axis=1, keepdims=True)
+    dot = np.clip(np.abs(np.einsum("ij,ij->i", q0.astype(np.float64), q1.astype(np.float64))), 0, 1)
+    return np.degrees(2 * np.arccos(dot))
+
+
+def check_alpha_and_rotation(out, ref, max_degrees):
+    assert np.all(np.abs(sigmoid(out["opacities"]) - sigmoid(ref["opacities"])) <= ALPHA_ERROR)
+    assert np.all(np.isfinite(out["opacities"]))
+    assert angle_deg(out["rotations"], ref["rotations"]).max() <= max_degrees
+
+
+def nearest_codebook_error(original, decoded):
+    """Per value, |decoded - original| minus the distance from the original to the nearest value
+    the decoded data takes (0 when every value went to its nearest codebook entry)."""
+    book = np.unique(decoded)
+    if book.size == 0:
+        return np.zeros(1)
+    x = original.reshape(-1, 1).astype(np.float64)
+    nearest = np.abs(x - book[None, :]).min(axis=1)
+    return np.abs(decoded.reshape(-1) - original.reshape(-1)) - nearest
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_splat_round_trip(tmp_path, degree):
+    a = scene(500, degree, seed=degree)
+    out = round_trip(tmp_path, a, "s.splat")
+    assert out["features"].shape[1] == 3
+    np.testing.assert_array_equal(out["means"], a["means"])
+    np.testing.assert_allclose(out["log_scales"], a["log_scales"], atol=2e-6)
+    colour = np.clip(0.5 + SH_C0 * a["features"][:, :3].astype(np.float64), 0, 1)
+    assert np.abs(0.5 + SH_C0 * out["features"][:, :3] - colour).max() <= 0.5 / 255 + 1e-6
+    check_alpha_and_rotation(out, a, 2.0)
+
+
+def _chunk_span(values: np.ndarray) -> np.ndarray:
+    """Per row, the range of its 256-row chunk (rows in file order), per column."""
+    n = values.shape[0]
+    chunks = -(-n // 256)
+    padded = np.concatenate([values, np.repeat(values[-1:], chunks * 256 - n, axis=0)])
+    blocks = padded.reshape(chunks, 256, -1)
+    return np.repeat(blocks.max(axis=1) - blocks.min(axis=1), 256, axis=0)[:n]
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_compressed_ply_round_trip(tmp_path, degree):
+    a = scene(700, degree, seed=10 + degree)
+    out = round_trip(tmp_path, a, "s.compressed.ply")
+    ref = {k: v[morton_order(a["means"])] for k, v in a.items()}  # the writer's row order
+    steps = np.array([2047.0, 1023.0, 2047.0])  # 11-10-11 bits over each chunk's range
+    for key in ("means", "log_scales"):
+        bound = 0.5 * _chunk_span(ref[key].astype(np.float64)) / steps + 1e-5
+        assert np.all(np.abs(out[key] - ref[key]) <= bound), key
+    colour = 0.5 + SH_C0 * ref["features"][:, :3].astype(np.float64)
+    bound = 0.5 * _chunk_span(colour) / 255 + 1e-5
+    assert np.all(np.abs(0.5 + SH_C0 * out["features"][:, :3] - colour) <= bound)
+    rest = ref["features"][:, 3:].astype(np.float64)
+    assert out["features"].shape == ref["features"].shape
+    assert np.all(np.abs(out["features"][:, 3:] - np.clip(rest, -4, 4)) <= 8 / 256 + 1e-6)
+    check_alpha_and_rotation(out, ref, 0.25)
+
+
+@pytest.mark.parametrize("version", [2, 3])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_spz_round_trip(tmp_path, degree, version):
+    a = scene(400, degree, seed=20 + degree)
+    a["log_scales"] = np.clip(a["log_scales"], -10, 5.9)  # the range SPZ holds
+    path = tmp_path / "s.spz"
+    data, notes = spz_encode(SplatSet.from_numpy(**a).to_numpy(), version=version)
+    path.write_bytes(data)
+    assert notes == [] and detect_format(path) == "spz"
+    out = load_splats(path).to_numpy()
+    assert np.abs(out["means"] - a["means"]).max() <= 0.5 / 4096 + 1e-6
+    assert np.abs(out["log_scales"] - a["log_scales"]).max() <= 1 / 32 + 1e-6
+    assert np.abs(out["features"][:, :3] - a["features"][:, :3]).max() <= 0.5 / (0.15 * 255) + 1e-6
+    rest = np.clip(a["features"][:, 3:], -1, 127 / 128)
+    assert out["features"].shape == a["features"].shape
+    assert np.abs(out["features"][:, 3:] - rest).max(initial=0) <= 0.5 / 128 + 1e-6
+    if version == 3:
+        check_alpha_and_rotation(out, a, 0.25)
+    else:  # v2 stores x y z in 8 bits and derives w: coarse where w is near 0
+        check_alpha_and_rotation(out, a, 20.0)
+        assert angle_deg(out["rotations"], a["rotations"]).mean() < 1.5
+
+
+@pytest.mark.parametrize("name", ["s.sog", "folder/meta.json"])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sog_round_trip(tmp_path, degree, name):
+    a = scene(600, degree, seed=30 + degree)
+    out = round_trip(tmp_path, a, name)
+    ref = {k: v[morton_order(a["means"])] for k, v in a.items()}
+    logm = np.sign(ref["means"]) * np.log1p(np.abs(ref["means"].astype(np.float64)))
+    step = 0.5 * np.ptp(logm, axis=0) / 65535
+    assert np.all(np.abs(out["means"] - ref["means"]) <= (np.abs(ref["means"]) + 1) * np.expm1(step) + 1e-6)
+    for key, cols in (("log_scales", slice(None)), ("features", slice(0, 3)), ("features", slice(3, None))):
+        excess = nearest_codebook_error(ref[key][:, cols], out[key][:, cols])
+        assert excess.max() <= 1e-6, key  # every value went to its nearest codebook entry
+    assert out["features"].shape == ref["features"].shape
+    assert len(np.unique(out["log_scales"])) <= 256
+    check_alpha_and_rotation(out, ref, 1.2)
+
+
+@pytest.mark.parametrize("name", ["s.splat", "s.compressed.ply", "s.spz", "s.sog"])
+def test_shipped_sample_round_trip(tmp_path, name):
+    a = sample()
+    out = round_trip(tmp_path, a, name)
+    assert out["means"].shape == a["means"].shape
+    order = np.arange(len(a["means"])) if name.endswith((".splat", ".spz")) else morton_order(a["means"])
+    ref = {k: v[order] for k, v in a.items()}
+    extent = np.ptp(a["means"], axis=0).max()
+    assert np.abs(out["means"] - ref["means"]).max() <= 1e-3 * extent
+    check_alpha_and_rotation(out, ref, 2.0)
+    assert np.sqrt(np.mean((out["features"][:, :3] - ref["features"][:, :3]) ** 2)) < 0.02
+
+
+def test_lod_set_round_trip(tmp_path):
+    fine, coarse = scene(300, 1, seed=40), scene(40, 1, seed=41)
+    from nanogs_warp.io import save_levels
+
+    path = tmp_path / "lod" / "lod-meta.json"
+    path.parent.mkdir()
+    save_levels([SplatSet.from_numpy(**fine), SplatSet.from_numpy(**coarse)], path)
+    meta = json.loads(path.read_text())
+    assert meta["counts"] == [300, 40] and meta["lodLevels"] == 2 and meta["count"] == 340
+    assert meta["filenames"] == ["0_0/meta.json", "1_0/meta.json"]
+    assert meta["tree"]["lods"] == {"0": {"file": 0, "offset": 0, "count": 300}, "1": {"file": 1, "offset": 0, "count": 40}}
+    assert detect_format(path) == "lod" and detect_format(path.parent) == "lod"
+    assert load_splats(path).count == 300  # the finest level
+    assert load_splats(path.parent / "1_0" / "meta.json").count == 40
+
+
+def test_detection_is_by_content_and_names_pick_the_output(tmp_path):
+    a = scene(50, 0, seed=50)
+    for name, fmt in (("x.splat", "splat"), ("x.compressed.ply", "compressed-ply"), ("x.spz", "spz"),
+                      ("x.sog", "sog"), ("x.ply", "ply")):  # fmt: skip
+        save_splats(SplatSet.from_numpy(**a), tmp_path / name)
+        renamed = tmp_path / f"renamed_{fmt}.bin"
+        (tmp_path / name).rename(renamed)
+        assert detect_format(renamed) == fmt
+        assert format_for_path(tmp_path / name) == fmt
+    assert format_for_path(tmp_path / "x.ply", "spz") == "spz"
+    save_splats(SplatSet.from_numpy(**a), tmp_path / "forced.ply", format="spz")
+    assert detect_format(tmp_path / "forced.ply") == "spz"
+
+
+def test_what_a_format_cannot_hold_is_said_once(tmp_path):
+    a = scene(60, 3, seed=60)
+    a["extras"] = np.random.default_rng(0).normal(size=(60, 1)).astype(np.float32)
+    lines = []
+    save_splats(SplatSet.from_numpy(**a), tmp_path / "x.splat", on_loss=lines.append)
+    assert len(lines) == 1 and "SH degree 3 -> 0" in lines[0] and "extra_0" in lines[0]
+    lines.clear()
+    save_splats(SplatSet.from_numpy(**scene(60, 3, seed=61)), tmp_path / "x.spz", on_loss=lines.append)
+    assert lines == []
+
+
+def test_outputs_are_deterministic(tmp_path):
+    a = scene(300, 2, seed=70)
+    for name in ("x.splat", "x.compressed.ply", "x.spz", "x.sog"):
+        first = (round_trip(tmp_path / "a", a, name), (tmp_path / "a" / name).read_bytes())
+        second = (tmp_path / "b" / name)
+        second.parent.mkdir(exist_ok=True)
+        save_splats(SplatSet.from_numpy(**a), second)
+        assert first[1] == second.read_bytes(), name
+
+
+def test_sog_archive_holds_the_published_layout(tmp_path):
+    a = scene(100, 3, seed=80)
+    save_splats(SplatSet.from_numpy(**a), tmp_path / "x.sog")
+    with zipfile.ZipFile(tmp_path / "x.sog") as z:
+        names = set(z.namelist())
+        meta = json.loads(z.read("meta.json"))
+    assert names == {"meta.json", "means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp",
+                     "shN_centroids.webp", "shN_labels.webp"}  # fmt: skip
+    assert meta["version"] == 2 and meta["count"] == 100
+    assert meta["shN"]["bands"] == 3 and meta["shN"]["count"] == 100
+    assert len(meta["scales"]["codebook"]) <= 256 and len(meta["sh0"]["codebook"]) <= 256
+
+
+def test_sog_palette_for_large_scenes(tmp_path, monkeypatch):
+    from nanogs_warp.io import sog
+
+    monkeypatch.setattr(sog, "PALETTE_LIMIT", 64)  # a k-means palette without a 65k-splat scene
+    a = scene(400, 1, seed=90)
+    out = round_trip(tmp_path, a, "x.sog")
+    ref = a["features"][morton_order(a["means"])]
+    assert len(np.unique(out["features"][:, 3:], axis=0)) <= 64
+    assert np.sqrt(np.mean((out["features"][:, 3:] - ref[:, 3:]) ** 2)) < np.sqrt(np.mean(ref[:, 3:] ** 2))

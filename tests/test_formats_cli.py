@@ -1,0 +1,135 @@
+"""The commands with every format: outputs in the format their name (or --format) asks for, LOD
+sets, infinite opacity logits (accepted, counted, never dropped silently) and eval/batch inputs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scene_factory import random_splat_arrays, write_splats_ply
+from typer.testing import CliRunner
+
+from nanogs_warp.cli import app
+from nanogs_warp.io import detect_format, load_splats
+from nanogs_warp.ply import load_ply
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture
+def scene(tmp_path):
+    path = tmp_path / "scene.ply"
+    write_splats_ply(path, random_splat_arrays(400, 3, seed=5))
+    return path
+
+
+def test_output_names_pick_the_format(scene, tmp_path):
+    result = run("simplify", scene, "-o", tmp_path / "small.splat", "--ratio", "0.1", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert detect_format(tmp_path / "small.splat") == "splat" and load_splats(tmp_path / "small.splat").count == 40
+    assert "warning: small.splat: .splat cannot hold SH degree 3 -> 0" in result.stderr
+    result = run("simplify", scene, "-o", tmp_path / "c.compressed.ply", "--ratio", "0.1,0.05", "--device", "cpu", "-q")
+    assert result.exit_code == 0, result.output
+    assert detect_format(tmp_path / "c_0.1.compressed.ply") == "compressed-ply"
+    assert load_splats(tmp_path / "c_0.05.compressed.ply").count == 20
+    result = run("simplify", scene, "-o", tmp_path / "forced.ply", "--ratio", "0.1", "--format", "spz", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert detect_format(tmp_path / "forced.ply") == "spz"
+
+
+def test_chain_in_sog_and_as_a_lod_set(scene, tmp_path):
+    result = run("simplify", scene, "-o", tmp_path / "lod.sog", "--ratio", "0.1,0.01", "--device", "cpu", "-q")
+    assert result.exit_code == 0, result.output
+    assert [load_splats(tmp_path / f"lod_{r}.sog").count for r in ("0.1", "0.01")] == [40, 4]
+    (tmp_path / "set").mkdir()
+    result = run("simplify", scene, "-o", tmp_path / "set" / "lod-meta.json", "--ratio", "0.01,0.1", "--device", "cpu", "--json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert [(o["budget"], o["level"], o["count"]) for o in summary["outputs"]] == [("0.1", 0, 40), ("0.01", 1, 4)]
+    meta = json.loads((tmp_path / "set" / "lod-meta.json").read_text())
+    assert meta["counts"] == [40, 4]
+    # the same merges as the PLY chain: the finest level holds the PLY output's centres (quantised)
+    assert run("simplify", scene, "-o", tmp_path / "p.ply", "--ratio", "0.1", "--device", "cpu", "-q").exit_code == 0
+    ply = load_ply(tmp_path / "p.ply").to_numpy()["means"]
+    sog = load_splats(tmp_path / "set" / "lod-meta.json").to_numpy()["means"]
+    assert np.abs(np.sort(sog, axis=0) - np.sort(ply, axis=0)).max() < 1e-3 * np.ptp(ply)
+
+
+def test_several_budgets_cannot_share_an_unbundled_sog(scene, tmp_path):
+    result = run("simplify", scene, "-o", tmp_path / "meta.json", "--ratio", "0.1,0.01", "--device", "cpu")
+    assert result.exit_code == 2 and "lod-meta.json" in result.stderr
+
+
+def test_infinite_opacity_logits_are_valid(tmp_path):
+    a = random_splat_arrays(300, 1, seed=7)
+    a["opacities"][:20] = np.inf
+    a["opacities"][20:30] = -np.inf
+    path = tmp_path / "inf.ply"
+    write_splats_ply(path, a)
+    result = run("info", path, "--json")
+    assert result.exit_code == 0, result.output
+    info = json.loads(result.stdout)
+    assert info["infinite_opacity"] == {"+inf": 20, "-inf": 10} and info["nonfinite_rows"] == 0
+    splats = load_ply(path)
+    logits = splats.opacities.numpy()
+    assert splats.count == 300 and np.all(np.isfinite(logits))
+    assert np.all(logits[:20] == np.finfo(np.float32).max) and np.all(logits[20:30] == -np.finfo(np.float32).max)
+    np.testing.assert_array_equal(logits[30:], a["opacities"][30:])  # finite logits untouched
+    out = tmp_path / "out.ply"
+    result = run("simplify", path, "-o", out, "--ratio", "0.1", "--device", "cpu", "--drop-invalid")
+    assert result.exit_code == 0, result.output
+    assert "dropped" not in result.stderr
+    small = load_ply(out).to_numpy()
+    assert small["means"].shape[0] == 30
+    assert all(np.isfinite(small[k]).all() for k in ("means", "log_scales", "rotations", "features"))
+
+
+def test_drop_invalid_says_how_many_and_why(tmp_path):
+    a = random_splat_arrays(100, 0, seed=8)
+    a["means"][3, 1] = np.nan
+    a["opacities"][5] = np.nan
+    path = tmp_path / "nan.ply"
+    write_splats_ply(path, a)
+    result = run("simplify", path, "-o", tmp_path / "o.ply", "--count", "10", "--device", "cpu", "--drop-invalid")
+    assert result.exit_code == 0, result.output
+    assert "warning: nan.ply: dropped 2 of 100 splats (2 with NaN/Inf values in y, opacity)" in result.stderr
+
+
+def test_eval_and_info_read_every_format(scene, tmp_path):
+    assert run("simplify", scene, "-o", tmp_path / "s.sog", "--ratio", "0.1", "--device", "cpu", "-q").exit_code == 0
+    result = run("eval", scene, tmp_path / "s.sog", "--views", "2", "--size", "32", "--device", "cpu", "--json")
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["tests"][0]["count"] == 40
+    result = run("info", tmp_path / "s.sog")
+    assert result.exit_code == 0 and "SOG (.sog)" in result.stdout and "SH degree   3" in result.stdout
+
+
+def test_batch_writes_the_format_asked_for(tmp_path):
+    (tmp_path / "in").mkdir()
+    write_splats_ply(tmp_path / "in" / "a.ply", random_splat_arrays(200, 0, seed=9))
+    result = run("batch", tmp_path / "in", "-o", tmp_path / "out", "--ratio", "0.1", "--format", "spz",
+                 "--devices", "cpu", "-q")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert detect_format(tmp_path / "out" / "a_0.1.spz") == "spz"
+    # and reads it back as a scene of a second batch
+    result = run("batch", tmp_path / "out", "-o", tmp_path / "again", "--ratio", "0.5", "--devices", "cpu", "-q")
+    assert result.exit_code == 0, result.output
+    assert load_ply(tmp_path / "again" / "a_0.1_0.5.ply").count == 10
+
+
+def test_batch_reports_dropped_rows_and_losses(tmp_path):
+    (tmp_path / "in").mkdir()
+    a = random_splat_arrays(100, 1, seed=12)
+    a["means"][7, 0] = np.nan
+    write_splats_ply(tmp_path / "in" / "b.ply", a)
+    result = run("batch", tmp_path / "in", "-o", tmp_path / "out", "--ratio", "0.5,0.2", "--format", "splat",
+                 "--drop-invalid", "--devices", "cpu", "--json")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    notes = json.loads(result.stdout)["scenes"][0]["notes"]
+    assert notes[0] == "b.ply: dropped 1 of 100 splats (1 with NaN/Inf values in x)"
+    assert len(notes) == 2 and "SH degree 1 -> 0" in notes[1]

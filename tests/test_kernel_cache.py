@@ -1,0 +1,70 @@
+"""Start-up: a quiet, lazy import; `info` without Warp; the kernel cache the user names; `warmup`."""
+
+import subprocess
+import sys
+
+import typer
+import warp as wp
+from typer.testing import CliRunner
+
+from nanogs_warp.cli import user_errors
+from nanogs_warp.cli_warmup import warmup_command
+from nanogs_warp.kernel_cache import SIMPLIFY_MODULES, load_kernels, missing_modules, warp_modules
+
+SAMPLE = "nanogs_warp/data/plant_crop.ply"
+
+
+def python(code: str, **env) -> subprocess.CompletedProcess:
+    import os
+
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, **env},
+                          cwd=__file__.rsplit("/tests/", 1)[0])  # fmt: skip
+
+
+def test_import_is_quiet_and_loads_no_warp():
+    result = python("import nanogs_warp, sys; print('warp' in sys.modules, nanogs_warp.__version__)")
+    assert result.returncode == 0 and result.stdout.split() == ["False", "0.1.0"] and result.stderr == ""
+
+
+def test_info_does_not_import_warp():
+    code = ("import sys\nfrom nanogs_warp.cli import app\nsys.argv = ['nanogs-warp', 'info', %r]\n"
+            "try:\n    app()\nexcept SystemExit:\n    pass\nprint('warp' in sys.modules)") % SAMPLE  # fmt: skip
+    result = python(code)
+    assert result.returncode == 0 and result.stdout.splitlines()[0].split() == ["file", "plant_crop.ply", "(1,360,498", "bytes,", "binary_little_endian)"]
+    assert result.stdout.splitlines()[-1] == "False"
+
+
+def test_the_cache_variable_is_honoured(tmp_path):
+    code = "from nanogs_warp.device import init_warp; init_warp(); import warp; print(warp.config.kernel_cache_dir)"
+    result = python(code, NANOGS_WARP_CACHE=str(tmp_path / "kernels"))
+    assert result.returncode == 0 and result.stdout.strip().startswith(str(tmp_path / "kernels"))
+
+
+def test_missing_modules_sees_the_cache(tmp_path):
+    cpu = wp.get_device("cpu")
+    load_kernels(cpu, announce=False)
+    modules = warp_modules(SIMPLIFY_MODULES)
+    assert missing_modules(modules, cpu) == []
+    saved = wp.config.kernel_cache_dir
+    wp.config.kernel_cache_dir = str(tmp_path)
+    try:
+        assert missing_modules(modules, cpu) == modules
+    finally:
+        wp.config.kernel_cache_dir = saved
+
+
+app = typer.Typer(pretty_exceptions_enable=False)
+app.callback()(lambda: None)
+app.command("warmup")(user_errors(warmup_command))
+
+
+def test_warmup_loads_every_module_for_the_cpu():
+    result = CliRunner().invoke(app, ["warmup", "--device", "cpu", "--arch", "none"])
+    assert result.exit_code == 0, result.output
+    assert result.stdout.startswith("cpu: ") and "module(s) compiled" in result.stdout
+
+
+def test_warmup_bad_arguments_exit_2():
+    for args, message in ((["--arch", "9x"], "--arch '9x'"), (["--device", "tpu"], "--device 'tpu'")):
+        result = CliRunner().invoke(app, ["warmup", *args])
+        assert result.exit_code == 2 and result.stderr.startswith(f"nanogs-warp: error: {message}"), result.output

@@ -1,0 +1,61 @@
+"""What a wheel carries and what a user of it can run: the licence, the sample's credit, py.typed,
+the sample itself, and the README's first command from outside the source tree."""
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+from nanogs_warp.data import sample_path
+from nanogs_warp.ply import load_ply
+
+ROOT = Path(__file__).resolve().parent.parent
+PYPROJECT = (ROOT / "pyproject.toml").read_text(encoding="utf-8")
+
+
+def test_licence_is_the_full_apache_2_text():
+    text = (ROOT / "LICENSE").read_text(encoding="utf-8")
+    assert "Apache License" in text and "Version 2.0, January 2004" in text
+    assert "TERMS AND CONDITIONS FOR USE, REPRODUCTION, AND DISTRIBUTION" in text
+    assert "END OF TERMS AND CONDITIONS" in text and len(text.splitlines()) > 190
+    assert re.search(r'^license = "Apache-2.0"$', PYPROJECT, flags=re.MULTILINE)
+    assert re.search(r'^license-files = \["LICENSE"\]$', PYPROJECT, flags=re.MULTILINE)
+
+
+def test_package_data_ships_the_sample_its_credit_and_py_typed():
+    assert '"nanogs_warp" = ["py.typed"]' in PYPROJECT
+    assert '"nanogs_warp.data" = ["*.ply", "CREDITS.md"]' in PYPROJECT
+    package = ROOT / "nanogs_warp"
+    assert (package / "py.typed").is_file()
+    credits = (package / "data" / "CREDITS.md").read_text(encoding="utf-8")
+    assert "Marcel Padilla" in credits and "CC-BY-4.0" in credits and "Changes:" in credits
+    assert sample_path().name == "plant_crop.ply" and sample_path().is_file()
+    assert load_ply(sample_path()).count == 20_000
+
+
+def test_project_metadata():
+    for field in ("authors = ", "classifiers = [", "keywords = "):
+        assert field in PYPROJECT
+    assert '"Typing :: Typed"' in PYPROJECT and '"warp-lang>=1.19,<1.20"' in PYPROJECT
+
+
+def test_readme_first_command_runs_outside_the_source_tree(tmp_path):
+    """The README's first command, ``pip install . && nanogs-warp simplify --sample ...``: the part
+    after the install, run from an empty folder through the installed package."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    first = re.search(r"```bash\n(.*?)\n```", readme, flags=re.DOTALL).group(1).strip()
+    install, _, command = first.partition(" && ")
+    assert install == "pip install ."
+    words = command.split()
+    assert words[:3] == ["nanogs-warp", "simplify", "--sample"]
+    done = subprocess.run(
+        [sys.executable, "-m", "nanogs_warp", *words[1:], "--device", "cpu", "--json"],
+        cwd=tmp_path, capture_output=True, text=True,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert summary["input"] == str(sample_path().resolve())
+    written = sorted(p.name for p in tmp_path.iterdir())
+    assert written == sorted(Path(o["path"]).name for o in summary["outputs"]) and len(written) == 3
+    assert [o["count"] for o in summary["outputs"]] == [2000, 200, 20]

@@ -1,0 +1,194 @@
+"""Generated stress scenes for quality decisions: kinds of content that the shared captures have little
+of, made deterministically (seeded) so that anyone can rebuild them; nothing is committed as data.
+
+    python tools/stress_scenes.py OUT_DIR [--scale 1.0]
+
+Writes four INRIA 3DGS PLY files (SH degree 1, sizes and opacities in the ranges of trained scenes:
+log-scales about -7 to -2, opacities from faint to opaque):
+
+- ``stress_fur.ply``: thin, overlapping, semi-transparent strands standing on a sphere (fur, hair).
+- ``stress_grass.ply``: a field of thin blades with flowers on a ground of flat splats.
+- ``stress_panels.ply``: flat-coloured opaque panels meeting at sharp edges (signs, walls, boxes).
+- ``stress_backdrop.ply``: a small opaque object in front of a few large, faint background splats.
+
+``--scale`` multiplies every splat count (1.0: 60k to 120k splats a scene).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+SH_DEGREE = 1
+SH_C0 = 0.28209479177387814
+
+
+def _quat_from_axes(x: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) of the rotations whose columns are x, z x x, z (rows of unit
+    vectors, x orthogonal to z)."""
+    y = np.cross(z, x)
+    r = np.stack([x, y, z], axis=2)  # columns
+    w = np.sqrt(np.clip(1.0 + r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2], 1e-12, None)) / 2.0
+    q = np.stack([w, (r[:, 2, 1] - r[:, 1, 2]) / (4 * w), (r[:, 0, 2] - r[:, 2, 0]) / (4 * w), (r[:, 1, 0] - r[:, 0, 1]) / (4 * w)], 1)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def _orthonormal(z: np.ndarray, rng) -> tuple[np.ndarray, np.ndarray]:
+    """Unit z and a random unit x orthogonal to it, per row."""
+    z = z / np.linalg.norm(z, axis=1, keepdims=True)
+    a = rng.normal(size=z.shape)
+    x = a - (a * z).sum(1, keepdims=True) * z
+    return x / np.linalg.norm(x, axis=1, keepdims=True), z
+
+
+def _splats(means, z_axes, log_scales, opacity, rgb, rng, sh_noise=0.05) -> dict[str, np.ndarray]:
+    """Arrays for splats whose third scale axis is ``z_axes``; rgb in [0, 1] becomes the SH DC term,
+    the degree-1 terms are small noise (mild view dependence)."""
+    n = len(means)
+    x, z = _orthonormal(z_axes, rng)
+    rest = rng.normal(scale=sh_noise, size=(n, 3 * ((SH_DEGREE + 1) ** 2 - 1)))
+    return {
+        "means": means.astype(np.float32),
+        "rotations": _quat_from_axes(x, z).astype(np.float32),
+        "log_scales": log_scales.astype(np.float32),
+        "opacities": np.log(opacity / (1.0 - opacity)).astype(np.float32),
+        "features": np.concatenate([(rgb - 0.5) / SH_C0, rest], 1).astype(np.float32),
+    }
+
+
+def _concat(parts: list[dict]) -> dict[str, np.ndarray]:
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def fur(rng, scale: float) -> dict[str, np.ndarray]:
+    """Strands on a unit sphere: each strand a chain of thin elongated splats along a bent path."""
+    strands, per = int(4000 * scale), 20
+    roots = rng.normal(size=(strands, 3))
+    roots /= np.linalg.norm(roots, axis=1, keepdims=True)
+    bend = rng.normal(scale=0.3, size=(strands, 3))
+    t = np.linspace(0.0, 1.0, per)
+    length = rng.uniform(0.15, 0.3, strands)[:, None, None]
+    path = roots[:, None, :] * (1.0 + length * t[None, :, None]) + bend[:, None, :] * (length * t[None, :, None]) ** 2
+    tangent = np.gradient(path, axis=1).reshape(-1, 3)
+    means = path.reshape(-1, 3)
+    n = len(means)
+    seg = (length[:, 0, 0] / per).repeat(per)
+    log_scales = np.stack([np.log(0.8 * seg), np.full(n, np.log(0.002)), np.full(n, np.log(0.002))], 1)
+    x = tangent / np.linalg.norm(tangent, axis=1, keepdims=True)  # the long axis along the strand
+    z = np.cross(x, rng.normal(size=(n, 3)))
+    base = rng.uniform(0.55, 0.85, (strands, 1)) * np.array([1.0, 0.8, 0.55])
+    rgb = np.clip(base.repeat(per, 0) * (0.7 + 0.3 * np.tile(t, strands))[:, None], 0, 1)
+    opacity = rng.uniform(0.15, 0.6, n)
+    out = _splats(means, z, log_scales, opacity, rgb, rng)
+    # the splat frame's first axis is random in the plane orthogonal to z: put the long scale on it
+    xs, _ = _orthonormal(z, rng)
+    along = np.abs((xs * x).sum(1)) > np.abs((np.cross(z / np.linalg.norm(z, axis=1, keepdims=True), xs) * x).sum(1))
+    out["log_scales"][~along] = out["log_scales"][~along][:, [1, 0, 2]]
+    skin = _sphere_shell(rng, int(8000 * scale), 1.0, np.array([0.45, 0.35, 0.25]))
+    return _concat([out, skin])
+
+
+def _sphere_shell(rng, n: int, radius: float, rgb) -> dict[str, np.ndarray]:
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    s = radius * np.sqrt(4 * np.pi / n)
+    log_scales = np.stack([np.full(n, np.log(s)), np.full(n, np.log(s)), np.full(n, np.log(s * 0.05))], 1)
+    colour = np.clip(np.asarray(rgb) + rng.normal(scale=0.03, size=(n, 3)), 0, 1)
+    return _splats(normals * radius, normals, log_scales, rng.uniform(0.9, 0.99, n), colour, rng)
+
+
+def grass(rng, scale: float) -> dict[str, np.ndarray]:
+    """Blades (vertical chains of thin splats) on a flat ground, with a few flower heads."""
+    blades, per = int(3000 * scale), 12
+    roots = np.concatenate([rng.uniform(-1, 1, (blades, 2)), np.zeros((blades, 1))], 1)
+    lean = rng.normal(scale=0.15, size=(blades, 3)) * np.array([1, 1, 0])
+    t = np.linspace(0, 1, per)
+    height = rng.uniform(0.1, 0.35, blades)[:, None, None]
+    path = roots[:, None, :] + (np.array([0, 0, 1.0]) + lean[:, None, :] * t[None, :, None]) * height * t[None, :, None]
+    means = path.reshape(-1, 3)
+    n = len(means)
+    seg = (height[:, 0, 0] / per).repeat(per)
+    width = 0.006 * (1.0 - 0.8 * np.tile(t, blades))
+    face = np.cross(np.array([0, 0, 1.0]), rng.normal(size=(blades, 3))).repeat(per, 0)
+    log_scales = np.stack([np.log(width), np.log(0.7 * seg), np.full(n, np.log(0.0005))], 1)
+    green = rng.uniform(0.25, 0.6, (blades, 1)) * np.array([0.5, 1.0, 0.3])
+    rgb = np.clip(green.repeat(per, 0) * (0.6 + 0.4 * np.tile(t, blades))[:, None], 0, 1)
+    out = _splats(means, face, log_scales, rng.uniform(0.6, 0.95, n), rgb, rng)
+    flowers = int(300 * scale)
+    tips = path[rng.choice(blades, flowers, replace=False), -1]
+    petals = tips.repeat(6, 0) + rng.normal(scale=0.006, size=(flowers * 6, 3))
+    petal_rgb = np.array([[0.95, 0.85, 0.2], [0.9, 0.3, 0.5], [0.95, 0.95, 0.95]])[rng.integers(0, 3, flowers)].repeat(6, 0)
+    fl = _splats(petals, rng.normal(size=(flowers * 6, 3)), np.log(np.full((flowers * 6, 3), [0.006, 0.006, 0.001])),
+                 np.full(flowers * 6, 0.9), petal_rgb, rng)
+    n_ground = int(20000 * scale)
+    ground_xy = rng.uniform(-1.1, 1.1, (n_ground, 2))
+    s = 2.2 / np.sqrt(n_ground)
+    gr = _splats(np.concatenate([ground_xy, np.zeros((n_ground, 1))], 1), np.tile([0, 0, 1.0], (n_ground, 1)),
+                 np.log(np.tile([s, s, s * 0.05], (n_ground, 1))), rng.uniform(0.85, 0.99, n_ground),
+                 np.clip(np.array([0.35, 0.27, 0.18]) + rng.normal(scale=0.04, size=(n_ground, 3)), 0, 1), rng)
+    return _concat([out, fl, gr])
+
+
+def panels(rng, scale: float) -> dict[str, np.ndarray]:
+    """Axis-aligned opaque panels of flat, distinct colours meeting at right angles: each panel a
+    jittered grid of flat splats, so the edges between colours are sharp."""
+    parts = []
+    colours = np.array([[0.9, 0.1, 0.1], [0.1, 0.6, 0.9], [0.95, 0.95, 0.9], [0.1, 0.1, 0.12], [0.95, 0.8, 0.1], [0.2, 0.7, 0.3]])
+    per = int(12000 * scale)
+    for k in range(8):
+        axis = k % 3
+        origin = rng.uniform(-0.8, 0.8, 3)
+        uv = rng.uniform(-0.5, 0.5, (per, 2))
+        means = np.repeat(origin[None], per, 0)
+        others = [a for a in range(3) if a != axis]
+        means[:, others[0]] += uv[:, 0]
+        means[:, others[1]] += uv[:, 1]
+        normal = np.zeros((per, 3))
+        normal[:, axis] = 1.0
+        s = 1.0 / np.sqrt(per) * 0.8
+        # two colours per panel, split by a sharp diagonal edge
+        side = (uv[:, 0] + 0.3 * uv[:, 1]) > 0
+        rgb = np.where(side[:, None], colours[k % 6], colours[(k + 2) % 6])
+        parts.append(_splats(means, normal, np.log(np.tile([s, s, s * 0.02], (per, 1))), np.full(per, 0.99), rgb, rng, 0.01))
+    return _concat(parts)
+
+
+def backdrop(rng, scale: float) -> dict[str, np.ndarray]:
+    """An opaque textured object in front of a few large faint splats (sky, haze)."""
+    obj = _sphere_shell(rng, int(60000 * scale), 0.4, np.array([0.6, 0.5, 0.4]))
+    checker = ((np.floor(obj["means"][:, 0] * 20) + np.floor(obj["means"][:, 1] * 20)) % 2).astype(bool)
+    obj["features"][checker, :3] = (np.array([0.2, 0.25, 0.6]) - 0.5) / SH_C0
+    m = int(200 * scale) + 8
+    far = rng.normal(size=(m, 3))
+    far = far / np.linalg.norm(far, axis=1, keepdims=True) * rng.uniform(2.0, 4.0, (m, 1))
+    back = _splats(far, rng.normal(size=(m, 3)), np.log(rng.uniform(0.3, 1.2, (m, 3))), rng.uniform(0.02, 0.15, m),
+                   np.clip(np.array([0.55, 0.65, 0.85]) + rng.normal(scale=0.05, size=(m, 3)), 0, 1), rng)
+    return _concat([obj, back])
+
+
+SCENES = {"stress_fur": fur, "stress_grass": grass, "stress_panels": panels, "stress_backdrop": backdrop}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out_dir", type=Path)
+    parser.add_argument("--scale", type=float, default=1.0, help="multiplies every splat count")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    from nanogs_warp.ply import save_ply
+    from nanogs_warp.splats import SplatSet
+
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    for k, (name, make) in enumerate(SCENES.items()):
+        a = make(np.random.default_rng(args.seed * 100 + k), args.scale)
+        splats = SplatSet.from_numpy(a["means"], a["rotations"], a["log_scales"], a["opacities"], a["features"], device="cpu")
+        save_ply(splats, args.out_dir / f"{name}.ply")
+        print(f"{name}: {splats.count:,} splats", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
