@@ -143,9 +143,9 @@ def simplify(
     except BaseException:
         warp_start.wait()
         raise
-    from .kernel_cache import load_kernels
+    from .kernel_cache import REFINE_MODULES, SIMPLIFY_MODULES, load_kernels
 
-    load_kernels(target_device, announce=not quiet)
+    load_kernels(target_device, SIMPLIFY_MODULES + (REFINE_MODULES if refine_config else ()), announce=not quiet)
     splats = splats_from_host(arrays, layout)
     del arrays
     loaded = time.perf_counter()
