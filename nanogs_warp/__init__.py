@@ -15,6 +15,8 @@ _EXPORTS = {
     "load_ply": "ply",
     "save_ply": "ply",
     "SplatSet": "splats",
+    "RefineConfig": "refine_config",
+    "refine": "refine",
     "load_splats": "io",
     "save_splats": "io",
 }
@@ -28,7 +30,7 @@ def __getattr__(name: str):
         raise AttributeError(f"module 'nanogs_warp' has no attribute {name!r}")
     import importlib
 
-    if module in ("pipeline", "ply", "splats", "io"):
+    if module in ("pipeline", "ply", "splats", "io", "refine"):
         importlib.import_module(".device", __name__).quiet_warp()
     value = getattr(importlib.import_module(f".{module}", __name__), name)
     globals()[name] = value

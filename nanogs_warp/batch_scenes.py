@@ -38,6 +38,8 @@ class SceneJob:
     drop_invalid: bool
     size: int  # bytes; -1 when the file is missing (the scene then fails in its worker)
     output_format: str = "ply"  # a nanogs_warp.io format other than "lod"
+    refine_steps: int = 0  # refinement steps per output (0: none)
+    refine_size: int = 256  # longest side of refinement's training views
 
     @property
     def stem(self) -> str:
@@ -56,6 +58,8 @@ class SceneJob:
         options = {"budgets": budgets, **vars(self.config), "drop_invalid": self.drop_invalid}
         if self.output_format != "ply":  # records of PLY batches stay as they were
             options["format"] = self.output_format
+        if self.refine_steps > 0:
+            options.update(refine_steps=self.refine_steps, refine_size=self.refine_size)
         return options
 
 

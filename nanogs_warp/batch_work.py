@@ -114,7 +114,14 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
             by_target.setdefault(budget.target(splats.count), []).append(budget)
         scene.splats = None  # the host copy is not needed again
         scene.device_kind = getattr(device, "name", str(device))
-        for target, simplified in simplify_progressively(splats.to(device), list(by_target), job.config, on_pass=on_pass):
+        on_device = splats.to(device)
+        for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
+            if job.refine_steps > 0:
+                from .refine import refine_with_report
+                from .refine_config import RefineConfig
+
+                config = RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed)
+                simplified = refine_with_report(simplified, on_device, config)[0]
             # to the host here, so that the writer thread never touches the GPU (and its memory is freed)
             scene.simplified.append((target, simplified.to("cpu"), by_target[target]))
 

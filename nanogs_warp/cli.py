@@ -20,6 +20,7 @@ from .cli_eval import eval_command
 from .cli_errors import examples, readable_placeholders, user_errors
 from .cli_warmup import warmup_command
 from .errors import InputError, NanogsWarning
+from .refine_config import RefineConfig
 
 readable_placeholders()
 app = typer.Typer(
@@ -94,6 +95,9 @@ def simplify(
     operator: opts.Operator = None,
     pass_fraction: opts.PassFraction = None,
     drop_invalid: opts.DropInvalid = False,
+    refine: opts.Refine = False,
+    refine_steps: opts.RefineSteps = None,
+    refine_size: opts.RefineSize = RefineConfig.size,
     output_format: opts.Format = None,
     sample: Annotated[bool, typer.Option("--sample", help="Use the shipped 20,000-splat sample scene as the input.")] = False,
     overwrite: Annotated[bool, typer.Option("-w", "--overwrite", help="Replace output files that already exist (by default they are an error).")] = False,
@@ -109,6 +113,10 @@ def simplify(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
         lambda_app=lambda_app, cost=cost, operator=operator, pass_fraction=pass_fraction,
     )
+    refine_config = None
+    if refine or refine_steps is not None:
+        refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size, seed=config.seed)
+        refine_config.validate()
     budgets = parse_budgets(ratio, count)
     input = _input_path(input, sample)
     if output is None:
@@ -136,9 +144,9 @@ def simplify(
     except BaseException:
         warp_start.wait()
         raise
-    from .kernel_cache import load_kernels
+    from .kernel_cache import REFINE_MODULES, SIMPLIFY_MODULES, load_kernels
 
-    load_kernels(target_device, announce=not quiet)
+    load_kernels(target_device, SIMPLIFY_MODULES + (REFINE_MODULES if refine_config else ()), announce=not quiet)
     splats = splats_from_host(arrays, layout)
     del arrays
     loaded = time.perf_counter()
@@ -153,7 +161,7 @@ def simplify(
     on_device = splats.to(target_device)
     with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
         warnings.simplefilter("always", NanogsWarning)
-        _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels)
+        _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels, refine_config)
     progress.done()
     if lod_set:  # level 0 is the finest: the largest budget, reached first
         for level, out in enumerate(written):
@@ -185,6 +193,9 @@ def simplify(
         for out in written:
             level = f", level {out['level']}" if "level" in out else ""
             typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}{level}, {out['passes']} passes)")
+            if "refine" in out:
+                r = out["refine"]
+                typer.echo(f"  refined: {r['steps']} steps, training loss {r['loss_before']:.5f} -> {r['loss_after']:.5f}, {r['seconds']:.2f} s")
         typer.echo(f"{splats.count:,} splats in, {len(passes)} passes on {target_device}, {finished - started:.2f} s")
 
 
@@ -205,15 +216,20 @@ class _Notes:
         self._seen.add(what)
 
 
-def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels):
+def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels, refine_config=None):
     """Runs the progressive merge and writes each budget as it is reached (appending to ``written``);
-    for a level-of-detail set (``levels`` a list) keeps each level on the host instead."""
+    for a level-of-detail set (``levels`` a list) keeps each level on the host instead. With
+    ``refine_config``, each budget's result is refined toward the input first."""
     from .io import save_splats
     from .pipeline import simplify_progressively
 
     on_pass = lambda r: (passes.append(r), progress(r))  # noqa: E731
     for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass):
         reached = time.perf_counter()
+        report = None
+        if refine_config is not None:
+            progress.done()
+            result, report = _refine(result, on_device, refine_config, progress.enabled)
         for budget in budgets_for_target[target]:
             paths[budget].parent.mkdir(exist_ok=True)  # -o DIR/: created with the first output, not before
             if levels is not None:
@@ -222,8 +238,26 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
                 save_splats(result, paths[budget], fmt, on_loss=notes)
             written.append({"path": str(paths[budget].resolve()), "budget": budget.label, "count": result.count,
                             "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
+            if report is not None:
+                written[-1]["refine"] = report.to_json()
         smaller = [t for t in budgets_for_target if t < target]
         progress.target = max(smaller) if smaller else target
+
+
+def _refine(result, reference, config: RefineConfig, show_progress: bool):
+    """``result`` refined toward ``reference``, with a progress line on stderr when asked."""
+    from .refine import refine_with_report
+
+    def on_step(step: int, steps: int) -> None:
+        if step == steps or step % max(1, steps // 100) == 0:
+            sys.stderr.write(f"\rrefine {result.count:,} splats: step {step}/{steps}\033[K")
+            sys.stderr.flush()
+
+    refined, report = refine_with_report(result, reference, config, on_step=on_step if show_progress else None)
+    if show_progress:
+        sys.stderr.write("\r\033[K")
+        sys.stderr.flush()
+    return refined, report
 
 
 def _import_pipeline(config) -> None:

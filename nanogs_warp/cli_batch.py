@@ -10,6 +10,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -17,6 +18,7 @@ import typer
 
 from . import cli_options as opts
 from .errors import InputError
+from .refine_config import RefineConfig
 
 
 def batch_command(
@@ -41,6 +43,9 @@ def batch_command(
     operator: opts.Operator = None,
     pass_fraction: opts.PassFraction = None,
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing the scene.")] = False,
+    refine: opts.Refine = False,
+    refine_steps: opts.RefineSteps = None,
+    refine_size: opts.RefineSize = RefineConfig.size,
     output_format: Annotated[Optional[str], typer.Option("--format", show_default=False, help="Output format: ply (default), compressed-ply, spz, sog or splat.")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
@@ -71,6 +76,10 @@ def batch_command(
     if fmt not in OUTPUT_SUFFIXES:
         raise InputError(f"--format {fmt!r}: batch writes one of {', '.join(OUTPUT_SUFFIXES)}")
     jobs = find_scenes(input, output, budgets, config, drop_invalid, fmt)
+    if refine or refine_steps is not None:
+        refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size)
+        refine_config.validate()
+        jobs = [replace(job, refine_steps=refine_config.steps, refine_size=refine_config.size) for job in jobs]
     selected = select_shard(jobs, shard_index, shard_count)
     device_list, ray_gpu = None, None
     if ray is not None:

@@ -8,6 +8,8 @@ from typing import Annotated, Optional
 
 import typer
 
+from .refine_config import RefineConfig
+
 # The version of every --json output's layout (docs/json.md): raised when a field changes meaning or goes.
 JSON_SCHEMA = 1
 
@@ -37,3 +39,6 @@ def method_config(preset: str, **options):
     from .config import SimplifyConfig
 
     return SimplifyConfig.preset(preset, **{name: value for name, value in options.items() if value is not None})
+Refine = Annotated[bool, typer.Option("--refine", help=f"Refine each output toward the input's appearance ({RefineConfig.steps} steps of Adam on renders from training cameras; the count is kept).")]
+RefineSteps = Annotated[Optional[int], typer.Option(help=f"Refinement steps (implies --refine) [default: {RefineConfig.steps}].", show_default=False)]
+RefineSize = Annotated[int, typer.Option(help="Longest side in pixels of the training views of refinement.")]

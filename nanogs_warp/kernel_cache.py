@@ -22,7 +22,8 @@ CACHE_VARIABLE = "NANOGS_WARP_CACHE"
 # The kernel modules each command launches (their Warp helpers come with them).
 SIMPLIFY_MODULES = ("knn", "edges", "cost", "pairing", "compact", "merge", "prune")
 EVAL_MODULES = ("render",)
-ALL_MODULES = SIMPLIFY_MODULES + EVAL_MODULES
+REFINE_MODULES = ("render", "render_grad", "image_loss", "adam")
+ALL_MODULES = SIMPLIFY_MODULES + EVAL_MODULES + REFINE_MODULES[1:]
 
 # GPU architectures compiled by `warmup` on a machine without a GPU (Turing to Hopper).
 DEFAULT_ARCHS = (75, 80, 86, 89, 90)

@@ -1,0 +1,153 @@
+"""The training loss of a rendered view X against a target Y (both (H, W, 3)) and its gradient dL/dX:
+
+    L = l1_weight sum |X - Y| + ssim_weight sum (1 - S),
+
+summed over pixels and channels, S the per-pixel, per-channel SSIM with an 11-tap Gaussian window
+(sigma 1.5) and zero padding (the INRIA trainer's ``ssim``), C1 = 0.01^2, C2 = 0.03^2:
+
+    S = (2 mx my + C1)(2 sxy + C2) / ((mx^2 + my^2 + C1)(sxx + syy + C2)),
+    mx = G*X, my = G*Y, sxx = G*X^2 - mx^2, syy = G*Y^2 - my^2, sxy = G*XY - mx my.
+
+With A1 = 2 mx my + C1, A2 = 2 sxy + C2, B1 = mx^2 + my^2 + C1, B2 = sxx + syy + C2:
+
+    dS/dmx = 2 my (A2 - A1) / (B1 B2) - 2 mx S (1/B1 - 1/B2),  dS/d(G*X^2) = -S / B2,
+    dS/d(G*XY) = 2 A1 / (B1 B2),
+
+and as the zero-padded Gaussian correlation is its own transpose,
+
+    dL/dX = G*(dL/dmx) + 2 X G*(dL/dG*X^2) + Y G*(dL/dG*XY) + l1_weight sign(X - Y).
+
+Every kernel is one thread per pixel (``first`` + tid in row-major order) writing only its own pixel.
+"""
+
+from typing import Any
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+SSIM_C1 = wp.constant(0.0001)
+SSIM_C2 = wp.constant(0.0009)
+RADIUS = wp.constant(5)
+
+vec15 = wp.types.vector(length=15, dtype=wp.float32)  # X, Y, X^2, Y^2, XY for 3 channels
+vec9 = wp.types.vector(length=9, dtype=wp.float32)  # dL/d(mx, G*X^2, G*XY) for 3 channels
+
+
+@wp.kernel
+def ssim_inputs(first: int, x: wp.array3d(dtype=float), y: wp.array3d(dtype=float), stack: wp.array2d(dtype=vec15)):
+    """stack[py, px] = (X, Y, X^2, Y^2, XY), each for channels 0..2 (15 values)."""
+    tid = first + wp.tid()
+    width = x.shape[1]
+    py = tid / width
+    px = tid - py * width
+    v = vec15()
+    for ch in range(3):
+        a = x[py, px, ch]
+        b = y[py, px, ch]
+        v[ch] = a
+        v[3 + ch] = b
+        v[6 + ch] = a * a
+        v[9 + ch] = b * b
+        v[12 + ch] = a * b
+    stack[py, px] = v
+
+
+@wp.kernel
+def blur(
+    first: int,
+    source: wp.array2d(dtype=Any),
+    taps: wp.array(dtype=float),
+    vertical: int,
+    target: wp.array2d(dtype=Any),
+):
+    """target[py, px] = sum_j taps[j] source[py, px + j - 5] (vertically: py + j - 5); zero outside."""
+    tid = first + wp.tid()
+    height = source.shape[0]
+    width = source.shape[1]
+    py = tid / width
+    px = tid - py * width
+    position = px
+    length = width
+    if vertical != 0:
+        position = py
+        length = height
+    lo = wp.max(0, RADIUS - position)  # taps that land inside the image
+    hi = wp.min(2 * RADIUS, length - 1 - position + RADIUS)
+    acc = taps[RADIUS] * source[py, px]
+    for j in range(lo, hi + 1):
+        if j != RADIUS:
+            if vertical != 0:
+                acc += taps[j] * source[py + j - RADIUS, px]
+            else:
+                acc += taps[j] * source[py, px + j - RADIUS]
+    target[py, px] = acc
+
+
+wp.overload(blur, {"source": wp.array2d(dtype=vec15), "target": wp.array2d(dtype=vec15)})
+wp.overload(blur, {"source": wp.array2d(dtype=vec9), "target": wp.array2d(dtype=vec9)})
+
+
+@wp.kernel
+def ssim_terms(
+    first: int,
+    x: wp.array3d(dtype=float),
+    y: wp.array3d(dtype=float),
+    moments: wp.array2d(dtype=vec15),
+    l1_weight: float,
+    ssim_weight: float,
+    loss: wp.array2d(dtype=float),
+    partials: wp.array2d(dtype=vec9),
+):
+    """Per pixel: its loss terms (summed over channels) and dL/d(mx, G*X^2, G*XY) per channel."""
+    tid = first + wp.tid()
+    width = x.shape[1]
+    py = tid / width
+    px = tid - py * width
+    total = float(0.0)
+    mo = moments[py, px]
+    out = vec9()
+    for ch in range(3):
+        mx = mo[ch]
+        my = mo[3 + ch]
+        sxx = mo[6 + ch] - mx * mx
+        syy = mo[9 + ch] - my * my
+        sxy = mo[12 + ch] - mx * my
+        a1 = 2.0 * mx * my + SSIM_C1
+        a2 = 2.0 * sxy + SSIM_C2
+        b1 = mx * mx + my * my + SSIM_C1
+        b2 = sxx + syy + SSIM_C2
+        s = (a1 * a2) / (b1 * b2)
+        total += l1_weight * wp.abs(x[py, px, ch] - y[py, px, ch]) + ssim_weight * (1.0 - s)
+        g_s = -ssim_weight
+        out[ch] = g_s * (2.0 * my * (a2 - a1) / (b1 * b2) - 2.0 * mx * s * (1.0 / b1 - 1.0 / b2))
+        out[3 + ch] = g_s * (-s / b2)
+        out[6 + ch] = g_s * (2.0 * a1 / (b1 * b2))
+    partials[py, px] = out
+    loss[py, px] = total
+
+
+@wp.kernel
+def loss_gradient(
+    first: int,
+    x: wp.array3d(dtype=float),
+    y: wp.array3d(dtype=float),
+    blurred: wp.array2d(dtype=vec9),
+    l1_weight: float,
+    grad: wp.array3d(dtype=float),
+):
+    """dL/dX = G*(dL/dmx) + 2 X G*(dL/dG*X^2) + Y G*(dL/dG*XY) + l1_weight sign(X - Y)."""
+    tid = first + wp.tid()
+    width = x.shape[1]
+    py = tid / width
+    px = tid - py * width
+    bl = blurred[py, px]
+    for ch in range(3):
+        a = x[py, px, ch]
+        b = y[py, px, ch]
+        g = bl[ch] + 2.0 * a * bl[3 + ch] + b * bl[6 + ch]
+        if a > b:
+            g += l1_weight
+        elif a < b:
+            g -= l1_weight
+        grad[py, px, ch] = g

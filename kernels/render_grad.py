@@ -1,0 +1,459 @@
+"""Backward pass of the 3DGS rasteriser in ``kernels/render.py``: gradients of a loss L with respect to
+every splat parameter, given dL/dimage, accumulated in a fixed order (no floating-point atomics).
+
+The forward is ``render.py``'s own (``project``, ``emit_entries``, stable radix sort, ``gather_entries``,
+``composite`` / ``composite_tiles``), with its conventions; here only the bookkeeping to find a splat's
+entries after the sort (``number_slots``, ``order_entries``) and the two backward stages:
+
+1. ``composite_backward``: one thread per 16x16 tile (or ``lanes`` threads per tile, each owning every
+   lanes-th pixel row, their per-entry sums then added lane by lane in ``sum_lanes``) replays the
+   tile's compositing front to back with the forward's float32 arithmetic (so every skip and early-termination decision is the forward's),
+   keeping per pixel the transmittance T_k and the colour in front C_<=k. With the forward's final pixel
+   colour C (background included), the colour behind entry k is B_k = C - C_<=k, and for
+   C = sum_k rgb_k alpha_k T_k + T_N bg:
+       dC/drgb_k = alpha_k T_k,   dC/dalpha_k = rgb_k T_k - B_k / (1 - alpha_k).
+   With alpha = min(0.99, o G), G = exp(power), power = -(a dx^2 + c dy^2)/2 - b dx dy, dx = x_k - px:
+       dalpha/do = G,  dalpha/dpower = alpha  (both 0 where the 0.99 clamp holds),
+       dpower/da = -dx^2/2, dpower/db = -dx dy, dpower/dc = -dy^2/2,
+       dpower/dx_k = -(a dx + b dy), dpower/dy_k = -(b dx + c dy).
+   Each entry's gradient (position, conic, opacity, colour) is summed over the tile's pixels in row order
+   and written to the entry's own slot.
+2. ``splat_backward``: one thread per splat sums its entries' gradients in emit order (slot order, found
+   through ``entry_of_slot``) and applies the chain rule back through the conic inverse, the EWA
+   projection J W Sigma W^T J^T (with the FOV clamp of J), Sigma = R S S^T R^T, the quaternion
+   normalisation, the sigmoid and the SH colour (its clamp at 0, and its view direction), adding to the
+   per-splat gradient arrays: thread i writes only row i, so the order is fixed on every device.
+"""
+
+import warp as wp
+
+from .render import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    LOW_PASS,
+    SH_C0,
+    SH_C1,
+    SH_C2_0,
+    SH_C2_1,
+    SH_C2_2,
+    SH_C2_3,
+    SH_C2_4,
+    SH_C3_0,
+    SH_C3_1,
+    SH_C3_2,
+    SH_C3_3,
+    SH_C3_4,
+    SH_C3_5,
+    SH_C3_6,
+    T_MIN,
+    TILE,
+    TILE_PIXELS,
+    CameraParams,
+    _sh_coef,
+    sh_to_rgb,
+)
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def number_slots(first: int, values: wp.array(dtype=wp.int32), slot_splat: wp.array(dtype=wp.int32)):
+    """Before the sort: remembers each emitted slot's splat and replaces the sort value by the slot."""
+    k = first + wp.tid()
+    slot_splat[k] = values[k]
+    values[k] = k
+
+
+@wp.kernel
+def order_entries(
+    first: int,
+    values: wp.array(dtype=wp.int32),
+    slot_splat: wp.array(dtype=wp.int32),
+    entry_splat: wp.array(dtype=wp.int32),
+    entry_of_slot: wp.array(dtype=wp.int32),
+):
+    """After the sort (values = emitted slots): each entry's splat, and each slot's entry."""
+    k = first + wp.tid()
+    slot = values[k]
+    entry_splat[k] = slot_splat[slot]
+    entry_of_slot[slot] = k
+
+
+@wp.kernel
+def composite_backward(
+    first: int,
+    lanes: int,
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
+    tiles_x: int,
+    image: wp.array3d(dtype=float),
+    grad_image: wp.array3d(dtype=float),
+    transmittance: wp.array(dtype=float),
+    front: wp.array(dtype=wp.vec3),
+    done: wp.array(dtype=wp.int32),
+    g_xy: wp.array(dtype=wp.vec2),
+    g_conic: wp.array(dtype=wp.vec3),
+    g_opacity: wp.array(dtype=float),
+    g_rgb: wp.array(dtype=wp.vec3),
+):
+    """``lanes`` threads per tile (1, 2, 4, 8 or 16), lane l owning the tile's pixel rows l, l + lanes, ...:
+    per entry k, dL/d(mean 2D, conic, opacity, colour) summed over the lane's pixels in row order
+    (see the module docstring), written to slot k * lanes + l. ``image`` is the forward's (H, W, 3)
+    output, ``grad_image`` dL/dimage. Per-pixel state lives in the tile's 256 slots of the scratch
+    arrays (each lane touches only its rows')."""
+    tid = first + wp.tid()
+    tile = tid / lanes
+    lane = tid - tile * lanes
+    base = tile * TILE_PIXELS
+    x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
+    y_lo = (tile / tiles_x) * TILE
+    x_hi = wp.min(x_lo + TILE, width)
+    y_hi = wp.min(y_lo + TILE, height)
+    own_rows = int(0)
+    for r in range(lane, TILE, lanes):
+        if y_lo + r < y_hi:
+            own_rows += 1
+        for c in range(TILE):
+            slot = base + r * TILE + c
+            transmittance[slot] = 1.0
+            front[slot] = wp.vec3(0.0, 0.0, 0.0)
+            done[slot] = 0
+    remaining = (x_hi - x_lo) * own_rows
+    fx_lo = float(x_lo)
+    fx_hi = float(x_hi - 1)
+    fy_lo = float(y_lo)
+    fy_hi = float(y_hi - 1)
+    for k in range(tile_start[tile], tile_end[tile]):
+        gxy = wp.vec2(0.0, 0.0)
+        gco = wp.vec3(0.0, 0.0, 0.0)
+        gop = float(0.0)
+        grgb = wp.vec3(0.0, 0.0, 0.0)
+        bx = e_box[k]
+        gx0 = int(wp.ceil(wp.clamp(bx[0], fx_lo, fx_hi + 1.0)))
+        gx1 = int(wp.floor(wp.clamp(bx[1], fx_lo - 1.0, fx_hi)))
+        gy0 = int(wp.ceil(wp.clamp(bx[2], fy_lo, fy_hi + 1.0)))
+        gy1 = int(wp.floor(wp.clamp(bx[3], fy_lo - 1.0, fy_hi)))
+        if remaining == 0:
+            gx1 = gx0 - 1  # the tile is finished: no pixel sees this entry
+        p = e_xy[k]
+        co = e_conic_opacity[k]
+        rgb = e_rgb[k]
+        first_row = gy0 + ((lane - (gy0 - y_lo)) % lanes + lanes) % lanes  # the lane's first row >= gy0
+        for py in range(first_row, gy1 + 1, lanes):
+            if gx1 < gx0:
+                break
+            row = base + (py - y_lo) * TILE - x_lo
+            dy = p[1] - float(py)
+            for px in range(gx0, gx1 + 1):
+                slot = row + px
+                if done[slot] != 0:
+                    continue
+                dx = p[0] - float(px)
+                power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
+                if power > 0.0:
+                    continue
+                gauss = wp.exp(power)
+                raw = co[3] * gauss
+                alpha = wp.min(ALPHA_MAX, raw)
+                if alpha < ALPHA_MIN:
+                    continue
+                t = transmittance[slot]
+                test_t = t * (1.0 - alpha)
+                if test_t < T_MIN:
+                    done[slot] = 1
+                    remaining -= 1
+                    continue
+                g = wp.vec3(grad_image[py, px, 0], grad_image[py, px, 1], grad_image[py, px, 2])
+                final = wp.vec3(image[py, px, 0], image[py, px, 1], image[py, px, 2])
+                weight = alpha * t
+                grgb = grgb + g * weight
+                in_front = front[slot] + rgb * weight
+                front[slot] = in_front
+                transmittance[slot] = test_t
+                if raw < ALPHA_MAX:
+                    # dL/dalpha = T rgb.g - B.g / (1 - alpha), B = C - C_<=k
+                    g_alpha = t * wp.dot(rgb, g) - wp.dot(final - in_front, g) / (1.0 - alpha)
+                    gop += g_alpha * gauss
+                    g_power = g_alpha * alpha
+                    gco = gco + g_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
+                    gxy = gxy - g_power * wp.vec2(co[0] * dx + co[1] * dy, co[1] * dx + co[2] * dy)
+        out = k * lanes + lane
+        g_xy[out] = gxy
+        g_conic[out] = gco
+        g_opacity[out] = gop
+        g_rgb[out] = grgb
+
+
+@wp.kernel
+def sum_lanes(
+    first: int,
+    lanes: int,
+    lane_xy: wp.array(dtype=wp.vec2),
+    lane_conic: wp.array(dtype=wp.vec3),
+    lane_opacity: wp.array(dtype=float),
+    lane_rgb: wp.array(dtype=wp.vec3),
+    g_xy: wp.array(dtype=wp.vec2),
+    g_conic: wp.array(dtype=wp.vec3),
+    g_opacity: wp.array(dtype=float),
+    g_rgb: wp.array(dtype=wp.vec3),
+):
+    """Per entry k: the sum of its lanes' gradients, lane 0 first."""
+    k = first + wp.tid()
+    gxy = wp.vec2(0.0, 0.0)
+    gco = wp.vec3(0.0, 0.0, 0.0)
+    gop = float(0.0)
+    grgb = wp.vec3(0.0, 0.0, 0.0)
+    for lane in range(lanes):
+        j = k * lanes + lane
+        gxy = gxy + lane_xy[j]
+        gco = gco + lane_conic[j]
+        gop = gop + lane_opacity[j]
+        grgb = grgb + lane_rgb[j]
+    g_xy[k] = gxy
+    g_conic[k] = gco
+    g_opacity[k] = gop
+    g_rgb[k] = grgb
+
+
+@wp.func
+def _sh_term(
+    features: wp.array2d(dtype=float),
+    g_features: wp.array2d(dtype=float),
+    i: int,
+    rest: int,
+    j: int,
+    basis: float,
+    grad_basis: wp.vec3,
+    g_rgb: wp.vec3,
+    g_dir: wp.vec3,
+):
+    """One SH term rgb += basis_j(d) f_j: dL/df_j += basis_j g_rgb; returns g_dir + grad basis_j (f_j . g_rgb)."""
+    for ch in range(3):
+        col = 2 + ch * rest + j
+        g_features[i, col] = g_features[i, col] + basis * g_rgb[ch]
+    return g_dir + grad_basis * wp.dot(_sh_coef(features, i, rest, j), g_rgb)
+
+
+@wp.func
+def sh_backward(
+    features: wp.array2d(dtype=float),
+    g_features: wp.array2d(dtype=float),
+    i: int,
+    degree: int,
+    d: wp.vec3,
+    g_rgb: wp.vec3,
+):
+    """Adds dL/df for rgb = sum_j basis_j(d) f_j + 0.5 (``render.sh_to_rgb``, before its clamp) to row i of
+    ``g_features``; returns dL/dd, d the unit view direction."""
+    rest = (degree + 1) * (degree + 1) - 1
+    for ch in range(3):
+        g_features[i, ch] = g_features[i, ch] + SH_C0 * g_rgb[ch]
+    g_dir = wp.vec3(0.0, 0.0, 0.0)
+    if degree > 0:
+        x = d[0]
+        y = d[1]
+        z = d[2]
+        g_dir = _sh_term(features, g_features, i, rest, 1, -SH_C1 * y, wp.vec3(0.0, -SH_C1, 0.0), g_rgb, g_dir)
+        g_dir = _sh_term(features, g_features, i, rest, 2, SH_C1 * z, wp.vec3(0.0, 0.0, SH_C1), g_rgb, g_dir)
+        g_dir = _sh_term(features, g_features, i, rest, 3, -SH_C1 * x, wp.vec3(-SH_C1, 0.0, 0.0), g_rgb, g_dir)
+        if degree > 1:
+            xx = x * x
+            yy = y * y
+            zz = z * z
+            xy = x * y
+            yz = y * z
+            xz = x * z
+            g_dir = _sh_term(features, g_features, i, rest, 4, SH_C2_0 * xy, SH_C2_0 * wp.vec3(y, x, 0.0), g_rgb, g_dir)
+            g_dir = _sh_term(features, g_features, i, rest, 5, SH_C2_1 * yz, SH_C2_1 * wp.vec3(0.0, z, y), g_rgb, g_dir)
+            g_dir = _sh_term(
+                features, g_features, i, rest, 6, SH_C2_2 * (2.0 * zz - xx - yy),
+                SH_C2_2 * wp.vec3(-2.0 * x, -2.0 * y, 4.0 * z), g_rgb, g_dir,
+            )  # fmt: skip
+            g_dir = _sh_term(features, g_features, i, rest, 7, SH_C2_3 * xz, SH_C2_3 * wp.vec3(z, 0.0, x), g_rgb, g_dir)
+            g_dir = _sh_term(
+                features, g_features, i, rest, 8, SH_C2_4 * (xx - yy), SH_C2_4 * wp.vec3(2.0 * x, -2.0 * y, 0.0), g_rgb, g_dir
+            )
+            if degree > 2:
+                g_dir = _sh_term(
+                    features, g_features, i, rest, 9, SH_C3_0 * y * (3.0 * xx - yy),
+                    SH_C3_0 * wp.vec3(6.0 * xy, 3.0 * xx - 3.0 * yy, 0.0), g_rgb, g_dir,
+                )  # fmt: skip
+                g_dir = _sh_term(
+                    features, g_features, i, rest, 10, SH_C3_1 * xy * z, SH_C3_1 * wp.vec3(yz, xz, xy), g_rgb, g_dir
+                )
+                g_dir = _sh_term(
+                    features, g_features, i, rest, 11, SH_C3_2 * y * (4.0 * zz - xx - yy),
+                    SH_C3_2 * wp.vec3(-2.0 * xy, 4.0 * zz - xx - 3.0 * yy, 8.0 * yz), g_rgb, g_dir,
+                )  # fmt: skip
+                g_dir = _sh_term(
+                    features, g_features, i, rest, 12, SH_C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+                    SH_C3_3 * wp.vec3(-6.0 * xz, -6.0 * yz, 6.0 * zz - 3.0 * xx - 3.0 * yy), g_rgb, g_dir,
+                )  # fmt: skip
+                g_dir = _sh_term(
+                    features, g_features, i, rest, 13, SH_C3_4 * x * (4.0 * zz - xx - yy),
+                    SH_C3_4 * wp.vec3(4.0 * zz - 3.0 * xx - yy, -2.0 * xy, 8.0 * xz), g_rgb, g_dir,
+                )  # fmt: skip
+                g_dir = _sh_term(
+                    features, g_features, i, rest, 14, SH_C3_5 * z * (xx - yy),
+                    SH_C3_5 * wp.vec3(2.0 * xz, -2.0 * yz, xx - yy), g_rgb, g_dir,
+                )  # fmt: skip
+                g_dir = _sh_term(
+                    features, g_features, i, rest, 15, SH_C3_6 * x * (xx - 3.0 * yy),
+                    SH_C3_6 * wp.vec3(3.0 * xx - 3.0 * yy, -6.0 * xy, 0.0), g_rgb, g_dir,
+                )  # fmt: skip
+    return g_dir
+
+
+@wp.func
+def quat_matrix_backward(q: wp.quat, g: wp.mat33):
+    """dL/dq of R(q) (Warp's quat_to_matrix, q = (x, y, z, w) unit) given G = dL/dR."""
+    x = q[0]
+    y = q[1]
+    z = q[2]
+    w = q[3]
+    gx = 2.0 * y * (g[0, 1] + g[1, 0]) + 2.0 * z * (g[0, 2] + g[2, 0]) + 2.0 * w * (g[2, 1] - g[1, 2]) - 4.0 * x * (g[1, 1] + g[2, 2])
+    gy = 2.0 * x * (g[0, 1] + g[1, 0]) + 2.0 * w * (g[0, 2] - g[2, 0]) + 2.0 * z * (g[1, 2] + g[2, 1]) - 4.0 * y * (g[0, 0] + g[2, 2])
+    gz = 2.0 * w * (g[1, 0] - g[0, 1]) + 2.0 * x * (g[0, 2] + g[2, 0]) + 2.0 * y * (g[1, 2] + g[2, 1]) - 4.0 * z * (g[0, 0] + g[1, 1])
+    gw = 2.0 * z * (g[1, 0] - g[0, 1]) + 2.0 * y * (g[0, 2] - g[2, 0]) + 2.0 * x * (g[2, 1] - g[1, 2])
+    return wp.quat(gx, gy, gz, gw)
+
+
+@wp.kernel
+def splat_backward(
+    first: int,
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    features: wp.array2d(dtype=float),
+    degree: int,
+    cam: CameraParams,
+    touched: wp.array(dtype=wp.int32),
+    ends: wp.array(dtype=wp.int32),
+    entry_of_slot: wp.array(dtype=wp.int32),
+    e_g_xy: wp.array(dtype=wp.vec2),
+    e_g_conic: wp.array(dtype=wp.vec3),
+    e_g_opacity: wp.array(dtype=float),
+    e_g_rgb: wp.array(dtype=wp.vec3),
+    g_means: wp.array(dtype=wp.vec3),
+    g_rotations: wp.array(dtype=wp.quat),
+    g_log_scales: wp.array(dtype=wp.vec3),
+    g_opacities: wp.array(dtype=float),
+    g_features: wp.array2d(dtype=float),
+):
+    """Per splat: its entries' gradients summed in slot order, then the chain rule back to the
+    parameters (``render.project`` differentiated), added to row i of the g_ arrays."""
+    i = first + wp.tid()
+    n = touched[i]
+    if n == 0:
+        return  # culled in this view: no pixel depends on it
+    gxy = wp.vec2(0.0, 0.0)
+    gco = wp.vec3(0.0, 0.0, 0.0)
+    gop = float(0.0)
+    grgb = wp.vec3(0.0, 0.0, 0.0)
+    for slot in range(ends[i] - n, ends[i]):
+        k = entry_of_slot[slot]
+        gxy = gxy + e_g_xy[k]
+        gco = gco + e_g_conic[k]
+        gop = gop + e_g_opacity[k]
+        grgb = grgb + e_g_rgb[k]
+
+    # Forward again (as render.project).
+    t = cam.rotation * means[i] + cam.translation
+    z = t[2]
+    q = rotations[i]
+    qn = wp.length(q)
+    qu = q / qn
+    r = wp.quat_to_matrix(qu)
+    s = log_scales[i]
+    scale = wp.vec3(wp.exp(s[0]), wp.exp(s[1]), wp.exp(s[2]))
+    m = r * wp.diag(scale)
+    sigma = m * wp.transpose(m)
+    rx = t[0] / z
+    ry = t[1] / z
+    tx = wp.clamp(rx, -cam.lim_x, cam.lim_x) * z
+    ty = wp.clamp(ry, -cam.lim_y, cam.lim_y) * z
+    j0 = wp.vec3(cam.fx / z, 0.0, -cam.fx * tx / (z * z))
+    j1 = wp.vec3(0.0, cam.fy / z, -cam.fy * ty / (z * z))
+    wt = wp.transpose(cam.rotation)
+    u = wt * j0
+    v = wt * j1
+    su = sigma * u
+    sv = sigma * v
+    a = wp.dot(u, su) + LOW_PASS
+    b = wp.dot(u, sv)
+    c = wp.dot(v, sv) + LOW_PASS
+    det = a * c - b * b
+    opacity = 1.0 / (1.0 + wp.exp(-opacities[i]))
+
+    # Conic (A, B, C) = (c, -b, a) / det:
+    # dA/d(a, b, c) = (-c^2, 2bc, -b^2)/det^2, dB = (bc, -det - 2b^2, ab)/det^2, dC = (-b^2, 2ab, -a^2)/det^2.
+    inv2 = 1.0 / (det * det)
+    ga = (-c * c * gco[0] + b * c * gco[1] - b * b * gco[2]) * inv2
+    gb = (2.0 * b * c * gco[0] - (det + 2.0 * b * b) * gco[1] + 2.0 * a * b * gco[2]) * inv2
+    gc = (-b * b * gco[0] + a * b * gco[1] - a * a * gco[2]) * inv2
+
+    # a = u^T Sigma u, b = u^T Sigma v, c = v^T Sigma v: dL/dSigma = ga uu^T + gb uv^T + gc vv^T.
+    g_sigma = ga * wp.outer(u, u) + gb * wp.outer(u, v) + gc * wp.outer(v, v)
+    gu = 2.0 * ga * su + gb * sv
+    gv = gb * su + 2.0 * gc * sv
+    gj0 = cam.rotation * gu  # u = W^T j0
+    gj1 = cam.rotation * gv
+
+    # j0 = (fx/z, 0, -fx tx/z^2), j1 = (0, fy/z, -fy ty/z^2); tx = clamp(x/z) z.
+    z2 = z * z
+    gz = -gj0[0] * cam.fx / z2 + gj0[2] * 2.0 * cam.fx * tx / (z2 * z)
+    gz = gz - gj1[1] * cam.fy / z2 + gj1[2] * 2.0 * cam.fy * ty / (z2 * z)
+    gtx = -gj0[2] * cam.fx / z2
+    gty = -gj1[2] * cam.fy / z2
+    gt = wp.vec3(0.0, 0.0, 0.0)
+    if rx > -cam.lim_x and rx < cam.lim_x:
+        gt[0] = gtx
+    else:
+        gz += gtx * wp.clamp(rx, -cam.lim_x, cam.lim_x)
+    if ry > -cam.lim_y and ry < cam.lim_y:
+        gt[1] = gty
+    else:
+        gz += gty * wp.clamp(ry, -cam.lim_y, cam.lim_y)
+    # px = fx x/z + cx - 1/2, py = fy y/z + cy - 1/2
+    gt[0] = gt[0] + gxy[0] * cam.fx / z
+    gt[1] = gt[1] + gxy[1] * cam.fy / z
+    gz = gz - gxy[0] * cam.fx * t[0] / z2 - gxy[1] * cam.fy * t[1] / z2
+    gt[2] = gz
+    g_mean = wt * gt  # t = W mean + translation
+
+    # Sigma = M M^T, M = R diag(s): dL/dM = (G + G^T) M, dL/ds_k = dM[:, k].R[:, k], dL/dR[:, k] = dM[:, k] s_k.
+    gm = (g_sigma + wp.transpose(g_sigma)) * m
+    g_r = gm * wp.diag(scale)
+    g_scale = wp.vec3(0.0, 0.0, 0.0)
+    for col in range(3):
+        g_scale[col] = (gm[0, col] * r[0, col] + gm[1, col] * r[1, col] + gm[2, col] * r[2, col]) * scale[col]
+    # q_unit = q / |q|: dL/dq = (g - q_unit (q_unit . g)) / |q|
+    gq_unit = quat_matrix_backward(qu, g_r)
+    gq = (gq_unit - qu * wp.dot(qu, gq_unit)) / qn
+
+    # colour: rgb = max(SH(d) + 0.5, 0), d = (mean - centre) / |mean - centre|
+    dvec = means[i] - cam.centre
+    dn = wp.length(dvec)
+    d = dvec
+    if dn > 0.0:
+        d = dvec / dn
+    rgb = sh_to_rgb(features, i, degree, d)
+    g_pre = wp.vec3(0.0, 0.0, 0.0)
+    for ch in range(3):
+        if rgb[ch] > 0.0:
+            g_pre[ch] = grgb[ch]
+    g_dir = sh_backward(features, g_features, i, degree, d, g_pre)
+    if dn > 0.0:
+        g_mean = g_mean + (g_dir - d * wp.dot(d, g_dir)) / dn
+
+    g_means[i] = g_means[i] + g_mean
+    g_rotations[i] = g_rotations[i] + gq
+    g_log_scales[i] = g_log_scales[i] + g_scale
+    g_opacities[i] = g_opacities[i] + gop * opacity * (1.0 - opacity)

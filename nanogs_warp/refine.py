@@ -1,0 +1,257 @@
+"""Refinement: distil a simplified scene toward the original's appearance, with the splat count fixed.
+
+Each step renders the simplified scene from a few training cameras (``refine_cameras``), compares it
+with the original's render of the same camera by L1 + 0.2 (1 - SSIM) (``image_loss``), back-propagates
+through the rasteriser (``render_grad``) and takes an Adam step on every parameter group with 3DGS's
+per-group learning rates (the means' scaled by the scene's extent and decayed tenfold over the run).
+The original's renders are made once, for a pool of cameras the steps then draw from. No splat is
+added or removed; after each step quaternions are renormalised and log-scales and opacity logits are
+clamped to finite ranges. Everything stays on the splats' device; the host reads one scalar per
+progress report. The same inputs, seed and device give the same bytes.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .image_loss import ImageLoss
+from .kernels import adam as adam_kernels
+from .parallel import launch_rows_from
+from .refine_cameras import scene_spread, training_cameras
+from .render import _Rasteriser
+from .refine_config import RefineConfig
+from .render_grad import GradRasteriser, SplatGradients
+from .splats import SplatSet
+
+LOSS_VIEWS = 8  # pool views on which the training loss before and after is measured
+
+
+@dataclass
+class RefineReport:
+    """What a refinement did: steps, seconds (total and per phase), training loss before and after
+    (mean over the first ``LOSS_VIEWS`` training views)."""
+
+    steps: int
+    count: int
+    loss_before: float = math.nan
+    loss_after: float = math.nan
+    seconds: float = 0.0
+    seconds_reference: float = 0.0
+    seconds_forward: float = 0.0
+    seconds_backward: float = 0.0
+    seconds_optimiser: float = 0.0
+    views: int = 0
+
+    def to_json(self) -> dict:
+        return {
+            "steps": self.steps,
+            "count": self.count,
+            "loss_before": round(self.loss_before, 6),
+            "loss_after": round(self.loss_after, 6),
+            "seconds": round(self.seconds, 4),
+            "seconds_reference": round(self.seconds_reference, 4),
+            "seconds_forward": round(self.seconds_forward, 4),
+            "seconds_backward": round(self.seconds_backward, 4),
+            "seconds_optimiser": round(self.seconds_optimiser, 4),
+            "reference_views": self.views,
+        }
+
+
+@dataclass
+class _Group:
+    """One parameter array seen flat, with its Adam moments and per-column learning rates."""
+
+    param: wp.array
+    grad: wp.array
+    rates: wp.array
+    columns: int
+    decays: bool
+    m: wp.array = field(init=False)
+    v: wp.array = field(init=False)
+
+    def __post_init__(self):
+        self.m = wp.zeros(self.param.shape[0], dtype=wp.float32, device=self.param.device)
+        self.v = wp.zeros(self.param.shape[0], dtype=wp.float32, device=self.param.device)
+
+
+def _flat(a: wp.array) -> wp.array:
+    return a.view(wp.float32).flatten() if a.dtype != wp.float32 else a.flatten()
+
+
+def _copy(splats: SplatSet, device) -> SplatSet:
+    return SplatSet(*(wp.clone(a, device=device) for a in splats.arrays()), layout=splats.layout)
+
+
+class _Refiner:
+    def __init__(self, simplified: SplatSet, reference: SplatSet, config: RefineConfig, device):
+        self.config, self.device = config, device
+        self.splats = _copy(simplified, device)
+        self.reference = reference.to(device)
+        _, p90, _ = scene_spread(self.reference.means.numpy())
+        self.extent = 2.2 * p90
+        self.grads = SplatGradients.zeros_like(self.splats)
+        self.rasteriser = GradRasteriser(self.splats)
+        self.images: dict[tuple[int, int], tuple[wp.array, wp.array, ImageLoss]] = {}
+        self.groups = self._groups()
+        wp.load_module(adam_kernels, device=device)
+
+    def _rates(self, values: list[float]) -> wp.array:
+        return wp.array(np.asarray(values, np.float32), dtype=wp.float32, device=self.device)
+
+    def _groups(self) -> list[_Group]:
+        c, s, g = self.config, self.splats, self.grads
+        features = s.features.shape[1]
+        return [
+            _Group(_flat(s.means), _flat(g.means), self._rates([c.lr_means * self.extent] * 3), 3, True),
+            _Group(_flat(s.rotations), _flat(g.rotations), self._rates([c.lr_rotations] * 4), 4, False),
+            _Group(_flat(s.log_scales), _flat(g.log_scales), self._rates([c.lr_log_scales] * 3), 3, False),
+            _Group(_flat(s.opacities), _flat(g.opacities), self._rates([c.lr_opacities]), 1, False),
+            _Group(_flat(s.features), _flat(g.features),
+                   self._rates([c.lr_features_dc] * 3 + [c.lr_features_rest] * (features - 3)), features, False),
+        ]  # fmt: skip
+
+    def buffers(self, width: int, height: int) -> tuple[wp.array, wp.array, ImageLoss]:
+        key = (width, height)
+        if key not in self.images:
+            d = self.device
+            self.images[key] = (
+                wp.empty((1, height, width, 3), dtype=wp.float32, device=d),
+                wp.empty((1, height, width, 3), dtype=wp.float32, device=d),
+                ImageLoss(height, width, d),
+            )
+        return self.images[key]
+
+    def render_references(self, cameras) -> list[wp.array]:
+        rasteriser = _Rasteriser(self.reference)
+        black = wp.vec3(0.0, 0.0, 0.0)
+        try:
+            targets = []
+            for camera in cameras:
+                image = wp.empty((1, camera.height, camera.width, 3), dtype=wp.float32, device=self.device)
+                rasteriser.render_into(camera, black, image, 0)
+                targets.append(image)
+        finally:
+            rasteriser.close()
+        return targets
+
+    def view_loss(self, camera, target: wp.array, weight: float, backward: bool) -> ImageLoss:
+        """Renders ``camera``, compares with ``target``; with ``backward``, adds weight dL/dparams."""
+        image, grad_image, loss = self.buffers(camera.width, camera.height)
+        self.rasteriser.forward(camera, wp.vec3(0.0, 0.0, 0.0), image)
+        loss(image[0], target[0], grad_image[0], self.config.ssim_weight, weight)
+        if backward:
+            self.rasteriser.backward(image, grad_image, self.grads)
+        return loss
+
+    def mean_loss(self, cameras, targets) -> float:
+        return float(np.mean([self.view_loss(c, t, 1.0, False).value() for c, t in zip(cameras, targets)]))
+
+    def adam(self, step: int) -> None:
+        c = self.config
+        beta1, beta2, eps = 0.9, 0.999, 1e-15
+        c1, c2 = 1.0 - beta1 ** (step + 1), 1.0 - beta2 ** (step + 1)
+        decay = c.lr_means_final ** (step / max(1, c.steps - 1))
+        for g in self.groups:
+            scale = decay if g.decays else 1.0
+            launch_rows_from(
+                adam_kernels.adam_step, g.param.shape[0],
+                [g.grad, g.rates, g.columns, scale, beta1, beta2, eps, c1, c2, g.m, g.v, g.param], self.device,
+            )  # fmt: skip
+        lo, hi = c.log_scale_range
+        s = self.splats
+        launch_rows_from(
+            adam_kernels.constrain_splats, s.count,
+            [lo, hi + math.log(self.extent), *c.logit_range, s.rotations, s.log_scales, s.opacities], self.device,
+        )  # fmt: skip
+
+    def close(self) -> None:
+        self.rasteriser.close()
+
+
+def refine_with_report(
+    simplified: SplatSet,
+    reference: SplatSet,
+    config: RefineConfig | None = None,
+    device=None,
+    on_step: Callable[[int, int], None] | None = None,
+    timing: bool = False,
+) -> tuple[SplatSet, RefineReport]:
+    """``refine``, also returning what it did. ``on_step(step, steps)`` is called after each step;
+    ``timing`` synchronises the device between phases so that the per-phase seconds are exact."""
+    config = config or RefineConfig()
+    config.validate()
+    device = wp.get_device(device if device is not None else simplified.device)
+    started = time.perf_counter()
+    report = RefineReport(steps=config.steps, count=simplified.count)
+    if simplified.count == 0 or config.steps == 0:
+        out = _copy(simplified, device)
+        report.seconds = time.perf_counter() - started
+        return out, report
+
+    refiner = _Refiner(simplified, reference, config, device)
+    try:
+        pool = max(1, min(config.reference_views, config.steps * config.views_per_step))
+        cameras = training_cameras(refiner.reference.means.numpy(), pool, config.size, config.seed)
+        targets = refiner.render_references(cameras)
+        wp.synchronize_device(device)
+        report.seconds_reference = time.perf_counter() - started
+        report.views = pool
+        loss_views = min(LOSS_VIEWS, pool)
+        report.loss_before = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
+
+        rng = np.random.default_rng([config.seed, 0xADA])
+        order: list[int] = []
+        weight = 1.0 / config.views_per_step
+        sync = (lambda: wp.synchronize_device(device)) if timing else (lambda: None)
+        for step in range(config.steps):
+            t0 = time.perf_counter()
+            refiner.grads.zero_()
+            for _ in range(config.views_per_step):
+                if not order:
+                    order = rng.permutation(pool).tolist()
+                k = order.pop()
+                t1 = time.perf_counter()
+                image, grad_image, loss = refiner.buffers(cameras[k].width, cameras[k].height)
+                refiner.rasteriser.forward(cameras[k], wp.vec3(0.0, 0.0, 0.0), image)
+                loss(image[0], targets[k][0], grad_image[0], config.ssim_weight, weight)
+                sync()
+                t2 = time.perf_counter()
+                refiner.rasteriser.backward(image, grad_image, refiner.grads)
+                sync()
+                t3 = time.perf_counter()
+                report.seconds_forward += t2 - t1
+                report.seconds_backward += t3 - t2
+            t4 = time.perf_counter()
+            refiner.adam(step)
+            sync()
+            report.seconds_optimiser += time.perf_counter() - t4
+            if on_step is not None:
+                on_step(step + 1, config.steps)
+        report.loss_after = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
+        out = refiner.splats
+    finally:
+        refiner.close()
+    wp.synchronize_device(device)
+    report.seconds = time.perf_counter() - started
+    return out, report
+
+
+def refine(
+    simplified: SplatSet,
+    reference: SplatSet,
+    steps: int = RefineConfig.steps,
+    size: int = RefineConfig.size,
+    seed: int = RefineConfig.seed,
+    device=None,
+) -> SplatSet:
+    """``simplified`` optimised so that its renders match ``reference``'s from training cameras around
+    the scene: a new SplatSet on ``device`` (default: the simplified scene's) with the same count,
+    layout and extras. The inputs are not modified."""
+    config = RefineConfig(steps=steps, size=size, seed=seed)
+    return refine_with_report(simplified, reference, config, device)[0]

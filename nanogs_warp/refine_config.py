@@ -1,0 +1,38 @@
+"""Refinement settings (no Warp here: the command line reads the defaults before Warp starts)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .errors import InputError
+
+MIN_SIZE = 32  # the half-size training views must fit the 11-pixel SSIM window
+
+
+@dataclass
+class RefineConfig:
+    """Refinement settings; learning rates as in 3DGS (``lr_means`` is per unit of scene extent)."""
+
+    steps: int = 300
+    size: int = 256
+    views_per_step: int = 1
+    reference_views: int = 128
+    seed: int = 0
+    ssim_weight: float = 0.2
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 0.1  # fraction of lr_means reached at the last step (exponential decay)
+    lr_log_scales: float = 5e-3
+    lr_rotations: float = 1e-3
+    lr_opacities: float = 2.5e-2
+    lr_features_dc: float = 2.5e-3
+    lr_features_rest: float = 2.5e-3 / 20.0
+    log_scale_range: tuple[float, float] = (-20.0, 5.0)  # the upper end is relative to log(extent)
+    logit_range: tuple[float, float] = (-20.0, 20.0)
+
+    def validate(self) -> None:
+        if self.steps < 0:
+            raise InputError(f"--refine-steps must be at least 0, got {self.steps}")
+        if self.size < MIN_SIZE:
+            raise InputError(f"--refine-size must be at least {MIN_SIZE} pixels, got {self.size}")
+        if self.views_per_step < 1 or self.reference_views < 1:
+            raise InputError("refinement needs at least one view per step and one reference view")

@@ -1,0 +1,184 @@
+"""The differentiable rasteriser: ``render.py``'s forward pass, which keeps what the backward pass needs,
+and the backward pass (``kernels/render_grad.py``) from dL/dimage to every splat parameter.
+
+The forward launches ``render.py``'s kernels in the same order on the same data, so the image is the
+renderer's, bit for bit; the only addition is a numbering of the emitted entries, so that after the
+sort each splat's entries can be found in emit order. Gradients are summed in a fixed order (per
+entry over the tile's pixels in row order, per splat over its entries in emit order, per view in the
+order views are back-propagated), so a rerun on the same device gives the same bytes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import warp as wp
+
+from .cameras import Camera
+from .kernels import render as kernels
+from .kernels import render_grad as grad_kernels
+from .parallel import launch_rows_from
+from .render import _Rasteriser, camera_params
+from .splats import SplatSet
+
+
+@dataclass
+class SplatGradients:
+    """dL/d(parameter) for each differentiable splat array, same shapes and types as the SplatSet's."""
+
+    means: wp.array
+    rotations: wp.array
+    log_scales: wp.array
+    opacities: wp.array
+    features: wp.array
+
+    @staticmethod
+    def zeros_like(splats: SplatSet) -> SplatGradients:
+        d, n = splats.device, splats.count
+        return SplatGradients(
+            means=wp.zeros(n, dtype=wp.vec3, device=d),
+            rotations=wp.zeros(n, dtype=wp.quat, device=d),
+            log_scales=wp.zeros(n, dtype=wp.vec3, device=d),
+            opacities=wp.zeros(n, dtype=wp.float32, device=d),
+            features=wp.zeros(splats.features.shape, dtype=wp.float32, device=d),
+        )
+
+    def arrays(self) -> tuple[wp.array, ...]:
+        return (self.means, self.rotations, self.log_scales, self.opacities, self.features)
+
+    def zero_(self) -> None:
+        for a in self.arrays():
+            a.zero_()
+
+
+class GradRasteriser(_Rasteriser):
+    """Renders one view at a time of a splat set whose parameters may change between views, and
+    back-propagates dL/dimage of the last view rendered."""
+
+    def __init__(self, splats: SplatSet, workers: int | None = None, method: str | None = None, lanes: int | None = None):
+        super().__init__(splats, workers, method)
+        if lanes is None:
+            lanes = 1 if self.device.is_cpu else 16  # threads per tile in the backward pass
+        if lanes not in (1, 2, 4, 8, 16):
+            raise ValueError(f"lanes {lanes}: expected 1, 2, 4, 8 or 16")
+        self.lanes = lanes
+        wp.load_module(grad_kernels, device=self.device)
+        self.grad_capacity = 0
+        self.scratch_pixels = 0
+        self.camera = None
+        self.count = 0
+
+    def _reserve_grad(self, entries: int) -> None:
+        if entries <= self.grad_capacity:
+            return
+        c, d = self.capacity, self.device  # the forward buffers' capacity, >= entries
+        self.grad_capacity = c
+        self.slot_splat = wp.empty(c, dtype=wp.int32, device=d)
+        self.entry_splat = wp.empty(c, dtype=wp.int32, device=d)
+        self.entry_of_slot = wp.empty(c, dtype=wp.int32, device=d)
+        self.e_g_xy = wp.empty(c, dtype=wp.vec2, device=d)
+        self.e_g_conic = wp.empty(c, dtype=wp.vec3, device=d)
+        self.e_g_opacity = wp.empty(c, dtype=wp.float32, device=d)
+        self.e_g_rgb = wp.empty(c, dtype=wp.vec3, device=d)
+        if self.lanes > 1:
+            lanes = c * self.lanes
+            self.lane_xy = wp.empty(lanes, dtype=wp.vec2, device=d)
+            self.lane_conic = wp.empty(lanes, dtype=wp.vec3, device=d)
+            self.lane_opacity = wp.empty(lanes, dtype=wp.float32, device=d)
+            self.lane_rgb = wp.empty(lanes, dtype=wp.vec3, device=d)
+
+    def _rows(self, kernel, rows: int, inputs: list, min_rows: int) -> None:
+        """``kernel(first, *inputs)`` over ``rows`` rows, split over CPU cores when worthwhile."""
+        if rows > 0:
+            launch_rows_from(kernel, rows, inputs, self.device, min_rows=min_rows)
+
+    def forward(self, camera: Camera, background: wp.vec3, image: wp.array) -> None:
+        """Renders ``camera`` into ``image`` (1, H, W, 3), exactly as ``render.render`` would, and keeps
+        the view's entries for ``backward``."""
+        s, p = self.splats, camera_params(camera)
+        tiles = p.tiles_x * p.tiles_y
+        if self.tile_start is None or self.tile_start.shape[0] < tiles:
+            self.tile_start = wp.zeros(tiles, dtype=wp.int32, device=self.device)
+            self.tile_end = wp.zeros(tiles, dtype=wp.int32, device=self.device)
+            if self.method == "tiles":
+                pixels = tiles * kernels.TILE_PIXELS
+                self.transmittance = wp.empty(pixels, dtype=wp.float32, device=self.device)
+                self.colour = wp.empty(pixels, dtype=wp.vec3, device=self.device)
+                self.done = wp.empty(pixels, dtype=wp.int32, device=self.device)
+        else:
+            self.tile_start.zero_()
+            self.tile_end.zero_()
+        count = 0
+        if self.n > 0:
+            self._launch(
+                kernels.project,
+                self.n,
+                [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p],
+                [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.rect, self.touched],
+            )
+            wp.utils.array_scan(self.touched, self.ends, inclusive=True)
+            count = int(self.ends[self.n - 1 :].numpy()[0])
+        if count > 0:
+            self._reserve(count)
+            self._reserve_grad(count)
+            self._launch(
+                kernels.emit_entries,
+                self.n,
+                [self.depth, self.rect, self.touched, self.ends, p.tiles_x],
+                [self.keys, self.values],
+            )
+            self._rows(grad_kernels.number_slots, count, [self.values, self.slot_splat], 16384)
+            wp.utils.radix_sort_pairs(self.keys, self.values, count, 0, 32 + max(1, int(tiles - 1).bit_length()))
+            self._rows(
+                grad_kernels.order_entries, count, [self.values, self.slot_splat, self.entry_splat, self.entry_of_slot], 16384
+            )
+            self._launch(
+                kernels.gather_entries,
+                count,
+                [self.keys, self.entry_splat, count, self.xy, self.conic_opacity, self.rgb, self.box],
+                [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end],
+            )
+            e_xy, e_co, e_rgb, e_box = self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box
+        else:
+            e_xy, e_co, e_rgb, e_box = self.xy, self.conic_opacity, self.rgb, self.box
+        inputs = [e_xy, e_co, e_rgb, e_box, self.tile_start, self.tile_end]
+        inputs += [p.width, p.height, p.tiles_x, background, 0]
+        if self.method == "tiles":
+            self._launch(kernels.composite_tiles, tiles, inputs, [self.transmittance, self.colour, self.done, image])
+        else:
+            self._launch(kernels.composite, tiles * kernels.TILE_PIXELS, inputs, [image])
+        self.camera, self.params, self.count, self.tiles = camera, p, count, tiles
+
+    def backward(self, image: wp.array, grad_image: wp.array, grads: SplatGradients) -> None:
+        """Adds to ``grads`` the gradient of L given dL/dimage ``grad_image`` (1, H, W, 3) for the view
+        last rendered by ``forward`` into ``image`` (the splats unchanged since)."""
+        if self.count == 0:
+            return
+        s, p, d = self.splats, self.params, self.device
+        pixels = self.tiles * kernels.TILE_PIXELS
+        if self.scratch_pixels < pixels:
+            self.scratch_pixels = pixels
+            self.bw_transmittance = wp.empty(pixels, dtype=wp.float32, device=d)
+            self.bw_front = wp.empty(pixels, dtype=wp.vec3, device=d)
+            self.bw_done = wp.empty(pixels, dtype=wp.int32, device=d)
+        per_entry = [self.e_g_xy, self.e_g_conic, self.e_g_opacity, self.e_g_rgb]
+        per_lane = per_entry if self.lanes == 1 else [self.lane_xy, self.lane_conic, self.lane_opacity, self.lane_rgb]
+        self._rows(
+            grad_kernels.composite_backward,
+            self.tiles * self.lanes,
+            [self.lanes, self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end,
+             p.width, p.height, p.tiles_x, image[0], grad_image[0],
+             self.bw_transmittance, self.bw_front, self.bw_done, *per_lane],
+            8,
+        )  # fmt: skip
+        if self.lanes > 1:
+            self._rows(grad_kernels.sum_lanes, self.count, [self.lanes, *per_lane, *per_entry], 16384)
+        self._rows(
+            grad_kernels.splat_backward,
+            self.n,
+            [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p,
+             self.touched, self.ends, self.entry_of_slot,
+             self.e_g_xy, self.e_g_conic, self.e_g_opacity, self.e_g_rgb,
+             grads.means, grads.rotations, grads.log_scales, grads.opacities, grads.features],
+            2048,
+        )  # fmt: skip

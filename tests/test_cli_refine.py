@@ -1,0 +1,75 @@
+"""``simplify --refine`` and ``batch --refine``: refined outputs of the budgets' counts, the JSON report, unchanged outputs
+without the flag, and one line with exit code 2 for bad refinement settings."""
+
+import json
+
+import numpy as np
+import typer
+from scene_factory import random_splats_ply
+from typer.testing import CliRunner
+
+from nanogs_warp.cli import app, user_errors
+from nanogs_warp.cli_batch import batch_command
+from nanogs_warp.ply import load_ply
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def test_refine_each_budget(tmp_path):
+    scene = tmp_path / "scene.ply"
+    random_splats_ply(scene, 400, sh_degree=1, seed=4)
+    plain = run("simplify", scene, "-o", tmp_path / "plain.ply", "--ratio", "0.1,0.05", "--device", "cpu", "-q")
+    assert plain.exit_code == 0, plain.output
+    result = run("simplify", scene, "-o", tmp_path / "refined.ply", "--ratio", "0.1,0.05", "--device", "cpu",
+                 "--refine-steps", "4", "--refine-size", "40", "--json")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    for out, budget, count in zip(summary["outputs"], ("0.1", "0.05"), (40, 20)):
+        assert out["budget"] == budget and out["count"] == count
+        report = out["refine"]
+        assert report["steps"] == 4 and report["count"] == count and report["seconds"] > 0
+        assert report["loss_before"] > 0 and report["loss_after"] > 0
+        refined = load_ply(out["path"]).to_numpy()
+        unrefined = load_ply(tmp_path / f"plain_{budget}.ply").to_numpy()
+        assert refined["means"].shape == unrefined["means"].shape
+        assert not np.array_equal(refined["features"], unrefined["features"])
+    again = run("simplify", scene, "-o", tmp_path / "plain2.ply", "--ratio", "0.1,0.05", "--device", "cpu", "-q")
+    assert again.exit_code == 0
+    for budget in ("0.1", "0.05"):
+        assert (tmp_path / f"plain_{budget}.ply").read_bytes() == (tmp_path / f"plain2_{budget}.ply").read_bytes()
+
+
+def test_bad_refine_settings(tmp_path):
+    scene = tmp_path / "scene.ply"
+    random_splats_ply(scene, 50, seed=5)
+    for option, value in (("--refine-size", "8"), ("--refine-steps", "-2")):
+        result = run("simplify", scene, "-o", tmp_path / "out.ply", "--ratio", "0.5", "--device", "cpu", "--refine", option, value)
+        assert result.exit_code == 2
+        assert result.stderr.count("\n") == 1 and result.stderr.startswith("nanogs-warp: error: ")
+        assert not (tmp_path / "out.ply").exists()
+
+
+def test_batch_refine(tmp_path):
+    batch = typer.Typer(pretty_exceptions_enable=False)
+    batch.callback()(lambda: None)
+    batch.command("batch")(user_errors(batch_command))
+    scenes = tmp_path / "in"
+    scenes.mkdir()
+    random_splats_ply(scenes / "a.ply", 300, sh_degree=1, seed=6)
+    out = tmp_path / "out"
+    args = ["batch", str(scenes), "-o", str(out), "--ratio", "0.1", "--devices", "cpu", "--json"]
+    plain = runner.invoke(batch, args)
+    assert plain.exit_code == 0, plain.output
+    unrefined = load_ply(out / "a_0.1.ply").to_numpy()
+    result = runner.invoke(batch, [*args, "--refine-steps", "3", "--refine-size", "40"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["scenes"][0]["status"] == "done"  # the record's options differ: redone
+    refined = load_ply(out / "a_0.1.ply").to_numpy()
+    assert refined["means"].shape == unrefined["means"].shape
+    assert not np.array_equal(refined["features"], unrefined["features"])
+    record = json.loads((out / "a.nanogs.json").read_text())
+    assert record["options"]["refine_steps"] == 3 and record["options"]["refine_size"] == 40

@@ -1,0 +1,120 @@
+"""Refinement: Adam and the constraints against numpy, a perturbed scene converging back toward the
+original, determinism, the count invariant, and a CPU refine of the shipped sample."""
+
+from importlib import resources
+
+import numpy as np
+import pytest
+import reference_refine as ref
+import warp as wp
+from scene_factory import random_splat_arrays
+
+from nanogs_warp import InputError, load_ply, refine
+from nanogs_warp.kernels import adam as adam_kernels
+from nanogs_warp.pipeline import simplify
+from nanogs_warp.refine import RefineConfig, refine_with_report
+from nanogs_warp.refine_cameras import training_cameras
+from nanogs_warp.splats import SplatSet
+
+
+def test_adam_matches_reference(device, rng):
+    n, columns, steps = 1000, 5, 4
+    param = rng.normal(size=n).astype(np.float32)
+    grads = [rng.normal(size=n).astype(np.float32) for _ in range(steps)]
+    rates = rng.uniform(1e-3, 1e-1, columns).astype(np.float32)
+    scales = [1.0, 0.8, 0.5, 0.3]
+    p = wp.array(param, dtype=wp.float32, device=device)
+    m = wp.zeros(n, dtype=wp.float32, device=device)
+    v = wp.zeros(n, dtype=wp.float32, device=device)
+    r = wp.array(rates, dtype=wp.float32, device=device)
+    for t, g in enumerate(grads):
+        c1, c2 = 1 - 0.9 ** (t + 1), 1 - 0.999 ** (t + 1)
+        wp.launch(adam_kernels.adam_step, n, [0, wp.array(g, dtype=wp.float32, device=device), r, columns, scales[t],
+                                              0.9, 0.999, 1e-15, c1, c2, m, v, p], device=device)  # fmt: skip
+    expected = ref.adam(param, grads, rates, columns, scales=scales)
+    assert np.abs(p.numpy() - expected).max() <= 1e-6 + 1e-5 * np.abs(expected).max()
+
+
+def test_constraints(device):
+    rotations = wp.array(np.array([[0, 0, 0, 0], [0, 0, 3, 4], [1, 1, 1, 1]], np.float32), dtype=wp.quat, device=device)
+    log_scales = wp.array(np.array([[-30, 0, 9], [1, 2, 3], [-1, -2, -3]], np.float32), dtype=wp.vec3, device=device)
+    opacities = wp.array(np.array([-50, 0.5, 50], np.float32), dtype=wp.float32, device=device)
+    wp.launch(adam_kernels.constrain_splats, 3, [0, -20.0, 2.5, -20.0, 20.0, rotations, log_scales, opacities], device=device)
+    np.testing.assert_allclose(rotations.numpy(), [[0, 0, 0, 1], [0, 0, 0.6, 0.8], [0.5, 0.5, 0.5, 0.5]], atol=1e-7)
+    np.testing.assert_array_equal(log_scales.numpy(), [[-20, 0, 2.5], [1, 2, 2.5], [-1, -2, -3]])
+    np.testing.assert_array_equal(opacities.numpy(), [-20, 0.5, 20])
+
+
+def _toy_scene(seed, device):
+    arrays = random_splat_arrays(60, sh_degree=1, seed=seed)
+    arrays["log_scales"] = np.full((60, 3), np.log(0.15), np.float32) + arrays["log_scales"] * 0.05
+    arrays["opacities"] = np.abs(arrays["opacities"]) + 0.5
+    return arrays
+
+
+def test_perturbed_copy_converges_toward_original(device):
+    arrays = _toy_scene(1, device)
+    original = SplatSet.from_numpy(**arrays, device=device)
+    rng = np.random.default_rng(2)
+    perturbed_arrays = dict(arrays)
+    perturbed_arrays["features"] = arrays["features"] + rng.normal(0.0, 0.3, arrays["features"].shape).astype(np.float32)
+    perturbed_arrays["means"] = arrays["means"] + rng.normal(0.0, 0.03, arrays["means"].shape).astype(np.float32)
+    perturbed = SplatSet.from_numpy(**perturbed_arrays, device=device)
+    config = RefineConfig(steps=300, size=48, reference_views=32, lr_features_dc=1e-2, lr_features_rest=1e-2)
+    out, report = refine_with_report(perturbed, original, config)
+    assert report.loss_after < 0.2 * report.loss_before
+    dc_before = np.abs(perturbed_arrays["features"][:, :3] - arrays["features"][:, :3]).mean()
+    dc_after = np.abs(out.to_numpy()["features"][:, :3] - arrays["features"][:, :3]).mean()
+    assert dc_after < 0.4 * dc_before
+
+
+def test_refine_is_deterministic_and_keeps_the_count(device):
+    arrays = _toy_scene(3, device)
+    reference = SplatSet.from_numpy(**arrays, device=device)
+    small = simplify(reference, count=20)
+    config = RefineConfig(steps=12, size=40, reference_views=6)
+    first, report = refine_with_report(small, reference, config)
+    second, _ = refine_with_report(small, reference, config)
+    a, b = first.to_numpy(), second.to_numpy()
+    for key in a:
+        assert a[key].tobytes() == b[key].tobytes(), key
+    assert first.count == small.count == 20 and report.count == 20
+    assert all(np.isfinite(v).all() for v in a.values())
+    np.testing.assert_allclose(np.linalg.norm(a["rotations"], axis=1), 1.0, atol=1e-6)
+    assert not np.array_equal(a["means"], small.to_numpy()["means"]), "refinement changed nothing"
+
+
+def test_refine_the_shipped_sample_on_the_cpu():
+    reference = load_ply(str(resources.files("nanogs_warp.data") / "plant_crop.ply"), device="cpu")
+    small = simplify(reference, ratio=0.02)
+    before = small.to_numpy()
+    out, report = refine_with_report(small, reference, RefineConfig(steps=6, size=48, reference_views=6))
+    after = out.to_numpy()
+    assert out.count == small.count and out.layout is small.layout
+    np.testing.assert_array_equal(after["extras"], before["extras"])
+    assert report.loss_after < report.loss_before
+    np.testing.assert_array_equal(small.to_numpy()["means"], before["means"])  # input untouched
+    assert refine(small, reference, steps=0).to_numpy()["means"].tobytes() == before["means"].tobytes()
+
+
+def test_training_cameras_are_seeded_and_varied():
+    means = np.random.default_rng(0).normal(size=(500, 3))
+    a = training_cameras(means, 20, 64, 7)
+    b = training_cameras(means, 20, 64, 7)
+    c = training_cameras(means, 20, 64, 8)
+    assert all(np.array_equal(x.rotation, y.rotation) and np.array_equal(x.translation, y.translation) for x, y in zip(a, b))
+    assert not np.array_equal(a[0].translation, c[0].translation)
+    assert len({(x.width, x.height) for x in a}) == 4
+    centre = np.median(means, axis=0)
+    p90 = np.percentile(np.linalg.norm(means - centre, axis=1), 90)
+    distances = np.array([np.linalg.norm(x.centre - centre) for x in a]) / p90
+    assert distances.min() >= 1.2 - 1e-9 and distances.max() <= 3.0 + 1e-9
+
+
+def test_bad_settings_are_input_errors():
+    arrays = random_splat_arrays(10)
+    splats = SplatSet.from_numpy(**arrays, device="cpu")
+    with pytest.raises(InputError):
+        refine(splats, splats, size=8)
+    with pytest.raises(InputError):
+        refine(splats, splats, steps=-1)
