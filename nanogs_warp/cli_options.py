@@ -1,6 +1,6 @@
 """Command-line options shared by ``simplify`` and ``batch``. Method options left unset take the
 preset's value (``--preset default``: SimplifyConfig's defaults; ``--preset paper``: the NanoGS
-paper's configuration, --operator mpmm --cost idiv --prune-opacity 0.1 --k 16)."""
+paper's configuration, --operator mpmm --cost idiv --prune-opacity 0.1 --k 16 --pass-fraction 0.5)."""
 
 from __future__ import annotations
 

@@ -103,7 +103,7 @@ def test_json_paths_are_absolute_and_settings_echoed(outputs):
     for path in paths:
         assert Path(path).is_absolute() and Path(path).exists(), path
     assert simplify["settings"]["k"] == 24 and simplify["settings"]["operator"] == "coverage"
-    assert simplify["settings"]["cost"] == "runnalls" and simplify["settings"]["device"] == "cpu"
+    assert simplify["settings"]["cost"] == "field" and simplify["settings"]["device"] == "cpu"
     assert simplify["settings"]["seed"] == 0
     assert batch["settings"]["devices"] == "cpu" and batch["settings"]["operator"] == "coverage"
     assert evaluation["settings"]["views"] == 2 and evaluation["settings"]["cameras"] == "orbit"
