@@ -66,12 +66,13 @@ def row_lists(
     rows: wp.array2d(dtype=Any), j: int, i: int, means: wp.array(dtype=wp.vec3), reach: wp.array(dtype=wp.int64)
 ) -> bool:
     """Whether row j lists i. Rows of an exact kNN graph with ``reach`` (row j's k-th neighbour as
-    (squared distance bits << 32 | index), the distance computed as the query computes it): one
+    its key, ``knn.neighbour_key``, the distance computed as the query computes it): one
     comparison. Otherwise a scan of row j."""
     if reach.shape[0] > 0:
-        return neighbour_key(squared_distance(means[j], means[i]), i) <= reach[j]  # row j's query, candidate i
+        d = squared_distance(means[j], means[i])  # row j's query, candidate i
+        return neighbour_key(d, j, i, means.shape[0]) <= reach[j]
     listed = int(0)
-    for c in range(rows.shape[1]):
+    for c in range(rows.shape[1]):  # bounded by the row's width
         listed += _count_equal(rows[j, c], i)
     return listed > 0
 

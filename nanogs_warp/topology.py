@@ -21,7 +21,7 @@ from nanogs_warp.parallel import cpu_workers, launch_rows_from, worker_pool
 KMAX = knn_kernels.KMAX
 _LEVELS = knn_kernels.LEVELS
 _GRID_CELLS = 1 << knn_kernels.GRID_BITS
-_BLOCK = knn_kernels.BLOCK
+_NODE_LEVELS = knn_kernels.NODE_LEVELS
 _QUANTILE_SAMPLES = 16384  # points sampled per axis for the quantisation cube
 _QUANTILE_TAIL = 0.001  # fraction of the sample left out at each end
 
@@ -61,17 +61,14 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None, reach
 
     lo, quantum, margin = _quantisation_cube(means)
     codes, order, points = _morton_sort(means, lo, quantum)
-    blocks = (n + _BLOCK - 1) // _BLOCK
-    box_lo = wp.empty(blocks, dtype=wp.vec3, device=device)
-    box_hi = wp.empty(blocks, dtype=wp.vec3, device=device)
-    wp.launch(knn_kernels._block_boxes, blocks, inputs=[points], outputs=[box_lo, box_hi], device=device)
+    nodes = _tree_nodes(points, order)
     search_level, tables = _cell_tables(codes, k)
 
     neighbours = wp.full((n, k), -1, dtype=wp.int32, device=device)
     launch_rows_from(
         knn_kernels._knn_query,
         n,
-        [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, box_lo, box_hi]
+        [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, *nodes]
         + [neighbours, reach, candidates],
         device,
         min_rows=512,  # about 2 us a query on a CPU core
@@ -208,6 +205,27 @@ def _morton_sort(means: wp.array, lo: wp.vec3, quantum: float) -> tuple[wp.array
     return codes, order, points
 
 
+def _tree_nodes(points: wp.array, order: wp.array) -> list[wp.array]:
+    """The implicit tree over the sorted points: level s (1..NODE_LEVELS) has a node per 8^s
+    consecutive points with its bounding box and smallest and largest original index, all levels in
+    flat arrays: [node_base (per level, index 0 unused), node_lo, node_hi, node_first, node_last]."""
+    n, device = points.shape[0], points.device
+    counts = [0] + [-(-n // 8**s) for s in range(1, _NODE_LEVELS + 1)]
+    base = np.zeros(_NODE_LEVELS + 1, dtype=np.int32)
+    base[2:] = np.cumsum(counts[1:-1])
+    total = int(sum(counts))
+    node_lo = wp.empty(total, dtype=wp.vec3, device=device)
+    node_hi = wp.empty(total, dtype=wp.vec3, device=device)
+    node_first = wp.empty(total, dtype=wp.int32, device=device)
+    node_last = wp.empty(total, dtype=wp.int32, device=device)
+    arrays = [node_lo, node_hi, node_first, node_last]
+    wp.launch(knn_kernels._leaf_nodes, counts[1], inputs=[points, order], outputs=arrays, device=device)
+    for s in range(2, _NODE_LEVELS + 1):
+        inputs = [int(base[s - 1]), counts[s - 1], int(base[s])]
+        wp.launch(knn_kernels._parent_nodes, counts[s], inputs=inputs, outputs=arrays, device=device)
+    return [wp.array(base, dtype=wp.int32, device=device), *arrays]
+
+
 def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list]:
     """Each sorted point's search level, and hash tables cell -> sorted range for the levels searched
     (at most half full): [level_base, level_mask, keys, starts, ends]."""
@@ -220,7 +238,9 @@ def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list]:
     launch_rows_from(knn_kernels._search_levels, n, [window_level, k, search_level, searched], device)
 
     splits = split_histogram.numpy()
-    used = np.flatnonzero(searched.numpy())
+    in_use = searched.numpy()
+    in_use[_LEVELS - 1] = 1  # the top level (one cell): where a query that needs many rings goes on
+    used = np.flatnonzero(in_use)
     cells = np.array([1 + int(splits[level + 1 :].sum()) for level in range(_LEVELS)])  # points part below a level
     base = np.zeros(_LEVELS, dtype=np.int32)
     mask = np.full(_LEVELS, -1, dtype=np.int32)
