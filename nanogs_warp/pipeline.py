@@ -77,6 +77,15 @@ class SimplifyConfig:
                 raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}")
 
 
+def pass_limit(start_count: int, target: int) -> int:
+    """Most passes a run from ``start_count`` splats down to ``target`` may take before it is
+    stopped as stuck. A pass pairs off a large share of the splats (greedy matching on a kNN graph
+    whose every vertex has an edge: about a third or more of them in practice, at least one pair by
+    construction); the bound allows an eighth of that pace, 8 passes per halving, plus 32."""
+    halvings = max(0, math.ceil(math.log2(max(start_count, 1) / max(target, 1))))
+    return 32 + 8 * halvings
+
+
 @dataclass(frozen=True)
 class PassReport:
     """What one pass did: its index, splats before and after, candidate edges."""
@@ -119,8 +128,16 @@ def simplify_progressively(
         current = prune_low_opacity(splats, config.prune_opacity, keep_at_least=targets[0])
     topology = KnnTopology(config.neighbours(current.count))
     pass_index = 0
+    # Termination: every pass removes at least one splat (or the run stops with an error), so the
+    # loops end after at most count - targets[-1] passes; pass_limit stops a run long before that.
+    most_passes = pass_limit(current.count, targets[-1])
     for target in targets:
         while current.count > target:
+            if pass_index >= most_passes:
+                raise RuntimeError(
+                    f"simplification stopped: {pass_index} passes without reaching {target} splats "
+                    f"(at {current.count}; at most {most_passes} expected from {splats.count})"
+                )
             if clock is not None:
                 clock.next_pass()
             n = current.count
@@ -132,7 +149,7 @@ def simplify_progressively(
                 pairs = select_pairs(edges, costs, n, cap=n - target)
                 del edges, costs
             if pairs.count == 0:  # cannot happen with n >= 2 (a kNN graph has edges); guards the loop
-                raise RuntimeError(f"no merge possible at {n} splats")
+                raise RuntimeError(f"simplification stopped: pass {pass_index + 1} merged nothing at {n} splats (target {target})")
             with stage("compaction"):
                 merged, destination = remove_rows(current, pairs.j, pairs.count)
             with stage("merge"):

@@ -24,6 +24,7 @@ _GRID_CELLS = 1 << knn_kernels.GRID_BITS
 _NODE_LEVELS = knn_kernels.NODE_LEVELS
 _QUANTILE_SAMPLES = 16384  # points sampled per axis for the quantisation cube
 _QUANTILE_TAIL = 0.001  # fraction of the sample left out at each end
+_LARGEST_SIDE = 2.0**120  # of the quantisation cube (float32 holds up to 2^128)
 
 
 @dataclass
@@ -185,6 +186,9 @@ def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     side = float(np.max(hi - lo))
     if side <= 0.0:  # the central points coincide: fall back to the whole box, or to a unit cube
         lo, side = box_lo, float(np.max(box_hi - box_lo)) or 1.0
+    # cell sides (quantum x 2^level) stay finite in float32 whatever the coordinates; points beyond
+    # the cube fall into its boundary cells as ever
+    side = min(side, _LARGEST_SIDE)
     quantum = side / _GRID_CELLS
     # Positions are taken relative to `lo` (a correctly rounded float32 difference), so a point's
     # computed cell and the cell's bounds err by well under a quantum; two quanta cover both.
