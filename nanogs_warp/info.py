@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .domain import LOG_SCALE_LIMIT
 from .ply import check_values, read_ply_arrays, sh_degree_for_rest_count
 
 
@@ -18,6 +19,8 @@ def scene_info(path) -> dict:
     ``scale`` (exp of the log scales over all three axes: min, median, max), ``nonfinite``
     (property -> rows with NaN/Inf, extras included, only non-zero counts), ``nonfinite_rows``
     (rows with NaN/Inf in a 3DGS property, which a load rejects), ``zero_norm_quaternions``,
+    ``out_of_domain`` (log-scale property -> finite values outside the numeric domain, which a load
+    rejects too; only non-zero counts), ``out_of_domain_rows``,
     ``comments``, ``obj_info`` and ``other_elements`` (``{"name", "count", "properties"}``).
     Statistics skip non-finite values and are None when no finite value is left.
     Raises InputError for files that are not readable 3DGS PLY files; never for bad values.
@@ -50,6 +53,8 @@ def scene_info(path) -> dict:
         "nonfinite": with_extras.nonfinite_by_property,
         "nonfinite_rows": int(np.count_nonzero(model.nonfinite_rows)),
         "zero_norm_quaternions": int(np.count_nonzero(model.zero_quat_rows)),
+        "out_of_domain": model.out_of_domain_by_property,
+        "out_of_domain_rows": int(np.count_nonzero(model.out_of_domain_rows)),
         "comments": list(layout.comments),
         "obj_info": list(layout.obj_info),
         "other_elements": [
@@ -86,6 +91,9 @@ def format_info(info: dict) -> str:
     else:
         lines.append("NaN/Inf     none")
     lines.append(f"zero quats  {info['zero_norm_quaternions']:,}")
+    if info["out_of_domain"]:
+        shown = ", ".join(f"{k} {v:,}" for k, v in info["out_of_domain"].items())
+        lines.append(f"log-scales  {info['out_of_domain_rows']:,} splats beyond +-{LOG_SCALE_LIMIT:g}; per property: {shown}")
     for e in info["other_elements"]:
         lines.append(f"element     {e['name']} ({e['count']:,} rows: {', '.join(e['properties'])})")
     for c in info["comments"]:

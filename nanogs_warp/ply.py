@@ -19,6 +19,7 @@ import numpy as np
 import plyfile
 import warp as wp
 
+from .domain import LOG_SCALE_LIMIT
 from .errors import InputError
 from .ply_header import (
     DC_NAMES,
@@ -53,14 +54,15 @@ def load_ply(path, device="cpu", drop_invalid: bool = False) -> SplatSet:
     """Reads a 3DGS PLY file into a :class:`SplatSet` on ``device`` with its layout filled in.
 
     Quaternions are normalised (left bit-exact when already unit to float32 precision, so that
-    load -> save -> load is bitwise stable). Rows with NaN/Inf in a 3DGS property or a zero-norm
-    quaternion raise :class:`InputError`, or are dropped when ``drop_invalid`` is true.
+    load -> save -> load is bitwise stable). Rows with NaN/Inf in a 3DGS property, a zero-norm
+    quaternion or a log-scale outside the numeric domain (``nanogs_warp.domain``) raise
+    :class:`InputError`, or are dropped when ``drop_invalid`` is true.
     """
     data = read_ply_arrays(path)
     name = Path(path).name
     a = data.arrays
     check = check_values(a)
-    bad = check.nonfinite_rows | check.zero_quat_rows
+    bad = check.nonfinite_rows | check.zero_quat_rows | check.out_of_domain_rows
     n_bad = int(np.count_nonzero(bad))
     if n_bad:
         what = _describe_invalid(check)
@@ -136,11 +138,14 @@ class PlyArrays:
 
 @dataclass
 class ValueCheck:
-    """Which rows hold non-finite values (and in which properties) or zero-norm quaternions."""
+    """Which rows hold non-finite values (and in which properties), zero-norm quaternions or finite
+    values outside the numeric domain (``nanogs_warp.domain``)."""
 
     nonfinite_rows: np.ndarray  # bool (N,)
     nonfinite_by_property: dict[str, int]  # property name -> rows with NaN/Inf, only those > 0
     zero_quat_rows: np.ndarray  # bool (N,), finite quaternions with norm 0
+    out_of_domain_rows: np.ndarray  # bool (N,), finite log-scales beyond +-LOG_SCALE_LIMIT
+    out_of_domain_by_property: dict[str, int]  # property name -> such rows, only those > 0
 
 
 def read_ply_arrays(path) -> PlyArrays:
@@ -174,7 +179,7 @@ def read_ply_arrays(path) -> PlyArrays:
 
 def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = None) -> ValueCheck:
     """Finds rows with NaN/Inf in the 3DGS properties (and in the extras, when their names are
-    given) and rows whose quaternion is zero."""
+    given), rows whose quaternion is zero and rows with a finite log-scale outside the domain."""
     n = arrays["means"].shape[0]
     rows = np.zeros(n, bool)
     by_prop: dict[str, int] = {}
@@ -200,7 +205,9 @@ def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = 
     q = arrays["rotations"].astype(np.float64)
     with np.errstate(all="ignore"):
         zero = np.einsum("ij,ij->i", q, q) == 0  # exact in float64 for float32 inputs
-    return ValueCheck(rows, by_prop, zero)
+    outside = np.abs(arrays["log_scales"].reshape(n, -1)) > LOG_SCALE_LIMIT  # NaN compares false
+    domain_by_prop = {p: int(c) for p, c in zip(SCALE_NAMES, np.count_nonzero(outside, axis=0)) if c}
+    return ValueCheck(rows, by_prop, zero, outside.any(axis=1), domain_by_prop)
 
 
 def normalize_quaternions(q: np.ndarray) -> np.ndarray:
@@ -340,6 +347,10 @@ def _describe_invalid(check: ValueCheck) -> str:
     n_zq = int(np.count_nonzero(check.zero_quat_rows))
     if n_zq:
         parts.append(f"{n_zq} with zero-norm quaternions")
+    n_od = int(np.count_nonzero(check.out_of_domain_rows))
+    if n_od:
+        props = ", ".join(sorted(check.out_of_domain_by_property))
+        parts.append(f"{n_od} with log-scales outside [-{LOG_SCALE_LIMIT:g}, {LOG_SCALE_LIMIT:g}] in {props}")
     return "; ".join(parts)
 
 
