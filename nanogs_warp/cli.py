@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
 import sys
 import time
 import traceback
+import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -37,14 +39,30 @@ def _fail(message: str, code: int) -> None:
     raise typer.Exit(code)
 
 
+@contextlib.contextmanager
+def quiet_warnings():
+    """Python warnings (numpy's floating-point RuntimeWarnings, Warp's) and numpy's floating-point
+    error reports silenced for a command, so that stderr holds at most its one error line;
+    NANOGS_DEBUG=1 lets them through."""
+    if os.environ.get("NANOGS_DEBUG"):
+        yield
+        return
+    import numpy as np
+
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore")
+        yield
+
+
 def user_errors(command):
     """Turns known errors into one line on stderr and exit code 2; anything else into one line and
-    exit code 1 (NANOGS_DEBUG=1 shows the traceback)."""
+    exit code 1 (NANOGS_DEBUG=1 shows the traceback and lets warnings through)."""
 
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
         try:
-            return command(*args, **kwargs)
+            with quiet_warnings():
+                return command(*args, **kwargs)
         except (typer.Exit, typer.Abort, KeyboardInterrupt):
             raise
         except InputError as e:

@@ -202,8 +202,8 @@ def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = 
         for prop, count in zip(names, np.count_nonzero(bad, axis=0)):
             if count:
                 by_prop[prop] = int(count)
-    q = arrays["rotations"].astype(np.float64)
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"):  # NaNs of any kind cast and compare quietly
+        q = arrays["rotations"].astype(np.float64)
         zero = np.einsum("ij,ij->i", q, q) == 0  # exact in float64 for float32 inputs
     outside = np.abs(arrays["log_scales"].reshape(n, -1)) > LOG_SCALE_LIMIT  # NaN compares false
     domain_by_prop = {p: int(c) for p, c in zip(SCALE_NAMES, np.count_nonzero(outside, axis=0)) if c}
