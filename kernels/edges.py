@@ -116,7 +116,7 @@ def _count_foreign(
     # count[j] += foreign entries (i -> j): count becomes each segment's length
     i = wp.tid()
     mask = foreign[i]
-    while mask != wp.uint32(0):
+    while mask != wp.uint32(0):  # one step per set bit: at most 32
         low = mask & (wp.uint32(0) - mask)  # the lowest set bit: entry t
         mask = mask ^ low
         t = int(wp.bit_count(low - wp.uint32(1)))
@@ -136,7 +136,7 @@ def _place_foreign(
     # where threads run in order (the CPU), every part (b) comes out ascending.
     i = neighbours.shape[0] - 1 - wp.tid()
     mask = foreign[i]
-    while mask != wp.uint32(0):
+    while mask != wp.uint32(0):  # one step per set bit: at most 32
         low = mask & (wp.uint32(0) - mask)
         mask = mask ^ low
         t = int(wp.bit_count(low - wp.uint32(1)))
@@ -150,7 +150,7 @@ def _sift_down(values: wp.array(dtype=wp.int32), base: int, root: int, size: int
     # max-heap of values[base : base + size]: moves values[base + root] down to its place
     r = int(root)
     v = values[base + r]
-    while 2 * r + 1 < size:
+    while 2 * r + 1 < size:  # r at least doubles each step: at most log2(size) steps
         c = 2 * r + 1
         if c + 1 < size:
             if values[base + c + 1] > values[base + c]:
@@ -171,7 +171,7 @@ def _sort_part(values: wp.array(dtype=wp.int32), start: int, stop: int):
         for e in range(start + 1, stop):
             v = values[e]
             f = int(e)
-            while f > start:
+            while f > start:  # at most SMALL_PART steps
                 w = values[f - 1]
                 if w <= v:
                     break
@@ -186,11 +186,11 @@ def _sort_part(values: wp.array(dtype=wp.int32), start: int, stop: int):
                 break
         if not ordered:
             r = size // 2
-            while r > 0:
+            while r > 0:  # size / 2 steps
                 r -= 1
                 _sift_down(values, start, r, size)
             last = size - 1
-            while last > 0:
+            while last > 0:  # size - 1 steps
                 top = values[start]
                 values[start] = values[start + last]
                 values[start + last] = top

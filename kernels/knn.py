@@ -118,7 +118,7 @@ def _slot_hash(key: wp.int64, mask: int) -> int:
 def find_cell(keys: wp.array(dtype=wp.int64), base: int, mask: int, key: wp.int64) -> int:
     """Slot of a cell in its level's hash table (linear probing), or -1 if the cell is empty."""
     slot = _slot_hash(key, mask)
-    while True:
+    while True:  # ends: a table is at most half full, so an EMPTY slot lies within its size
         stored = keys[base + slot]
         if stored == key:
             return base + slot
@@ -354,7 +354,7 @@ def _search_levels(
     i = first + wp.tid()
     n = search_level.shape[0]
     level = int(LEVELS - 1)
-    for a in range(wp.max(i - k, 0), wp.min(i, n - 1 - k) + 1):
+    for a in range(wp.max(i - k, 0), wp.min(i, n - 1 - k) + 1):  # at most k + 1 windows
         level = wp.min(level, window_level[a])
     search_level[i] = level
     searched[level] = 1
@@ -384,7 +384,7 @@ def _insert_cells(
             if first:
                 base = level_base[level]
                 slot = _slot_hash(key, mask)
-                while wp.atomic_cas(keys, base + slot, EMPTY, key) != EMPTY:
+                while wp.atomic_cas(keys, base + slot, EMPTY, key) != EMPTY:  # at most half full: ends
                     slot = (slot + 1) & mask
                 starts[base + slot] = i
 
