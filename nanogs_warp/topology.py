@@ -1,8 +1,8 @@
 """Candidate topology: the exact k-nearest-neighbour graph of the splat centres and its undirected edges.
 
-Everything runs on the device of the input; the host reads only scalars: a bounding box, six
-coordinate quantiles, a 22-bin histogram of the levels where neighbours part, 22 flags of the levels
-searched and the edge count.
+Everything runs on the device of the input; the host reads only scalars and small samples: a
+bounding box, a sorted sample of up to 16,384 coordinates per axis (for quantiles), a 22-bin
+histogram of the levels where neighbours part, 22 flags of the levels searched and the edge count.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ _GRID_CELLS = 1 << knn_kernels.GRID_BITS
 _NODE_LEVELS = knn_kernels.NODE_LEVELS
 _QUANTILE_SAMPLES = 16384  # points sampled per axis for the quantisation cube
 _QUANTILE_TAIL = 0.001  # fraction of the sample left out at each end
+_QUARTILE_REACH = 1000.0  # interquartile ranges (a normal distribution's 99.8% spans 4.6)
 _LARGEST_SIDE = 2.0**120  # of the quantisation cube (float32 holds up to 2^128)
 
 
@@ -159,8 +160,9 @@ def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     axis, and the margin by which cell-distance lower bounds are lowered for float32 rounding.
 
     The cube spans the bounding box, cut down to three times the width of the central 99.8% of the
-    points (per axis, from a sample): a few far outliers would otherwise stretch the cells until dense
-    clusters fall into one level-0 cell. Points outside the cube are clamped into its boundary cells.
+    points (per axis, from a sample) and to 1000 interquartile ranges around the central half: far
+    outliers would otherwise stretch the cells until dense clusters fall into one level-0 cell.
+    Points outside the cube are clamped into its boundary cells.
     """
     device = means.device
     n = means.shape[0]
@@ -180,9 +182,16 @@ def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     for axis in range(3):
         wp.launch(knn_kernels._sample_axis, m, inputs=[means, stride, axis], outputs=[keys], device=device)
         wp.utils.radix_sort_pairs(keys, values, m)
-        q_lo, q_hi = float(keys[tail : tail + 1].numpy()[0]), float(keys[m - 1 - tail : m - tail].numpy()[0])
+        sample = keys[:m].numpy().astype(np.float64)
+        q_lo, q_hi = sample[tail], sample[m - 1 - tail]
         width = q_hi - q_lo
         lo[axis], hi[axis] = max(lo[axis], q_lo - width), min(hi[axis], q_hi + width)
+        # more far outliers than the tails leave out: the cube reaches no further than
+        # _QUARTILE_REACH interquartile ranges from the central half
+        q25, q75 = sample[(m - 1) // 4], sample[3 * (m - 1) // 4]
+        if q75 > q25:
+            lo[axis] = max(lo[axis], q25 - _QUARTILE_REACH * (q75 - q25))
+            hi[axis] = min(hi[axis], q75 + _QUARTILE_REACH * (q75 - q25))
     side = float(np.max(hi - lo))
     if side <= 0.0:  # the central points coincide: fall back to the whole box, or to a unit cube
         lo, side = box_lo, float(np.max(box_hi - box_lo)) or 1.0
