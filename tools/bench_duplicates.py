@@ -1,6 +1,7 @@
 """Splats at the same position: passes and time against the same scene without the copies.
 
     python tools/bench_duplicates.py scene.ply --device cpu --ratio 0.1 --repeat 3
+    python tools/bench_duplicates.py scene.ply --device cuda:0 --ratio 0.01 --config paper
 
 From the scene (its first N splats, N = --splats, default all) three variants of equal size are
 made in memory: the scene itself; ``dup25``: a quarter of its rows (chosen at random) overwritten
@@ -70,6 +71,8 @@ def main(argv=None) -> int:
     parser.add_argument("--cluster", type=int, default=32768, help="copies in the one-position cluster")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--config", choices=["default", "paper"], default="default",
+                        help="the default configuration or the NanoGS paper's")
     parser.add_argument("--log", type=Path, default=None, help="append JSON lines here")
     args = parser.parse_args(argv)
 
@@ -83,7 +86,7 @@ def main(argv=None) -> int:
                                      host["opacities"][:m], host["features"][:m], host["extras"][:m],
                                      layout=splats.layout, device="cpu")  # fmt: skip
     target = target_count(splats.count, args.ratio)
-    config = SimplifyConfig()
+    config = SimplifyConfig.paper() if args.config == "paper" else SimplifyConfig()
     reference = None
     for name, variant in variants(splats, args.cluster, args.seed).items():
         on_device = variant.to(device)
@@ -95,7 +98,7 @@ def main(argv=None) -> int:
         median = statistics.median(times)
         if reference is None:
             reference = (median, passes)
-        row = {"scene": args.scene.stem, "variant": name, "splats": variant.count, "target": target,
+        row = {"scene": args.scene.stem, "variant": name, "config": args.config, "splats": variant.count, "target": target,
                "count": count, "passes": passes, "seconds": round(median, 4), "device": str(device),
                "time_ratio": round(median / reference[0], 3), "pass_difference": passes - reference[1]}  # fmt: skip
         print(f"{args.scene.stem:>20} {name:>13}: {variant.count:,} -> {count:,} (target {target:,}), "
