@@ -416,23 +416,6 @@ def _close_cells(
                 ends[find_cell(keys, level_base[level], mask, key)] = i + 1
 
 
-@wp.func
-def _insert(best: topk_keys, k: int, key: wp.int64) -> topk_keys:
-    """best (sorted, k keys) with key inserted in order, the last key dropped; unchanged if key is
-    already there (a point met again at the top level). Loops bounded by k."""
-    t = k - 1
-    while t > 0 and best[t - 1] > key:
-        t -= 1
-    if t > 0 and best[t - 1] == key:
-        return best
-    s = k - 1
-    while s > t:
-        best[s] = best[s - 1]
-        s -= 1
-    best[t] = key
-    return best
-
-
 @wp.kernel
 def _knn_query(
     first: int,
@@ -559,8 +542,6 @@ def _knn_query(
                 break
             if ring > RING_LIMIT:  # go on at the top level: one cell, every point (each met once more at most)
                 level = LEVELS - 1
-                base = level_base[level]
-                mask = level_mask[level]
                 cx = 0
                 cy = 0
                 cz = 0
@@ -589,17 +570,21 @@ def _knn_query(
                     gz = _gap(u[2], cz, dz, side, margin_p)
                     if z < 0 or z >= cells_per_axis or gy + gz * gz > worst_d:
                         continue
-                    slot = find_cell(keys, base, mask, morton_code(wp.vec3i(x, y, z)))
-                    if slot < 0:
-                        continue
-                    begin = starts[slot]
-                    end = ends[slot]
+                    begin = int(0)  # the top level's one cell holds every point
+                    end = n
+                    if level < LEVELS - 1:
+                        slot = find_cell(keys, base, mask, morton_code(wp.vec3i(x, y, z)))
+                        if slot < 0:
+                            continue
+                        begin = starts[slot]
+                        end = ends[slot]
                     # The cell's sorted range through the implicit tree: at each position the
                     # largest aligned node inside the range (a level-1 node, a block, may stick
                     # out); pruned nodes are skipped whole, others entered, blocks filtered. Each
                     # step moves on or enters a smaller node: at most NODE_LEVELS steps per block.
                     q = begin
-                    cap = int(NODE_LEVELS)
+                    top_cap = wp.where(end - begin >= 64, int(NODE_LEVELS), 1)  # small cells: blocks only
+                    cap = top_cap
                     while q < end:
                         level_s = int(1)
                         size = int(BLOCK)
@@ -608,7 +593,9 @@ def _knn_query(
                             size *= 8
                         node_start = q - (q & (size - 1))
                         b = q / size
-                        nd = node_base[level_s] + b
+                        nd = b  # level 1 comes first in the node arrays
+                        if level_s > 1:
+                            nd += node_base[level_s]
                         skip = bool(False)
                         if level_s == 1 and b >= seed_first and b <= seed_last:
                             skip = True  # scanned with the seed
@@ -635,11 +622,19 @@ def _knn_query(
                                 for c in range(nc):
                                     key = neighbour_key(cd[c], row, order[cj[c]], n)
                                     if key < worst:
-                                        best = _insert(best, k, key)
-                                        worst = best[k - 1]
-                                        worst_d = key_distance(worst)
+                                        t = k - 1
+                                        while t > 0 and best[t - 1] > key:  # at most k - 1 steps
+                                            t -= 1
+                                        if t == 0 or best[t - 1] != key:  # the top level meets points again
+                                            s = k - 1
+                                            while s > t:  # at most k - 1 steps
+                                                best[s] = best[s - 1]
+                                                s -= 1
+                                            best[t] = key
+                                            worst = best[k - 1]
+                                            worst_d = key_distance(worst)
                             q = node_start + size
-                            cap = int(NODE_LEVELS)
+                            cap = top_cap
                         else:
                             cap = level_s - 1  # enter the node: its first child next
         ring += 1

@@ -251,9 +251,7 @@ def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list]:
     launch_rows_from(knn_kernels._search_levels, n, [window_level, k, search_level, searched], device)
 
     splits = split_histogram.numpy()
-    in_use = searched.numpy()
-    in_use[_LEVELS - 1] = 1  # the top level (one cell): where a query that needs many rings goes on
-    used = np.flatnonzero(in_use)
+    used = np.flatnonzero(searched.numpy())
     cells = np.array([1 + int(splits[level + 1 :].sum()) for level in range(_LEVELS)])  # points part below a level
     base = np.zeros(_LEVELS, dtype=np.int32)
     mask = np.full(_LEVELS, -1, dtype=np.int32)
