@@ -66,12 +66,13 @@ def row_lists(
     rows: wp.array2d(dtype=Any), j: int, i: int, means: wp.array(dtype=wp.vec3), reach: wp.array(dtype=wp.int64)
 ) -> bool:
     """Whether row j lists i. Rows of an exact kNN graph with ``reach`` (row j's k-th neighbour as
-    (squared distance bits << 32 | index), the distance computed as the query computes it): one
+    its key, ``knn.neighbour_key``, the distance computed as the query computes it): one
     comparison. Otherwise a scan of row j."""
     if reach.shape[0] > 0:
-        return neighbour_key(squared_distance(means[j], means[i]), i) <= reach[j]  # row j's query, candidate i
+        d = squared_distance(means[j], means[i])  # row j's query, candidate i
+        return neighbour_key(d, j, i, means.shape[0]) <= reach[j]
     listed = int(0)
-    for c in range(rows.shape[1]):
+    for c in range(rows.shape[1]):  # bounded by the row's width
         listed += _count_equal(rows[j, c], i)
     return listed > 0
 
@@ -115,7 +116,7 @@ def _count_foreign(
     # count[j] += foreign entries (i -> j): count becomes each segment's length
     i = wp.tid()
     mask = foreign[i]
-    while mask != wp.uint32(0):
+    while mask != wp.uint32(0):  # one step per set bit: at most 32
         low = mask & (wp.uint32(0) - mask)  # the lowest set bit: entry t
         mask = mask ^ low
         t = int(wp.bit_count(low - wp.uint32(1)))
@@ -135,7 +136,7 @@ def _place_foreign(
     # where threads run in order (the CPU), every part (b) comes out ascending.
     i = neighbours.shape[0] - 1 - wp.tid()
     mask = foreign[i]
-    while mask != wp.uint32(0):
+    while mask != wp.uint32(0):  # one step per set bit: at most 32
         low = mask & (wp.uint32(0) - mask)
         mask = mask ^ low
         t = int(wp.bit_count(low - wp.uint32(1)))
@@ -149,7 +150,7 @@ def _sift_down(values: wp.array(dtype=wp.int32), base: int, root: int, size: int
     # max-heap of values[base : base + size]: moves values[base + root] down to its place
     r = int(root)
     v = values[base + r]
-    while 2 * r + 1 < size:
+    while 2 * r + 1 < size:  # r at least doubles each step: at most log2(size) steps
         c = 2 * r + 1
         if c + 1 < size:
             if values[base + c + 1] > values[base + c]:
@@ -170,7 +171,7 @@ def _sort_part(values: wp.array(dtype=wp.int32), start: int, stop: int):
         for e in range(start + 1, stop):
             v = values[e]
             f = int(e)
-            while f > start:
+            while f > start:  # at most SMALL_PART steps
                 w = values[f - 1]
                 if w <= v:
                     break
@@ -185,11 +186,11 @@ def _sort_part(values: wp.array(dtype=wp.int32), start: int, stop: int):
                 break
         if not ordered:
             r = size // 2
-            while r > 0:
+            while r > 0:  # size / 2 steps
                 r -= 1
                 _sift_down(values, start, r, size)
             last = size - 1
-            while last > 0:
+            while last > 0:  # size - 1 steps
                 top = values[start]
                 values[start] = values[start + last]
                 values[start + last] = top

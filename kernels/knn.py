@@ -12,8 +12,21 @@ distances are binned in eighth octaves, and only the bins up to the one holding 
 inserted, nearest bin first (a counting sort), so the list fills almost in order. It then visits
 rings of cells around its own cell, skipping cells, and blocks of 8 sorted points inside them, that
 lie farther than its current k-th distance, and stops once the next ring cannot hold anything nearer.
-Candidates rank by (squared distance, original index), so the result is exact and independent of the
+Inside a cell the sorted points are visited through an implicit tree over the sorted order (nodes of
+8, 64, 512, ... consecutive points, each with its bounding box and the range of its original
+indices), so a crowded cell costs a few nodes, not a scan. A point that has not finished after
+RING_LIMIT rings (a far outlier clamped into the cube's boundary cells, whose rings would cross the
+whole grid) goes on at the top level, one cell holding every point, through the same tree.
+
+Candidates rank by (squared distance, tie), one int64 key. The tie is the candidate's original index
+when the distance is positive; at distance zero (a copy of the query's position) it is the index
+counted from the query, (j - i) mod N, so each copy of a duplicated position lists the copies that
+follow it, not all of them the same k lowest-index ones. The result is exact and independent of the
 order in which threads or cells run.
+
+Termination: every loop is bounded by its inputs (noted beside it). Squared distances of finite
+points may overflow float32 to +inf (coordinates beyond ~1e19 apart); they then rank by the tie
+alone, and a query that can prune nothing scans each point once per level it visits (at most two).
 """
 
 import warp as wp
@@ -24,7 +37,9 @@ KMAX = wp.constant(32)
 GRID_BITS = wp.constant(21)  # bits per axis of the Morton code
 LEVELS = wp.constant(22)  # level l has cells of side 2^l quanta; level 21 is the whole cube
 EMPTY = wp.constant(wp.int64(-1))  # free hash slot
-BLOCK = wp.constant(8)  # sorted points per pruning box
+BLOCK = wp.constant(8)  # sorted points per pruning box (a level-1 node)
+NODE_LEVELS = wp.constant(7)  # implicit tree over the sorted points: level s nodes hold 8^s points
+RING_LIMIT = wp.constant(6)  # rings searched at a point's own level before it goes on at the top level
 SLACK = wp.constant(1.000001)  # box distances are compared with this relative slack for rounding
 
 # Knuth's multiplicative hash constant (2^64 / golden ratio).
@@ -103,7 +118,7 @@ def _slot_hash(key: wp.int64, mask: int) -> int:
 def find_cell(keys: wp.array(dtype=wp.int64), base: int, mask: int, key: wp.int64) -> int:
     """Slot of a cell in its level's hash table (linear probing), or -1 if the cell is empty."""
     slot = _slot_hash(key, mask)
-    while True:
+    while True:  # ends: a table is at most half full, so an EMPTY slot lies within its size
         stored = keys[base + slot]
         if stored == key:
             return base + slot
@@ -145,10 +160,44 @@ def squared_distance(query: wp.vec3, candidate: wp.vec3) -> float:
 
 
 @wp.func
-def neighbour_key(d: float, index: int) -> wp.int64:
+def tie_rank(d: float, query: int, candidate: int, n: int) -> int:
+    """Rank among candidates at the same squared distance d: the candidate's index, or at d = 0 its
+    index counted from the query's, (candidate - query) mod n, in [1, n)."""
+    tie = candidate
+    if d == 0.0:
+        tie = candidate - query
+        if tie < 0:
+            tie += n
+    return tie
+
+
+@wp.func
+def neighbour_key(d: float, query: int, candidate: int, n: int) -> wp.int64:
     """A candidate's rank as one int64: its squared distance's bits (a non-negative float's bits
-    are ordered), then its index."""
-    return (wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(index)
+    are ordered), then its tie rank."""
+    return (wp.int64(wp.cast(d, wp.int32)) << wp.int64(32)) | wp.int64(tie_rank(d, query, candidate, n))
+
+
+@wp.func
+def key_index(key: wp.int64, query: int, n: int) -> int:
+    """The candidate index of a key of ``query``'s row (``neighbour_key`` inverted)."""
+    tie = int(key & LOW_32)
+    if (key >> wp.int64(32)) == wp.int64(0):
+        tie += query
+        if tie >= n:
+            tie -= n
+    return tie
+
+
+@wp.func
+def tie_lower_bound(query: int, first: int, last: int, n: int) -> int:
+    """Lower bound of the zero-distance tie rank over candidates with indices in [first, last]."""
+    bound = int(0)
+    if query < first:
+        bound = first - query
+    elif query > last:
+        bound = first - query + n
+    return bound
 
 
 @wp.func
@@ -220,16 +269,58 @@ def _gather_points(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int
 
 
 @wp.kernel
-def _block_boxes(points: wp.array(dtype=wp.vec3), box_lo: wp.array(dtype=wp.vec3), box_hi: wp.array(dtype=wp.vec3)):
-    # bounding box of each block of BLOCK consecutive sorted points
+def _leaf_nodes(
+    points: wp.array(dtype=wp.vec3),
+    order: wp.array(dtype=wp.int32),
+    node_lo: wp.array(dtype=wp.vec3),
+    node_hi: wp.array(dtype=wp.vec3),
+    node_first: wp.array(dtype=wp.int32),
+    node_last: wp.array(dtype=wp.int32),
+):
+    # level-1 nodes (blocks of BLOCK consecutive sorted points): bounding box and the smallest and
+    # largest original index; loop bounded by BLOCK
     b = wp.tid()
     lo = points[b * BLOCK]
     hi = lo
+    first = order[b * BLOCK]
+    last = first
     for j in range(b * BLOCK + 1, wp.min(b * BLOCK + BLOCK, points.shape[0])):
         lo = wp.min(lo, points[j])
         hi = wp.max(hi, points[j])
-    box_lo[b] = lo
-    box_hi[b] = hi
+        first = wp.min(first, order[j])
+        last = wp.max(last, order[j])
+    node_lo[b] = lo
+    node_hi[b] = hi
+    node_first[b] = first
+    node_last[b] = last
+
+
+@wp.kernel
+def _parent_nodes(
+    child_base: int,
+    children: int,
+    parent_base: int,
+    node_lo: wp.array(dtype=wp.vec3),
+    node_hi: wp.array(dtype=wp.vec3),
+    node_first: wp.array(dtype=wp.int32),
+    node_last: wp.array(dtype=wp.int32),
+):
+    # node b of a level: union of its (up to) 8 children of the level below; loop bounded by 8
+    b = wp.tid()
+    c = child_base + 8 * b
+    lo = node_lo[c]
+    hi = node_hi[c]
+    first = node_first[c]
+    last = node_last[c]
+    for t in range(1, wp.min(8, children - 8 * b)):
+        lo = wp.min(lo, node_lo[c + t])
+        hi = wp.max(hi, node_hi[c + t])
+        first = wp.min(first, node_first[c + t])
+        last = wp.max(last, node_last[c + t])
+    node_lo[parent_base + b] = lo
+    node_hi[parent_base + b] = hi
+    node_first[parent_base + b] = first
+    node_last[parent_base + b] = last
 
 
 @wp.kernel
@@ -263,7 +354,7 @@ def _search_levels(
     i = first + wp.tid()
     n = search_level.shape[0]
     level = int(LEVELS - 1)
-    for a in range(wp.max(i - k, 0), wp.min(i, n - 1 - k) + 1):
+    for a in range(wp.max(i - k, 0), wp.min(i, n - 1 - k) + 1):  # at most k + 1 windows
         level = wp.min(level, window_level[a])
     search_level[i] = level
     searched[level] = 1
@@ -293,7 +384,7 @@ def _insert_cells(
             if first:
                 base = level_base[level]
                 slot = _slot_hash(key, mask)
-                while wp.atomic_cas(keys, base + slot, EMPTY, key) != EMPTY:
+                while wp.atomic_cas(keys, base + slot, EMPTY, key) != EMPTY:  # at most half full: ends
                     slot = (slot + 1) & mask
                 starts[base + slot] = i
 
@@ -341,18 +432,22 @@ def _knn_query(
     keys: wp.array(dtype=wp.int64),
     starts: wp.array(dtype=wp.int32),
     ends: wp.array(dtype=wp.int32),
-    box_lo: wp.array(dtype=wp.vec3),
-    box_hi: wp.array(dtype=wp.vec3),
+    node_base: wp.array(dtype=wp.int32),
+    node_lo: wp.array(dtype=wp.vec3),
+    node_hi: wp.array(dtype=wp.vec3),
+    node_first: wp.array(dtype=wp.int32),
+    node_last: wp.array(dtype=wp.int32),
     neighbours: wp.array2d(dtype=wp.int32),
     reach: wp.array(dtype=wp.int64),
     candidates: wp.array(dtype=wp.int32),
 ):
     # exact k nearest neighbours of sorted point i (from `first` on): seed, then rings of cells
-    # around its own cell; the best k are kept as (distance bits << 32 | index) by insertion sort.
+    # around its own cell; the best k are kept as (distance bits << 32 | tie rank) by insertion sort.
     # Local arrays: best 256 B, seed 2 x 256 B + histogram 260 B, block filter 64 B.
     i = first + wp.tid()
     n = points.shape[0]
     p = points[i]
+    row = order[i]
     level = search_level[i]
     base = level_base[level]
     mask = level_mask[level]
@@ -398,7 +493,7 @@ def _knn_query(
     # seed points up to it bound the k-th neighbour, so no point of a later bin can be one
     cum = int(0)
     top = int(0)
-    while top < BINS - 1:
+    while top < BINS - 1:  # at most BINS - 1 steps
         cum += hist[top]
         if cum >= k:
             break
@@ -419,11 +514,11 @@ def _knn_query(
         hist[b] += 1
     for r in range(cum):
         t = perm[r]
-        key = neighbour_key(sd[t], order[seed_begin + t])
+        key = neighbour_key(sd[t], row, order[seed_begin + t], n)
         if key < worst and seed_begin + t != i:
             s = wp.min(filled, k - 1)  # fill tracking: empty slots are never shifted
             filled += 1
-            while s > 0 and best[s - 1] > key:
+            while s > 0 and best[s - 1] > key:  # at most k - 1 steps
                 best[s] = best[s - 1]
                 s -= 1
             best[s] = key
@@ -432,14 +527,27 @@ def _knn_query(
     cj = block_ints()  # a block's points within worst_d
     cd = block_floats()
     ring = int(0)
+    # Rings: at most RING_LIMIT + 1 at the search level, then ring 0 at the top level (one cell), and
+    # the top level has no ring 1; a level whose cells are all visited ends the search.
     while True:
         if ring > 0:
             # nothing unseen lies nearer than the nearest cell of this ring (inf: no cells left)
-            gap = wp.min(wp.min(_ring_gap(u[0], cx, ring, side, cells_per_axis),
-                                  _ring_gap(u[1], cy, ring, side, cells_per_axis)),
-                           _ring_gap(u[2], cz, ring, side, cells_per_axis)) - margin_p
+            ring_gap = wp.min(wp.min(_ring_gap(u[0], cx, ring, side, cells_per_axis),
+                                       _ring_gap(u[1], cy, ring, side, cells_per_axis)),
+                                _ring_gap(u[2], cz, ring, side, cells_per_axis))
+            if ring_gap == wp.inf:
+                break
+            gap = ring_gap - margin_p
             if gap > 0.0 and gap * gap > worst_d:
                 break
+            if ring > RING_LIMIT:  # go on at the top level: one cell, every point (each met once more at most)
+                level = LEVELS - 1
+                cx = 0
+                cy = 0
+                cz = 0
+                side = float(wp.inf)  # never used: the top level has only ring 0, whose gaps are 0
+                cells_per_axis = 1
+                ring = 0
         r = ring  # the ring's half-width in cells
         for dx in range(-r, r + 1):
             x = cx + dx
@@ -462,43 +570,77 @@ def _knn_query(
                     gz = _gap(u[2], cz, dz, side, margin_p)
                     if z < 0 or z >= cells_per_axis or gy + gz * gz > worst_d:
                         continue
-                    slot = find_cell(keys, base, mask, morton_code(wp.vec3i(x, y, z)))
-                    if slot < 0:
-                        continue
-                    begin = starts[slot]
-                    end = ends[slot]
-                    for b in range(begin / BLOCK, (end - 1) / BLOCK + 1):
-                        if b >= seed_first and b <= seed_last:
-                            continue  # scanned with the seed
-                        if _box_distance(p, box_lo[b], box_hi[b]) > worst_d * SLACK:
+                    begin = int(0)  # the top level's one cell holds every point
+                    end = n
+                    if level < LEVELS - 1:
+                        slot = find_cell(keys, base, mask, morton_code(wp.vec3i(x, y, z)))
+                        if slot < 0:
                             continue
-                        j = wp.max(begin, b * BLOCK)
-                        block_end = wp.min(end, b * BLOCK + BLOCK)
-                        visited += block_end - j
-                        # branch-free filter of the block (i lies in the seed), then insertion of the few kept
-                        nc = int(0)
-                        while j < block_end:
-                            d = squared_distance(p, points[j])
-                            cj[nc] = j
-                            cd[nc] = d
-                            nc += wp.where(d <= worst_d, 1, 0)
-                            j += 1
-                        for c in range(nc):
-                            d = cd[c]
-                            key = neighbour_key(d, order[cj[c]])
-                            if key < worst:
-                                t = k - 1
-                                while t > 0 and best[t - 1] > key:
-                                    best[t] = best[t - 1]
-                                    t -= 1
-                                best[t] = key
-                                worst = best[k - 1]
-                                worst_d = key_distance(worst)
+                        begin = starts[slot]
+                        end = ends[slot]
+                    # The cell's sorted range through the implicit tree: at each position the
+                    # largest aligned node inside the range (a level-1 node, a block, may stick
+                    # out); pruned nodes are skipped whole, others entered, blocks filtered. Each
+                    # step moves on or enters a smaller node: at most NODE_LEVELS steps per block.
+                    q = begin
+                    top_cap = wp.where(end - begin >= 64, int(NODE_LEVELS), 1)  # small cells: blocks only
+                    cap = top_cap
+                    while q < end:
+                        level_s = int(1)
+                        size = int(BLOCK)
+                        while level_s < cap and (q & (8 * size - 1)) == 0 and q + 8 * size <= end:
+                            level_s += 1
+                            size *= 8
+                        node_start = q - (q & (size - 1))
+                        b = q / size
+                        nd = b  # level 1 comes first in the node arrays
+                        if level_s > 1:
+                            nd += node_base[level_s]
+                        skip = bool(False)
+                        if level_s == 1 and b >= seed_first and b <= seed_last:
+                            skip = True  # scanned with the seed
+                        if not skip:
+                            box_d = _box_distance(p, node_lo[nd], node_hi[nd])
+                            if box_d > worst_d * SLACK:
+                                skip = True
+                            elif worst_d == 0.0:  # ties at distance 0 rank by index from the query
+                                bound = tie_lower_bound(row, node_first[nd], node_last[nd], n)
+                                skip = wp.int64(bound) > (worst & LOW_32)
+                        if skip or level_s == 1:
+                            if not skip:
+                                j = wp.max(begin, node_start)
+                                block_end = wp.min(end, node_start + BLOCK)
+                                visited += block_end - j
+                                # branch-free filter of the block, then insertion of the few kept
+                                nc = int(0)
+                                while j < block_end:  # at most BLOCK steps
+                                    d = squared_distance(p, points[j])
+                                    cj[nc] = j
+                                    cd[nc] = d
+                                    nc += wp.where(d <= worst_d and j != i, 1, 0)
+                                    j += 1
+                                for c in range(nc):
+                                    key = neighbour_key(cd[c], row, order[cj[c]], n)
+                                    if key < worst:
+                                        t = k - 1
+                                        while t > 0 and best[t - 1] > key:  # at most k - 1 steps
+                                            t -= 1
+                                        if t == 0 or best[t - 1] != key:  # the top level meets points again
+                                            s = k - 1
+                                            while s > t:  # at most k - 1 steps
+                                                best[s] = best[s - 1]
+                                                s -= 1
+                                            best[t] = key
+                                            worst = best[k - 1]
+                                            worst_d = key_distance(worst)
+                            q = node_start + size
+                            cap = top_cap
+                        else:
+                            cap = level_s - 1  # enter the node: its first child next
         ring += 1
 
-    row = order[i]
     for t in range(k):
-        neighbours[row, t] = wp.int32(best[t] & LOW_32)
+        neighbours[row, t] = wp.int32(key_index(best[t], row, n))
     if reach.shape[0] > 0:
         reach[row] = best[k - 1]
     if candidates.shape[0] > 0:

@@ -3,9 +3,11 @@ anything else as one line and exit code 1. Shared by every command module (no co
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import traceback
+import warnings
 
 import typer
 
@@ -22,14 +24,31 @@ def _fail(message: str, code: int) -> None:
     raise typer.Exit(code)
 
 
+@contextlib.contextmanager
+def quiet_warnings():
+    """Python warnings (numpy's floating-point RuntimeWarnings, Warp's) and numpy's floating-point
+    error reports silenced for a command, so that stderr holds at most its one error line (the
+    package's own warnings are shown by the commands, one line each); NANOGS_DEBUG=1 lets them
+    through."""
+    if os.environ.get("NANOGS_DEBUG"):
+        yield
+        return
+    import numpy as np
+
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore")
+        yield
+
+
 def user_errors(command):
     """Turns known errors into one line on stderr and exit code 2; anything else into one line and
-    exit code 1 (NANOGS_DEBUG=1 shows the traceback)."""
+    exit code 1 (NANOGS_DEBUG=1 shows the traceback and lets warnings through)."""
 
     @functools.wraps(command)
     def wrapper(*args, **kwargs):
         try:
-            return command(*args, **kwargs)
+            with quiet_warnings():
+                return command(*args, **kwargs)
         except (typer.Exit, typer.Abort, KeyboardInterrupt):
             raise
         except InputError as e:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .domain import LOG_SCALE_LIMIT
 from .io import read_splat_arrays
 from .ply import check_values, sh_degree_for_rest_count
 
@@ -20,6 +21,8 @@ def scene_info(path) -> dict:
     (property -> rows with NaN/Inf, extras included, only non-zero counts), ``nonfinite_rows``
     (rows with NaN/Inf in a 3DGS property, which a load rejects), ``infinite_opacity``
     (``{"+inf": rows, "-inf": rows}``: opacity logits of alpha 1 and 0, valid), ``zero_norm_quaternions``,
+    ``out_of_domain`` (log-scale property -> finite values outside the numeric domain, which a load
+    rejects too; only non-zero counts), ``out_of_domain_rows``,
     ``comments``, ``obj_info`` and ``other_elements`` (``{"name", "count", "properties"}``).
     Statistics skip non-finite values and are None when no finite value is left.
     For non-PLY formats ``properties`` lists the decoded attributes in INRIA order.
@@ -55,6 +58,8 @@ def scene_info(path) -> dict:
         "nonfinite_rows": int(np.count_nonzero(model.nonfinite_rows)),
         "infinite_opacity": {"+inf": model.infinite_opacities[0], "-inf": model.infinite_opacities[1]},
         "zero_norm_quaternions": int(np.count_nonzero(model.zero_quat_rows)),
+        "out_of_domain": model.out_of_domain_by_property,
+        "out_of_domain_rows": int(np.count_nonzero(model.out_of_domain_rows)),
         "comments": list(layout.comments),
         "obj_info": list(layout.obj_info),
         "other_elements": [
@@ -94,6 +99,9 @@ def format_info(info: dict) -> str:
     if pos or neg:
         lines.append(f"opacity Inf {pos:,} logits +Inf (alpha 1), {neg:,} -Inf (alpha 0); valid")
     lines.append(f"zero quats  {info['zero_norm_quaternions']:,}")
+    if info["out_of_domain"]:
+        shown = ", ".join(f"{k} {v:,}" for k, v in info["out_of_domain"].items())
+        lines.append(f"log-scales  {info['out_of_domain_rows']:,} splats beyond +-{LOG_SCALE_LIMIT:g}; per property: {shown}")
     for e in info["other_elements"]:
         lines.append(f"element     {e['name']} ({e['count']:,} rows: {', '.join(e['properties'])})")
     for c in info["comments"]:

@@ -139,6 +139,8 @@ def _locally_dominant_pairs(edges: Edges, costs, vertex_count, cap, pair_i, pair
     counter = wp.zeros(1, dtype=wp.int32, device=device)
     active = wp.empty(0, dtype=wp.int32, device=device)  # empty: every edge
     count = edges.count
+    # Ends: the active edge of smallest priority (a total order on distinct keys) wins both its ends
+    # and is matched each round, so there are at most edges.count rounds.
     while count > 0:
         wp.launch(kernels.claim_endpoints, count, inputs=[active, edge_i, edge_j, costs], outputs=[best], device=device)
         wp.launch(

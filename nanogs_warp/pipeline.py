@@ -29,6 +29,16 @@ from .topology import KnnTopology
 INDEX_LIMIT = 2**31
 
 
+def pass_limit(start_count: int, target: int, pass_fraction: float = 0.5) -> int:
+    """Most passes a run from ``start_count`` splats down to ``target`` may take before it is
+    stopped as stuck. A pass pairs off a large share of the splats (greedy matching on a kNN graph
+    whose every vertex has an edge: about a third or more of them in practice, at least one pair by
+    construction), capped at ``pass_fraction`` of them; the bound allows an eighth of that pace,
+    8 x (0.5 / pass_fraction) passes per halving, plus 32."""
+    halvings = max(0, math.ceil(math.log2(max(start_count, 1) / max(target, 1))))
+    return 32 + math.ceil(8 * 0.5 / pass_fraction) * halvings
+
+
 @dataclass(frozen=True)
 class PassReport:
     """What one pass did: its index, splats before and after, candidate edges."""
@@ -106,8 +116,16 @@ def simplify_progressively(
     topology = KnnTopology(config.neighbours(current.count))
     check_index_limits(current.count, min(topology.k, max(current.count - 1, 0)))
     pass_index = 0
+    # Termination: every pass removes at least one splat (or the run stops with an error), so the
+    # loops end after at most count - targets[-1] passes; pass_limit stops a run long before that.
+    most_passes = pass_limit(current.count, targets[-1], config.pass_fraction)
     for target in targets:
         while current.count > target:
+            if pass_index >= most_passes:
+                raise RuntimeError(
+                    f"simplification stopped: {pass_index} passes without reaching {target} splats "
+                    f"(at {current.count}; at most {most_passes} expected from {splats.count})"
+                )
             if clock is not None:
                 clock.next_pass()
             n = current.count
@@ -120,7 +138,7 @@ def simplify_progressively(
                 pairs = select_pairs(edges, costs, n, cap=cap)
                 del edges, costs
             if pairs.count == 0:  # cannot happen with n >= 2 (a kNN graph has edges); guards the loop
-                raise RuntimeError(f"no merge possible at {n} splats")
+                raise RuntimeError(f"simplification stopped: pass {pass_index + 1} merged nothing at {n} splats (target {target})")
             with stage("compaction"):
                 merged, destination = remove_rows(current, pairs.j, pairs.count)
             with stage("merge"):

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import plyfile
 
+from .domain import LOG_SCALE_LIMIT
 from .errors import InputError
 from .ply_header import (
     DC_NAMES,
@@ -56,10 +57,11 @@ def load_ply(path, device="cpu", drop_invalid: bool = False, on_drop=None, diges
     """Reads a 3DGS PLY file into a :class:`SplatSet` on ``device`` with its layout filled in.
 
     Quaternions are normalised (left bit-exact when already unit to float32 precision, so that
-    load -> save -> load is bitwise stable). Rows with NaN/Inf in a 3DGS property or a zero-norm
-    quaternion raise :class:`InputError`, or are dropped when ``drop_invalid`` is true (then
-    ``on_drop``, if given, is called with one line saying how many rows went and why). Opacity
-    logits of +Inf (alpha = 1) and -Inf (alpha = 0) are valid: see :func:`saturate_opacity_logits`.
+    load -> save -> load is bitwise stable). Rows with NaN/Inf in a 3DGS property, a zero-norm
+    quaternion or a log-scale outside the numeric domain (``nanogs_warp.domain``) raise
+    :class:`InputError`, or are dropped when ``drop_invalid`` is true (then ``on_drop``, if given,
+    is called with one line saying how many rows went and why). Opacity logits of +Inf (alpha = 1)
+    and -Inf (alpha = 0) are valid: see :func:`saturate_opacity_logits`.
     ``digest`` (a :mod:`hashlib` object) is fed every byte of the file, in order, as it is read.
     """
     arrays, layout = read_splats(path, drop_invalid, digest, on_drop)
@@ -86,7 +88,7 @@ def checked_rows(a: dict[str, np.ndarray], name: str, drop_invalid: bool, on_dro
     logits saturated; shared by every format's reader."""
     count = a["means"].shape[0]
     check = check_values(a)
-    bad = check.nonfinite_rows | check.zero_quat_rows
+    bad = check.nonfinite_rows | check.zero_quat_rows | check.out_of_domain_rows
     n_bad = int(np.count_nonzero(bad))
     if n_bad:
         what = _describe_invalid(check)
@@ -192,12 +194,15 @@ class PlyArrays:
 
 @dataclass
 class ValueCheck:
-    """Which rows hold non-finite values (and in which properties) or zero-norm quaternions, and
-    how many opacity logits are +Inf / -Inf (valid: alpha 1 / 0, not counted as non-finite)."""
+    """Which rows hold non-finite values (and in which properties), zero-norm quaternions or finite
+    values outside the numeric domain (``nanogs_warp.domain``), and how many opacity logits are
+    +Inf / -Inf (valid: alpha 1 / 0, not counted as non-finite)."""
 
     nonfinite_rows: np.ndarray  # bool (N,)
     nonfinite_by_property: dict[str, int]  # property name -> rows with NaN/Inf, only those > 0
     zero_quat_rows: np.ndarray  # bool (N,), finite quaternions with norm 0
+    out_of_domain_rows: np.ndarray  # bool (N,), finite log-scales beyond +-LOG_SCALE_LIMIT
+    out_of_domain_by_property: dict[str, int]  # property name -> such rows, only those > 0
     infinite_opacities: tuple[int, int] = (0, 0)  # rows with opacity logit +Inf (alpha 1), -Inf (alpha 0): valid
 
 
@@ -233,7 +238,7 @@ def read_ply_arrays(path, digest=None) -> PlyArrays:
 
 def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = None) -> ValueCheck:
     """Finds rows with NaN/Inf in the 3DGS properties (and in the extras, when their names are
-    given) and rows whose quaternion is zero."""
+    given), rows whose quaternion is zero and rows with a finite log-scale outside the domain."""
     n = arrays["means"].shape[0]
     rows = np.zeros(n, bool)
     by_prop: dict[str, int] = {}
@@ -256,12 +261,14 @@ def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = 
         for prop, count in zip(names, np.count_nonzero(bad, axis=0)):
             if count:
                 by_prop[prop] = int(count)
-    q = arrays["rotations"].astype(np.float64)
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"):  # NaNs of any kind cast and compare quietly
+        q = arrays["rotations"].astype(np.float64)
         zero = np.einsum("ij,ij->i", q, q) == 0  # exact in float64 for float32 inputs
+    outside = np.abs(arrays["log_scales"].reshape(n, -1)) > LOG_SCALE_LIMIT  # NaN compares false
+    domain_by_prop = {p: int(c) for p, c in zip(SCALE_NAMES, np.count_nonzero(outside, axis=0)) if c}
     logits = arrays["opacities"].reshape(n)
     infinite = (int(np.count_nonzero(np.isposinf(logits))), int(np.count_nonzero(np.isneginf(logits))))
-    return ValueCheck(rows, by_prop, zero, infinite)
+    return ValueCheck(rows, by_prop, zero, outside.any(axis=1), domain_by_prop, infinite)
 
 
 def normalize_quaternions(q: np.ndarray) -> np.ndarray:
@@ -473,6 +480,10 @@ def _describe_invalid(check: ValueCheck) -> str:
     n_zq = int(np.count_nonzero(check.zero_quat_rows))
     if n_zq:
         parts.append(f"{n_zq} with zero-norm quaternions")
+    n_od = int(np.count_nonzero(check.out_of_domain_rows))
+    if n_od:
+        props = ", ".join(sorted(check.out_of_domain_by_property))
+        parts.append(f"{n_od} with log-scales outside [-{LOG_SCALE_LIMIT:g}, {LOG_SCALE_LIMIT:g}] in {props}")
     return "; ".join(parts)
 
 

@@ -1,8 +1,8 @@
 """Candidate topology: the exact k-nearest-neighbour graph of the splat centres and its undirected edges.
 
-Everything runs on the device of the input; the host reads only scalars: a bounding box, six
-coordinate quantiles, a 22-bin histogram of the levels where neighbours part, 22 flags of the levels
-searched and the edge count.
+Everything runs on the device of the input; the host reads only scalars and small samples: a
+bounding box, a sorted sample of up to 16,384 coordinates per axis (for quantiles), a 22-bin
+histogram of the levels where neighbours part, 22 flags of the levels searched and the edge count.
 """
 
 from __future__ import annotations
@@ -21,9 +21,11 @@ from nanogs_warp.parallel import cpu_workers, launch_rows_from, worker_pool
 KMAX = knn_kernels.KMAX
 _LEVELS = knn_kernels.LEVELS
 _GRID_CELLS = 1 << knn_kernels.GRID_BITS
-_BLOCK = knn_kernels.BLOCK
+_NODE_LEVELS = knn_kernels.NODE_LEVELS
 _QUANTILE_SAMPLES = 16384  # points sampled per axis for the quantisation cube
 _QUANTILE_TAIL = 0.001  # fraction of the sample left out at each end
+_QUARTILE_REACH = 1000.0  # interquartile ranges (a normal distribution's 99.8% spans 4.6)
+_LARGEST_SIDE = 2.0**120  # of the quantisation cube (float32 holds up to 2^128)
 
 
 @dataclass
@@ -61,17 +63,14 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None, reach
 
     lo, quantum, margin = _quantisation_cube(means)
     codes, order, points = _morton_sort(means, lo, quantum)
-    blocks = (n + _BLOCK - 1) // _BLOCK
-    box_lo = wp.empty(blocks, dtype=wp.vec3, device=device)
-    box_hi = wp.empty(blocks, dtype=wp.vec3, device=device)
-    wp.launch(knn_kernels._block_boxes, blocks, inputs=[points], outputs=[box_lo, box_hi], device=device)
+    nodes = _tree_nodes(points, order)
     search_level, tables = _cell_tables(codes, k)
 
     neighbours = wp.full((n, k), -1, dtype=wp.int32, device=device)
     launch_rows_from(
         knn_kernels._knn_query,
         n,
-        [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, box_lo, box_hi]
+        [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, *nodes]
         + [neighbours, reach, candidates],
         device,
         min_rows=512,  # about 2 us a query on a CPU core
@@ -161,8 +160,9 @@ def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     axis, and the margin by which cell-distance lower bounds are lowered for float32 rounding.
 
     The cube spans the bounding box, cut down to three times the width of the central 99.8% of the
-    points (per axis, from a sample): a few far outliers would otherwise stretch the cells until dense
-    clusters fall into one level-0 cell. Points outside the cube are clamped into its boundary cells.
+    points (per axis, from a sample) and to 1000 interquartile ranges around the central half: far
+    outliers would otherwise stretch the cells until dense clusters fall into one level-0 cell.
+    Points outside the cube are clamped into its boundary cells.
     """
     device = means.device
     n = means.shape[0]
@@ -182,12 +182,22 @@ def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     for axis in range(3):
         wp.launch(knn_kernels._sample_axis, m, inputs=[means, stride, axis], outputs=[keys], device=device)
         wp.utils.radix_sort_pairs(keys, values, m)
-        q_lo, q_hi = float(keys[tail : tail + 1].numpy()[0]), float(keys[m - 1 - tail : m - tail].numpy()[0])
+        sample = keys[:m].numpy().astype(np.float64)
+        q_lo, q_hi = sample[tail], sample[m - 1 - tail]
         width = q_hi - q_lo
         lo[axis], hi[axis] = max(lo[axis], q_lo - width), min(hi[axis], q_hi + width)
+        # more far outliers than the tails leave out: the cube reaches no further than
+        # _QUARTILE_REACH interquartile ranges from the central half
+        q25, q75 = sample[(m - 1) // 4], sample[3 * (m - 1) // 4]
+        if q75 > q25:
+            lo[axis] = max(lo[axis], q25 - _QUARTILE_REACH * (q75 - q25))
+            hi[axis] = min(hi[axis], q75 + _QUARTILE_REACH * (q75 - q25))
     side = float(np.max(hi - lo))
     if side <= 0.0:  # the central points coincide: fall back to the whole box, or to a unit cube
         lo, side = box_lo, float(np.max(box_hi - box_lo)) or 1.0
+    # cell sides (quantum x 2^level) stay finite in float32 whatever the coordinates; points beyond
+    # the cube fall into its boundary cells as ever
+    side = min(side, _LARGEST_SIDE)
     quantum = side / _GRID_CELLS
     # Positions are taken relative to `lo` (a correctly rounded float32 difference), so a point's
     # computed cell and the cell's bounds err by well under a quantum; two quanta cover both.
@@ -206,6 +216,27 @@ def _morton_sort(means: wp.array, lo: wp.vec3, quantum: float) -> tuple[wp.array
     points = wp.empty(n, dtype=wp.vec3, device=device)
     wp.launch(knn_kernels._gather_points, n, inputs=[means, order], outputs=[points], device=device)
     return codes, order, points
+
+
+def _tree_nodes(points: wp.array, order: wp.array) -> list[wp.array]:
+    """The implicit tree over the sorted points: level s (1..NODE_LEVELS) has a node per 8^s
+    consecutive points with its bounding box and smallest and largest original index, all levels in
+    flat arrays: [node_base (per level, index 0 unused), node_lo, node_hi, node_first, node_last]."""
+    n, device = points.shape[0], points.device
+    counts = [0] + [-(-n // 8**s) for s in range(1, _NODE_LEVELS + 1)]
+    base = np.zeros(_NODE_LEVELS + 1, dtype=np.int32)
+    base[2:] = np.cumsum(counts[1:-1])
+    total = int(sum(counts))
+    node_lo = wp.empty(total, dtype=wp.vec3, device=device)
+    node_hi = wp.empty(total, dtype=wp.vec3, device=device)
+    node_first = wp.empty(total, dtype=wp.int32, device=device)
+    node_last = wp.empty(total, dtype=wp.int32, device=device)
+    arrays = [node_lo, node_hi, node_first, node_last]
+    wp.launch(knn_kernels._leaf_nodes, counts[1], inputs=[points, order], outputs=arrays, device=device)
+    for s in range(2, _NODE_LEVELS + 1):
+        inputs = [int(base[s - 1]), counts[s - 1], int(base[s])]
+        wp.launch(knn_kernels._parent_nodes, counts[s], inputs=inputs, outputs=arrays, device=device)
+    return [wp.array(base, dtype=wp.int32, device=device), *arrays]
 
 
 def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list]:

@@ -9,7 +9,9 @@ def knn_reference(
     means: np.ndarray, k: int, rows: np.ndarray | None = None, chunk: int = 128
 ) -> tuple[np.ndarray, np.ndarray]:
     """Indices (len(rows), k) of the k nearest other points of each point in `rows` (default: all),
-    sorted by (squared distance, index), and those float64 squared distances. Brute force."""
+    sorted by (squared distance, tie), and those float64 squared distances. Brute force. The tie is
+    the index, or at distance 0 (copies of the point's position) the index counted from the
+    point's own, (j - i) mod N."""
     points = np.asarray(means, dtype=np.float64)
     rows = np.arange(points.shape[0]) if rows is None else np.asarray(rows)
     indices = np.empty((rows.size, k), dtype=np.int64)
@@ -22,7 +24,8 @@ def knn_reference(
         bound = np.partition(d2, k, axis=1)[:, k : k + 1]
         for r in range(part.size):
             near = np.flatnonzero(d2[r] <= bound[r])
-            ranked = near[np.lexsort((near, d2[r, near]))][:k]
+            tie = np.where(d2[r, near] == 0.0, (near - part[r]) % points.shape[0], near)
+            ranked = near[np.lexsort((tie, d2[r, near]))][:k]
             indices[begin + r] = ranked
             distances[begin + r] = d2[r, ranked]
     return indices, distances

@@ -113,6 +113,48 @@ def test_bad_input_one_line_exit_2(case, scene, tmp_path):
     assert digest(scene) == before
 
 
+def test_numpy_warnings_stay_off_stderr(scene, tmp_path):
+    """A little-endian body under a big-endian header (garbage values, some NaN of every kind):
+    in a real process, where Python shows warnings, stderr holds the one error line and nothing
+    else; NANOGS_DEBUG=1 lets the warnings through."""
+    import sys
+
+    bad = tmp_path / "mislabelled.ply"
+    bad.write_bytes(scene.read_bytes().replace(b"binary_little_endian", b"binary_big_endian", 1))
+    command = [sys.executable, "-m", "nanogs_warp", "simplify", bad, "-o", tmp_path / "o.ply", "--ratio", "0.1",
+               "--device", "cpu"]  # fmt: skip
+    environment = {k: v for k, v in os.environ.items() if k != "NANOGS_DEBUG"}
+    done = subprocess.run(command, capture_output=True, text=True, env=environment)
+    assert done.returncode == 2
+    assert done.stderr.count("\n") == 1 and done.stderr.startswith("nanogs-warp: error: "), done.stderr
+    assert not list(tmp_path.glob("o*.ply"))
+
+
+def test_commands_silence_warnings_unless_debugging(scene):
+    """Whatever warns inside a command (here a patched step: a Python warning and a numpy overflow)
+    stays off stderr; NANOGS_DEBUG=1 lets it through."""
+    import sys
+
+    code = (
+        "import sys, warnings, numpy as np, nanogs_warp.info as info\n"
+        "from nanogs_warp.cli import app\n"
+        "real = info.scene_info\n"
+        "def noisy(path):\n"
+        "    warnings.warn('a library warning')\n"
+        "    np.float32(3e38) * np.float32(10)\n"
+        "    return real(path)\n"
+        "info.scene_info = noisy\n"
+        "app(['info', sys.argv[1]])\n"
+    )
+    environment = {k: v for k, v in os.environ.items() if k != "NANOGS_DEBUG"}
+    quiet = subprocess.run([sys.executable, "-c", code, scene], capture_output=True, text=True, env=environment)
+    assert quiet.returncode == 0 and quiet.stderr == "", quiet.stderr
+    debug = subprocess.run([sys.executable, "-c", code, scene], capture_output=True, text=True,
+                           env={**environment, "NANOGS_DEBUG": "1"})  # fmt: skip
+    assert debug.returncode == 0
+    assert "a library warning" in debug.stderr and "overflow" in debug.stderr
+
+
 def test_unwritable_output_directory(scene, tmp_path):
     if os.geteuid() == 0:
         pytest.skip("root can write into read-only directories")

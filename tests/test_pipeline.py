@@ -196,3 +196,32 @@ def test_field_cost_and_pass_fraction_reach_the_target(device, operator):
         passes[fraction] = len(reports)
         assert all(r.count_before - r.count_after <= math.ceil(fraction * r.count_before) for r in reports)
     assert passes[0.25] > passes[0.5]
+
+
+def test_pass_limit_grows_with_the_halvings():
+    from nanogs_warp.pipeline import pass_limit
+
+    assert pass_limit(1000, 1000) == 32
+    assert pass_limit(1000, 500) == 40
+    assert pass_limit(1000, 1) == 32 + 8 * 10
+    assert pass_limit(6_000_000, 6_000) == 32 + 8 * 10
+
+
+@pytest.mark.parametrize("kept", [0, 1])
+def test_a_stuck_merge_stops_with_an_error(device, monkeypatch, kept):
+    """A pass that merges nothing, or so little that the pass bound runs out, ends the run with an
+    error that says so, never a spin (the pairing is forced to keep `kept` pairs a pass)."""
+    import nanogs_warp.pipeline as pipeline
+    from nanogs_warp.pairing import Pairs
+
+    real = pipeline.select_pairs
+
+    def few_pairs(edges, costs, vertex_count, cap, method="auto"):
+        pairs = real(edges, costs, vertex_count, cap, method)
+        return Pairs(pairs.i, pairs.j, min(pairs.count, kept))
+
+    monkeypatch.setattr(pipeline, "select_pairs", few_pairs)
+    splats = SplatSet.from_numpy(**clustered_scene(200, seed=8), device=device)
+    expected = "merged nothing" if kept == 0 else "passes without reaching"
+    with pytest.raises(RuntimeError, match=expected):
+        simplify(splats, count=20)

@@ -432,6 +432,28 @@ def test_float64_overflowing_float32_is_invalid(tmp_path):
     assert load_ply(path, drop_invalid=True).count == 3
 
 
+def test_log_scales_outside_the_domain_are_invalid(tmp_path):
+    """Finite log-scales beyond +-LOG_SCALE_LIMIT: refused with counts and property names, dropped
+    on request, counted by info; the limits themselves are accepted."""
+    from nanogs_warp.domain import LOG_SCALE_LIMIT
+
+    path = tmp_path / "huge.ply"
+    arrays = random_splat_arrays(8, seed=4)
+    arrays["log_scales"][1, 0] = 4e17
+    arrays["log_scales"][3, 2] = -np.nextafter(np.float32(LOG_SCALE_LIMIT), np.float32(np.inf))
+    arrays["log_scales"][3, 0] = 1e3
+    arrays["log_scales"][5] = [LOG_SCALE_LIMIT, -LOG_SCALE_LIMIT, 0.0]  # inside
+    arrays["opacities"][6] = np.nan
+    write_splats_ply(path, arrays)
+    expect_error(path, "3 of 8 splats are invalid", "1 with NaN/Inf values in opacity",
+                 r"2 with log-scales outside \[-100, 100\] in scale_0, scale_2", "--drop-invalid")  # fmt: skip
+    kept = load_ply(path, drop_invalid=True).to_numpy()
+    np.testing.assert_array_equal(kept["log_scales"], arrays["log_scales"][[0, 2, 4, 5, 7]])
+    info = scene_info(path)
+    assert info["out_of_domain"] == {"scale_0": 2, "scale_2": 1} and info["out_of_domain_rows"] == 2
+    assert "log-scales  2 splats beyond +-100" in format_info(info)
+
+
 def test_drop_invalid_leaving_nothing(tmp_path):
     path = tmp_path / "all.ply"
     arrays = random_splat_arrays(3, seed=1)

@@ -146,15 +146,50 @@ def test_knn_duplicates(knn_device):
     neighbours = run_knn(points, 16, knn_device)
     check_against_reference(points, neighbours, 16)
     copies = np.flatnonzero(np.all(points == points[200], axis=1))
-    for row in copies:  # nearest are the other copies, ranked by index
-        np.testing.assert_array_equal(neighbours[row], copies[copies != row][:16])
+    for row in copies:  # nearest are the other copies, ranked by index counted on from the row's own
+        others = copies[copies != row]
+        np.testing.assert_array_equal(neighbours[row], others[np.argsort((others - row) % 1000, kind="stable")][:16])
 
 
 def test_knn_all_identical(knn_device):
     points = np.full((40, 3), 0.25, dtype=np.float32)
     neighbours = run_knn(points, 8, knn_device)
-    for row in range(40):
-        np.testing.assert_array_equal(neighbours[row], [j for j in range(40) if j != row][:8])
+    for row in range(40):  # the copies that follow the row, wrapping round
+        np.testing.assert_array_equal(neighbours[row], [(row + t) % 40 for t in range(1, 9)])
+
+
+def test_knn_large_duplicate_cluster(knn_device):
+    """Thousands of copies of one position: each copy lists the copies that follow it (so a greedy
+    matching can pair them all off), and the work per query stays bounded, not the cluster's size."""
+    rng = np.random.default_rng(21)
+    points = uniform_points(12000, seed=21)
+    copies = np.sort(rng.choice(12000, 8000, replace=False))
+    points[copies] = points[copies[0]]
+    candidates = wp.zeros(points.shape[0], dtype=wp.int32, device=knn_device)
+    neighbours = run_knn(points, 16, knn_device, candidates=candidates)
+    others = np.setdiff1d(np.arange(12000), copies)
+    check_against_reference(points, neighbours, 16, rows=rng.choice(others, 300, replace=False))
+    for r in (0, 1, 4000, 7990, 7999):  # the next 16 copies by index, wrapping round
+        row = copies[r]
+        np.testing.assert_array_equal(neighbours[row], copies[(r + 1 + np.arange(16)) % copies.size])
+    assert np.percentile(candidates.numpy()[copies], 99) < 400
+
+
+def test_knn_extreme_coordinates(knn_device):
+    """Finite coordinates up to float32's largest: squared distances overflow to inf, which then
+    rank by index; every query ends, and the ordinary points keep their exact neighbours."""
+    points = uniform_points(3000, seed=22)
+    points[5] = [0.0, 0.0, 1e20]
+    points[6] = [3.4e38, -3.4e38, 3.4e38]
+    points[7] = [-3.4e38, 3.4e38, -1e-38]
+    points[8] = [3.7e37, 0.5, 0.5]
+    neighbours = run_knn(points, 16, knn_device)
+    check_valid(neighbours)
+    far = np.arange(5, 9)
+    check_against_reference(points, neighbours, 16, rows=np.setdiff1d(np.arange(3000), far))
+    # a far point's neighbours: the ordinary points nearest it where float32 distances are finite,
+    # else (all at inf) the lowest indices
+    np.testing.assert_array_equal(neighbours[6], [t for t in range(17) if t != 6])
 
 
 def test_knn_flat_and_far(knn_device):
@@ -253,11 +288,14 @@ def test_edges_of_knn_graph(knn_device, make):
     reach = wp.full(len(points), -1, dtype=wp.int64, device=knn_device)
     neighbours = knn_graph(means, 16, reach=reach)
     table = neighbours.numpy()
-    # reach: the k-th neighbour's (float32 squared distance bits, index); a GPU may fuse the
-    # distance's multiply-adds, so its bits are compared with numpy's to a float32 tolerance
+    # reach: the k-th neighbour's (float32 squared distance bits, tie rank: its index, or at distance
+    # 0 its index counted from the row's); a GPU may fuse the distance's multiply-adds, so its bits
+    # are compared with numpy's to a float32 tolerance
     got = reach.numpy()
     last = table[:, -1]
-    np.testing.assert_array_equal(got & 0xFFFFFFFF, last)
+    rows = np.arange(len(points))
+    tie = np.where(got >> 32 == 0, (last - rows) % len(points), last)
+    np.testing.assert_array_equal(got & 0xFFFFFFFF, tie)
     d = ((points[last].astype(np.float64) - points) ** 2).sum(axis=1)
     np.testing.assert_allclose((got >> 32).astype(np.int32).view(np.float32), d, rtol=1e-6, atol=1e-30)
     # the one-comparison test of "row j lists i" gives the edges of the scan
