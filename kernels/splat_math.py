@@ -231,8 +231,9 @@ def face_plane(a: wp.mat33d):
     """The face plane of a symmetric positive semi-definite 3x3 matrix: its unit normal n (the
     eigenvector of the smallest eigenvalue, from the closed-form eigenvalues of the characteristic
     cubic, float64), an orthonormal basis (c0, c1) of the plane and the product of the two largest
-    eigenvalues (the determinant of a's block in the plane). Where the smallest eigenvalue is not
-    simple, n is perpendicular to the largest eigenvalue's eigenvector."""
+    eigenvalues (the determinant of a's block in the plane). Where the two smallest eigenvalues are
+    less than 1e-9 of the largest apart (their eigenvectors are ill-conditioned), n is perpendicular
+    to the largest eigenvalue's eigenvector."""
     p1 = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
     q = (a[0, 0] + a[1, 1] + a[2, 2]) / wp.float64(3.0)
     d0 = a[0, 0] - q
@@ -249,9 +250,11 @@ def face_plane(a: wp.mat33d):
         phi = wp.acos(r) / wp.float64(3.0)
         big = q + wp.float64(2.0) * p * wp.cos(phi)
         small = q + wp.float64(2.0) * p * wp.cos(phi + wp.float64(2.0943951023931957))
+        middle = wp.float64(3.0) * q - big - small
         n = _largest_cross(a - small * identity)
-        scale = wp.float64(1e-20) * (big * big + p1)
-        if wp.dot(n, n) <= scale * scale:  # smallest eigenvalue not simple: the plane holds the major axis
+        if middle - small <= wp.float64(1e-9) * big or wp.dot(n, n) <= wp.float64(0.0):
+            # the smallest eigenvalue is (nearly) not simple and its eigenvector ill-conditioned:
+            # take a plane that holds the major axis instead
             major = _largest_cross(a - big * identity)
             n = any_perpendicular(major / wp.length(major))
         else:

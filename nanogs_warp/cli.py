@@ -83,7 +83,7 @@ def simplify(
     output: Annotated[Optional[str], typer.Option("-o", "--output", help="Output path; its name picks the format (.ply, .compressed.ply, .spz, .sog, meta.json, .splat, lod-meta.json). With several budgets OUT_<budget>.<ext> is written for each; lod-meta.json writes them as one level-of-detail set. A folder (ending in /, or an existing one) receives <input name>_<budget>.ply (or --format's extension).", show_default=False, metavar="PATH")] = None,
     ratio: opts.Ratio = None,
     count: opts.Count = None,
-    device: Annotated[str, typer.Option(help="auto (first GPU, else CPU), cpu, cuda or cuda:N.", metavar="DEVICE")] = "auto",
+    device: Annotated[str, typer.Option("--device", help="auto (first GPU, else CPU), cpu, cuda or cuda:N.", metavar="DEVICE")] = "auto",
     preset: opts.Preset = "default",
     k: opts.K = None,
     prune_opacity: opts.PruneOpacity = None,

@@ -51,10 +51,10 @@ def eval_command(
     views: Annotated[int, typer.Option(help="Number of orbit views (ignored with --cameras).")] = 16,
     size: Annotated[int, typer.Option(help="Image side in pixels: orbit views are square; --cameras views are scaled to this longest side (0 keeps their sizes).")] = 256,
     device: Annotated[str, typer.Option(help="auto (first GPU, else CPU), cpu, cuda or cuda:N.")] = "auto",
-    cameras: Annotated[Optional[Path], typer.Option(metavar="CAMERAS.JSON", help="The INRIA trainer's cameras.json to render from instead of orbit views.", show_default=False)] = None,
+    cameras: Annotated[Optional[Path], typer.Option("--cameras", metavar="CAMERAS.JSON", help="The INRIA trainer's cameras.json to render from instead of orbit views.", show_default=False)] = None,
     up: Annotated[str, typer.Option(help="World up axis of the orbit views: +x, -x, +y, -y, +z or -z (INRIA/COLMAP scenes are -y).")] = "-y",
-    background: Annotated[str, typer.Option(metavar="R,G,B", help="Background colour R,G,B in [0, 1] (or black, white).")] = "0,0,0",
-    images: Annotated[Optional[Path], typer.Option(metavar="FOLDER", help="Write reference | test | difference x4 PNGs per view and a contact sheet into this directory (one sub-directory per test scene).", show_default=False)] = None,
+    background: Annotated[str, typer.Option("--background", metavar="R,G,B", help="Background colour R,G,B in [0, 1] (or black, white).")] = "0,0,0",
+    images: Annotated[Optional[Path], typer.Option("--images", metavar="FOLDER", help="Write reference | test | difference x4 PNGs per view and a contact sheet into this directory (one sub-directory per test scene).", show_default=False)] = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print machine-readable results (JSON) instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
 ) -> None:

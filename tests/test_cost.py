@@ -193,7 +193,8 @@ def test_field_cost_matches_quadrature(device, rng, operator):
     )  # fmt: skip
     merge = reference.coverage_merge if operator == "coverage" else reference.mpmm
     want = [reference.field_cost(arrays, i, j, merge(arrays, i, j), 1.0, 0.5) for i, j in zip(ei, ej)]
-    np.testing.assert_allclose(costs.numpy(), want, rtol=2e-3, atol=1e-9)
+    # the cost is a difference of overlaps of similar size: the quadrature's error is relative to those
+    np.testing.assert_allclose(costs.numpy(), want, rtol=2e-3, atol=1e-4 * max(want))
 
 
 def test_field_cost_is_zero_for_a_merge_that_changes_nothing(device):
