@@ -21,7 +21,7 @@ import warp as wp
 from .cost import UNMERGEABLE, finite_cost
 from .field import overlap2, project2
 from .merge import MERGED_ALPHA_MAX, coverage_merged, mpmm_merged
-from .splat_math import Splats, covariance, face_plane, to_vec3d
+from .splat_math import Splats, covariance, symmetric_eigen, to_vec3d
 
 
 @wp.kernel
@@ -45,10 +45,13 @@ def operator_merged(operator_id: int, i: int, j: int, src: Splats, cov_i: wp.mat
     basis of its face plane."""
     if operator_id == MPMM:
         pi, mu_m, cov_m, logit_m = mpmm_merged(i, j, src)
-        n, c0, c1, face = face_plane(cov_m)
-        return pi, mu_m, cov_m, wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(logit_m))), c0, c1
-    pi, mu_m, cov_m, c0, c1, ratio = coverage_merged(i, j, src, cov_i, cov_j, growth)
-    return pi, mu_m, cov_m, wp.min(ratio, wp.float64(MERGED_ALPHA_MAX)), c0, c1
+        values, frame = symmetric_eigen(cov_m)
+        alpha_m = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(logit_m)))
+        return pi, mu_m, cov_m, alpha_m, wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0]), wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
+    pi, mu_m, values, frame, ratio = coverage_merged(i, j, src, cov_i, cov_j, growth)
+    cov_m = frame * wp.diag(values) * wp.transpose(frame)
+    alpha_m = wp.min(ratio, wp.float64(MERGED_ALPHA_MAX))
+    return pi, mu_m, cov_m, alpha_m, wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0]), wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
 
 
 @wp.func

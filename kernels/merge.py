@@ -15,7 +15,7 @@ dispersion), features and extras. Operators differ in their weights and in the m
 
 import warp as wp
 
-from .splat_math import Splats, covariance, face_plane, first_weight, log_mass, log_sigmoid, moment_match, quaternion_from_frame, symmetric_eigen, to_vec3d
+from .splat_math import Splats, covariance, first_weight, log_mass, log_sigmoid, moment_match, quaternion_from_frame, symmetric_eigen, to_vec3d
 
 wp.set_module_options({"enable_backward": False})
 
@@ -214,26 +214,27 @@ def area_weighted_moment_matching(
 
 @wp.func
 def coverage_merged(i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, growth: float):
-    """The coverage operator's merged splat: weights w = alpha s_a s_b (face-on footprint). In the
-    merged splat's face plane (normal n: the eigenvector of Sigma_m's smallest eigenvalue) with
-    F_k = sqrt(det) of splat k's covariance projected onto it, the pair covers C = alpha_i F_i +
-    alpha_j F_j and the merged splat F_m = s0 s1 = sqrt(lambda_0 lambda_1). Where r = C / F_m > 1,
-    the variances in the face plane grow by r^growth: Sigma <- g Sigma - (g - 1) lambda_2 n n^T.
-    ``cov_i``, ``cov_j``: the pair's covariances. Returns (pi, mu_m, Sigma_m, c0, c1, r), (c0, c1) an
-    orthonormal basis of the face plane and alpha_m = min(r, MERGED_ALPHA_MAX)."""
+    """The coverage operator's merged splat: weights w = alpha s_a s_b (face-on footprint). With
+    (c0, c1) the merged splat's two major axes (its face plane) and F_k = sqrt(det) of splat k's
+    covariance projected onto that plane, the pair covers C = alpha_i F_i + alpha_j F_j there and the
+    merged splat F_m = s0 s1. Where r = C / F_m > 1, the variances along c0 and c1 grow by r^growth.
+    ``cov_i``, ``cov_j``: the pair's covariances. Returns (pi, mu_m, eigenvalues, frame, r):
+    alpha_m = min(r, MERGED_ALPHA_MAX). The frame comes from the float64 Jacobi sweep, whose
+    arithmetic (and sqrt) rounds alike on every device, so CPU and CUDA merges agree bit for bit."""
     pi = first_weight(log_coverage_mass(src.opacities[i], src.log_scales[i]), log_coverage_mass(src.opacities[j], src.log_scales[j]))
     mu_m, cov_m = moment_match(pi, to_vec3d(src.means[i]), cov_i, to_vec3d(src.means[j]), cov_j)
-    n, c0, c1, face = face_plane(cov_m)
+    values, frame = symmetric_eigen(cov_m)
+    c0 = wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0])
+    c1 = wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
     coverage = wp.exp(log_sigmoid(wp.float64(src.opacities[i]))) * projected_footprint(cov_i, c0, c1) + wp.exp(
         log_sigmoid(wp.float64(src.opacities[j]))
     ) * projected_footprint(cov_j, c0, c1)
-    ratio = coverage / wp.sqrt(wp.max(face, wp.float64(1e-300)))
+    ratio = coverage / wp.sqrt(wp.max(values[0] * values[1], wp.float64(1e-300)))
     if ratio > wp.float64(1.0):
         grow = wp.pow(ratio, wp.float64(growth))
-        normal_variance = wp.dot(n, cov_m * n)
-        cov_m = grow * cov_m - (grow - wp.float64(1.0)) * normal_variance * wp.outer(n, n)
+        values = wp.vec3d(values[0] * grow, values[1] * grow, values[2])  # the frame and the order stay
         ratio = ratio / grow
-    return pi, mu_m, cov_m, c0, c1, ratio
+    return pi, mu_m, values, frame, ratio
 
 
 @wp.kernel
@@ -253,8 +254,8 @@ def coverage_moment_matching(
     row = int(destination[i])
     cov_i = covariance(src.rotations[i], src.log_scales[i])
     cov_j = covariance(src.rotations[j], src.log_scales[j])
-    pi, mu_m, cov_m, c0, c1, ratio = coverage_merged(i, j, src, cov_i, cov_j, growth)
+    pi, mu_m, values, frame, ratio = coverage_merged(i, j, src, cov_i, cov_j, growth)
     blend_appearance(i, j, pi, row, src, out)
-    write_gaussian(row, mu_m, cov_m, out)
+    store_gaussian(row, mu_m, values, frame, out)
     out.opacities[row] = logit_of_log_alpha(wp.log(wp.max(ratio, wp.float64(1e-300))))
 

@@ -140,7 +140,7 @@ def time_simplify(scene: Path, out_dir: Path, ratios: str, device: str) -> dict:
     for _ in range(3):
         started = time.monotonic()
         result = subprocess.run([sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out_dir / "single.ply"),
-                                 "--ratio", ratios, "--device", device, "--json"], capture_output=True, text=True)  # fmt: skip
+                                 "--ratio", ratios, "--device", device, "--json", "-w"], capture_output=True, text=True)  # fmt: skip
         walls.append(time.monotonic() - started)
         if result.returncode != 0:
             raise SystemExit(f"farm_bench: simplify failed: {result.stderr.strip()}")
