@@ -44,7 +44,9 @@ def test_forward_is_the_renderer(device, rng, method):
     splats, camera = _scene(rng, 60, 3, device)
     expected = render(splats, camera, (0.1, 0.2, 0.3)).numpy()
     image, _ = _forward_backward(splats, camera, rng.normal(size=(camera.height, camera.width, 3)), method)
-    assert np.array_equal(image, expected)
+    # the renderer's own compositing method gives the same bits; the other one rounds its sums in
+    # another order on a GPU (one thread per pixel against a tile's replay)
+    assert np.abs(image - expected).max() <= 1e-6
 
 
 def _reference_loss(arrays, camera, weights):
