@@ -20,7 +20,7 @@ from pathlib import Path
 CACHE_VARIABLE = "NANOGS_WARP_CACHE"
 
 # The kernel modules each command launches (their Warp helpers come with them).
-SIMPLIFY_MODULES = ("knn", "edges", "cost", "pairing", "compact", "merge", "prune")
+SIMPLIFY_MODULES = ("knn", "edges", "cost", "field_cost", "pairing", "compact", "merge", "prune")
 EVAL_MODULES = ("render",)
 REFINE_MODULES = ("render", "render_grad", "image_loss", "adam")
 ALL_MODULES = SIMPLIFY_MODULES + EVAL_MODULES + REFINE_MODULES[1:]
