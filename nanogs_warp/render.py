@@ -113,10 +113,10 @@ class _Rasteriser:
 
         list(self.pool.map(run, range(self.workers)))
 
-    def render_into(self, camera: Camera, background: wp.vec3, image: wp.array, view: int) -> None:
-        """Composites view ``view`` of ``image`` (V, H, W, 3) from ``camera``."""
-        s, p = self.splats, camera_params(camera)
-        tiles = p.tiles_x * p.tiles_y
+    def _project(self, p, tiles: int) -> int:
+        """Clears (or makes) the per-tile entry ranges for ``tiles`` tiles and projects every splat
+        for camera ``p``; returns the number of (tile, splat) entries the view needs."""
+        s = self.splats
         if self.tile_start is None or self.tile_start.shape[0] < tiles:
             self.tile_start = wp.zeros(tiles, dtype=wp.int32, device=self.device)
             self.tile_end = wp.zeros(tiles, dtype=wp.int32, device=self.device)
@@ -128,16 +128,22 @@ class _Rasteriser:
         else:
             self.tile_start.zero_()
             self.tile_end.zero_()
-        count = 0
-        if self.n > 0:
-            self._launch(
-                kernels.project,
-                self.n,
-                [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p],
-                [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.rect, self.touched],
-            )
-            wp.utils.array_scan(self.touched, self.ends, inclusive=True)
-            count = int(self.ends[self.n - 1 :].numpy()[0])
+        if self.n == 0:
+            return 0
+        self._launch(
+            kernels.project,
+            self.n,
+            [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p],
+            [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.rect, self.touched],
+        )
+        wp.utils.array_scan(self.touched, self.ends, inclusive=True)
+        return int(self.ends[self.n - 1 :].numpy()[0])
+
+    def render_into(self, camera: Camera, background: wp.vec3, image: wp.array, view: int) -> None:
+        """Composites view ``view`` of ``image`` (V, H, W, 3) from ``camera``."""
+        p = camera_params(camera)
+        tiles = p.tiles_x * p.tiles_y
+        count = self._project(p, tiles)
         if count > 0:
             self._reserve(count)
             self._launch(

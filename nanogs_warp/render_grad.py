@@ -95,29 +95,9 @@ class GradRasteriser(_Rasteriser):
     def forward(self, camera: Camera, background: wp.vec3, image: wp.array) -> None:
         """Renders ``camera`` into ``image`` (1, H, W, 3), exactly as ``render.render`` would, and keeps
         the view's entries for ``backward``."""
-        s, p = self.splats, camera_params(camera)
+        p = camera_params(camera)
         tiles = p.tiles_x * p.tiles_y
-        if self.tile_start is None or self.tile_start.shape[0] < tiles:
-            self.tile_start = wp.zeros(tiles, dtype=wp.int32, device=self.device)
-            self.tile_end = wp.zeros(tiles, dtype=wp.int32, device=self.device)
-            if self.method == "tiles":
-                pixels = tiles * kernels.TILE_PIXELS
-                self.transmittance = wp.empty(pixels, dtype=wp.float32, device=self.device)
-                self.colour = wp.empty(pixels, dtype=wp.vec3, device=self.device)
-                self.done = wp.empty(pixels, dtype=wp.int32, device=self.device)
-        else:
-            self.tile_start.zero_()
-            self.tile_end.zero_()
-        count = 0
-        if self.n > 0:
-            self._launch(
-                kernels.project,
-                self.n,
-                [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p],
-                [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.rect, self.touched],
-            )
-            wp.utils.array_scan(self.touched, self.ends, inclusive=True)
-            count = int(self.ends[self.n - 1 :].numpy()[0])
+        count = self._project(p, tiles)
         if count > 0:
             self._reserve(count)
             self._reserve_grad(count)
