@@ -3,13 +3,15 @@ operator actually produces (``mpmm_merged`` / ``coverage_merged``: one device fu
 and the merge, so the cost always scores the merge that happens).
 
 A splat k emits a_k c_k(d) G_k(x): opacity a_k, SH colour c_k in view direction d and a peak-one
-Gaussian G_k. Seen along the merged splat's normal, each G_k is the peak-one 2D Gaussian of its
-covariance projected onto the merged face plane (c0, c1), as a rasteriser draws it. The cost is the
-squared L2 change of that projected field, for the opacity and for the colour averaged over view
-directions:
+Gaussian G_k. Seen along an axis of the merged splat, each G_k is the peak-one 2D Gaussian of its
+covariance projected onto the plane of the other two axes, as a rasteriser draws it
+(``kernels/field.py``). The cost is the squared L2 change of that projected field, for the opacity
+and for the colour averaged over view directions, summed over the three views along the merged
+splat's axes (face-on and two edge-on: a strand merged into a flat patch is invisible face-on and
+plain edge-on):
 
-    C = lambda_geo  int (a_i G_i + a_j G_j - a_m G_m)^2 dA
-      + lambda_app  int mean_d |a_i c_i G_i + a_j c_j G_j - a_m c_m G_m|^2 dA,
+    C = lambda_geo  sum_v int (a_i G_i + a_j G_j - a_m G_m)^2 dA
+      + lambda_app  sum_v int mean_d |a_i c_i G_i + a_j c_j G_j - a_m c_m G_m|^2 dA,
 
 from the closed-form overlaps int G_a G_b dA = 2 pi sqrt(det A det B / det(A + B)) exp(-d^T (A + B)^-1 d / 2).
 It weighs a merge by the area and opacity it disturbs (in scene units squared), unlike the
@@ -19,8 +21,8 @@ scale-free divergences.
 import warp as wp
 
 from .cost import UNMERGEABLE, finite_cost
-from .field import overlap2, project2
-from .merge import MERGED_ALPHA_MAX, coverage_merged, mpmm_merged
+from .field import pair_view_overlaps
+from .merge import coverage_merged, mpmm_merged
 from .splat_math import Splats, covariance, symmetric_eigen, to_vec3d
 
 
@@ -41,17 +43,15 @@ COVERAGE = wp.constant(1)
 
 @wp.func
 def operator_merged(operator_id: int, i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, growth: float):
-    """The operator's merged splat as (pi, mu_m, Sigma_m, alpha_m, c0, c1), (c0, c1) an orthonormal
-    basis of its face plane."""
+    """The operator's merged splat as (pi, mu_m, eigenvalues, frame, alpha_m) and the overlap sums
+    (own, cross) of the pair and the merged splat over the three views along its axes."""
     if operator_id == MPMM:
         pi, mu_m, cov_m, logit_m = mpmm_merged(i, j, src)
         values, frame = symmetric_eigen(cov_m)
         alpha_m = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(logit_m)))
-        return pi, mu_m, cov_m, alpha_m, wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0]), wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
-    pi, mu_m, values, frame, ratio = coverage_merged(i, j, src, cov_i, cov_j, growth)
-    cov_m = frame * wp.diag(values) * wp.transpose(frame)
-    alpha_m = wp.min(ratio, wp.float64(MERGED_ALPHA_MAX))
-    return pi, mu_m, cov_m, alpha_m, wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0]), wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
+        own, cross = pair_view_overlaps(frame, values, to_vec3d(src.means[i]), to_vec3d(src.means[j]), mu_m, cov_i, cov_j)
+        return pi, mu_m, values, frame, alpha_m, own, cross
+    return coverage_merged(i, j, src, cov_i, cov_j, growth)
 
 
 @wp.func
@@ -89,25 +89,19 @@ def field_costs(
     j = int(edge_j[e])
     cov_i = covariances[i]
     cov_j = covariances[j]
-    pi, mu_m, cov_m, alpha_m, c0, c1 = operator_merged(operator_id, i, j, src, cov_i, cov_j, growth)
-    if not (wp.isfinite(alpha_m) and wp.isfinite(wp.determinant(cov_m))):
+    pi, mu_m, values, frame, alpha_m, own, cross = operator_merged(operator_id, i, j, src, cov_i, cov_j, growth)
+    if not (wp.isfinite(alpha_m) and wp.isfinite(values[0] * values[1] * values[2])):
         costs[e] = wp.float32(UNMERGEABLE)
         return
-    mu_i = to_vec3d(src.means[i])
-    mu_j = to_vec3d(src.means[j])
-    p_i = project2(cov_i, c0, c1)
-    p_j = project2(cov_j, c0, c1)
-    p_m = project2(cov_m, c0, c1)
-    o_ii = overlap2(mu_i, p_i, mu_i, p_i, c0, c1)
-    o_jj = overlap2(mu_j, p_j, mu_j, p_j, c0, c1)
-    o_mm = overlap2(mu_m, p_m, mu_m, p_m, c0, c1)
-    o_ij = overlap2(mu_i, p_i, mu_j, p_j, c0, c1)
-    o_im = overlap2(mu_i, p_i, mu_m, p_m, c0, c1)
-    o_jm = overlap2(mu_j, p_j, mu_m, p_m, c0, c1)
     a_i = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(src.opacities[i])))
     a_j = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(src.opacities[j])))
     two = wp.float64(2.0)
-    geo = a_i * a_i * o_ii + a_j * a_j * o_jj + alpha_m * alpha_m * o_mm + two * (a_i * a_j * o_ij - a_i * alpha_m * o_im - a_j * alpha_m * o_jm)
+    # opacity: sum_v int (a_i G_i + a_j G_j - a_m G_m)^2 dA expanded into the overlap sums
+    geo = (
+        a_i * a_i * own[0] + a_j * a_j * own[1] + alpha_m * alpha_m * own[2]
+        + two * (a_i * a_j * cross[0] - a_i * alpha_m * cross[1] - a_j * alpha_m * cross[2])
+    )  # fmt: skip
+    # colour: the same with the direction-averaged colour products c_x . c_y (c_m = pi c_i + (1 - pi) c_j)
     pj = wp.float64(1.0) - pi
     d_ii = colour_dot(src.features, i, i)
     d_jj = colour_dot(src.features, j, j)
@@ -116,8 +110,8 @@ def field_costs(
     d_jm = pi * d_ij + pj * d_jj
     d_mm = pi * d_im + pj * d_jm
     col = (
-        a_i * a_i * d_ii * o_ii + a_j * a_j * d_jj * o_jj + alpha_m * alpha_m * d_mm * o_mm
-        + two * (a_i * a_j * d_ij * o_ij - a_i * alpha_m * d_im * o_im - a_j * alpha_m * d_jm * o_jm)
+        a_i * a_i * d_ii * own[0] + a_j * a_j * d_jj * own[1] + alpha_m * alpha_m * d_mm * own[2]
+        + two * (a_i * a_j * d_ij * cross[0] - a_i * alpha_m * d_im * cross[1] - a_j * alpha_m * d_jm * cross[2])
     )  # fmt: skip
     total = wp.float64(lambda_geo) * wp.max(geo, wp.float64(0.0)) + wp.float64(lambda_app) * wp.max(col, wp.float64(0.0))
     costs[e] = finite_cost(total)

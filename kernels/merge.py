@@ -8,13 +8,15 @@ dispersion), features and extras. Operators differ in their weights and in the m
 - ``mpmm``: mass w = (2 pi)^{3/2} alpha prod s; opacity by the over rule (NanoGS eq. 6-9).
 - ``area``: w = alpha (s0 s1 + s0 s2 + s1 s2) (opacity x surface-area proxy, as hierarchical 3DGS);
   opacity conserves the weighted mass, alpha_m = (w_i + w_j) / area_m, clamped to (0, 1).
-- ``coverage``: w = alpha s_a s_b (the two largest scales: the face-on footprint); opacity conserves
-  the pair's coverage alpha x footprint measured in the merged splat's own face plane; where that
-  would need alpha_m > 1, the face plane first grows by (coverage / footprint_m)^growth.
+- ``coverage``: w = alpha s_a s_b (the two largest scales: the face-on footprint); where the pair's
+  coverage alpha x footprint in the merged splat's face plane exceeds the merged footprint, the face
+  plane grows by (coverage / footprint_m)^growth; the opacity is the least-squares fit of the pair's
+  opacity field seen along the merged splat's three axes (``kernels/field.py``).
 """
 
 import warp as wp
 
+from .field import field_opacity, pair_view_overlaps
 from .splat_math import Splats, covariance, first_weight, log_mass, log_sigmoid, moment_match, quaternion_from_frame, symmetric_eigen, to_vec3d
 
 wp.set_module_options({"enable_backward": False})
@@ -217,24 +219,30 @@ def coverage_merged(i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat
     """The coverage operator's merged splat: weights w = alpha s_a s_b (face-on footprint). With
     (c0, c1) the merged splat's two major axes (its face plane) and F_k = sqrt(det) of splat k's
     covariance projected onto that plane, the pair covers C = alpha_i F_i + alpha_j F_j there and the
-    merged splat F_m = s0 s1. Where r = C / F_m > 1, the variances along c0 and c1 grow by r^growth.
-    ``cov_i``, ``cov_j``: the pair's covariances. Returns (pi, mu_m, eigenvalues, frame, r):
-    alpha_m = min(r, MERGED_ALPHA_MAX). The frame comes from the float64 Jacobi sweep, whose
-    arithmetic (and sqrt) rounds alike on every device, so CPU and CUDA merges agree bit for bit."""
+    merged splat F_m = s0 s1; where C / F_m > 1, the variances along c0 and c1 grow by
+    (C / F_m)^growth. The opacity is then the one that best keeps the pair's opacity field seen along
+    each of the merged splat's three axes (``field_opacity``), at most MERGED_ALPHA_MAX.
+    ``cov_i``, ``cov_j``: the pair's covariances. Returns (pi, mu_m, eigenvalues, frame, alpha_m,
+    own, cross): ``own``/``cross`` the overlap sums of ``view_overlaps``, which the field cost reuses.
+    The frame comes from the float64 Jacobi sweep, whose arithmetic (and sqrt) rounds alike on every
+    device, so CPU and CUDA merges agree bit for bit."""
     pi = first_weight(log_coverage_mass(src.opacities[i], src.log_scales[i]), log_coverage_mass(src.opacities[j], src.log_scales[j]))
-    mu_m, cov_m = moment_match(pi, to_vec3d(src.means[i]), cov_i, to_vec3d(src.means[j]), cov_j)
+    mu_i = to_vec3d(src.means[i])
+    mu_j = to_vec3d(src.means[j])
+    mu_m, cov_m = moment_match(pi, mu_i, cov_i, mu_j, cov_j)
     values, frame = symmetric_eigen(cov_m)
     c0 = wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0])
     c1 = wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
-    coverage = wp.exp(log_sigmoid(wp.float64(src.opacities[i]))) * projected_footprint(cov_i, c0, c1) + wp.exp(
-        log_sigmoid(wp.float64(src.opacities[j]))
-    ) * projected_footprint(cov_j, c0, c1)
+    a_i = wp.exp(log_sigmoid(wp.float64(src.opacities[i])))
+    a_j = wp.exp(log_sigmoid(wp.float64(src.opacities[j])))
+    coverage = a_i * projected_footprint(cov_i, c0, c1) + a_j * projected_footprint(cov_j, c0, c1)
     ratio = coverage / wp.sqrt(wp.max(values[0] * values[1], wp.float64(1e-300)))
     if ratio > wp.float64(1.0):
         grow = wp.pow(ratio, wp.float64(growth))
         values = wp.vec3d(values[0] * grow, values[1] * grow, values[2])  # the frame and the order stay
-        ratio = ratio / grow
-    return pi, mu_m, values, frame, ratio
+    own, cross = pair_view_overlaps(frame, values, mu_i, mu_j, mu_m, cov_i, cov_j)
+    alpha = wp.min(field_opacity(a_i, a_j, own, cross), wp.float64(MERGED_ALPHA_MAX))
+    return pi, mu_m, values, frame, alpha, own, cross
 
 
 @wp.kernel
@@ -246,16 +254,17 @@ def coverage_moment_matching(
     out: Splats,
     growth: float,
 ):
-    """Coverage-conserving moment matching (``coverage_merged``): w-weighted mean, covariance,
-    features and extras; alpha_m = C / F_m after growth, clamped to (0, 1)."""
+    """Coverage moment matching (``coverage_merged``): w-weighted mean, covariance, features and
+    extras; the face plane grown where the pair covers more than the merged footprint; the opacity
+    fitted to the pair's field over three views."""
     p = wp.tid()
     i = int(pair_i[p])
     j = int(pair_j[p])
     row = int(destination[i])
     cov_i = covariance(src.rotations[i], src.log_scales[i])
     cov_j = covariance(src.rotations[j], src.log_scales[j])
-    pi, mu_m, values, frame, ratio = coverage_merged(i, j, src, cov_i, cov_j, growth)
+    pi, mu_m, values, frame, alpha, own, cross = coverage_merged(i, j, src, cov_i, cov_j, growth)
     blend_appearance(i, j, pi, row, src, out)
     store_gaussian(row, mu_m, values, frame, out)
-    out.opacities[row] = logit_of_log_alpha(wp.log(wp.max(ratio, wp.float64(1e-300))))
+    out.opacities[row] = logit_of_log_alpha(wp.log(wp.max(alpha, wp.float64(1e-300))))
 

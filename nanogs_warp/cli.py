@@ -195,7 +195,10 @@ def simplify(
             typer.echo(f"{out['path']}: {out['count']:,} splats (budget {out['budget']}{level}, {out['passes']} passes)")
             if "refine" in out:
                 r = out["refine"]
-                typer.echo(f"  refined: {r['steps']} steps, training loss {r['loss_before']:.5f} -> {r['loss_after']:.5f}, {r['seconds']:.2f} s")
+                typer.echo(
+                    f"  refined: {r['steps']} steps, training loss {r['loss_before']:.5f} -> {r['loss_after']:.5f}, "
+                    f"held-out {r['validation_before']:.5f} -> {r['validation_after']:.5f} (step {r['kept_step']} kept), {r['seconds']:.2f} s"
+                )
         typer.echo(f"{splats.count:,} splats in, {len(passes)} passes on {target_device}, {finished - started:.2f} s")
 
 

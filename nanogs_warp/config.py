@@ -25,7 +25,7 @@ class SimplifyConfig:
 
     The defaults are the configuration chosen by leave-one-scene-out over the shared scenes and
     generated stress scenes (docs/quality.md): the coverage merge operator, the field cost, at most
-    35 % of the splats merged a pass, no opacity pruning and k = None: 24 neighbours below 65,536
+    45 % of the splats merged a pass, no opacity pruning and k = None: 24 neighbours below 65,536
     splats, 16 from there on. ``SimplifyConfig.paper()`` is
     the NanoGS paper's configuration (``--preset paper``).
 
@@ -42,7 +42,7 @@ class SimplifyConfig:
     lambda_app: float = 1.0
     cost: str = "field"
     operator: str = "coverage"
-    pass_fraction: float = 0.35
+    pass_fraction: float = 0.45
 
     def __post_init__(self):
         self.validate()  # a bad configuration fails where it is built, not where it runs

@@ -23,19 +23,22 @@ import warp as wp
 from .image_loss import ImageLoss
 from .kernels import adam as adam_kernels
 from .parallel import launch_rows_from
-from .refine_cameras import scene_spread, training_cameras
+from .refine_cameras import VALIDATION_STREAM, scene_spread, training_cameras
 from .render import _Rasteriser
 from .refine_config import RefineConfig
 from .render_grad import GradRasteriser, SplatGradients
 from .splats import SplatSet
 
 LOSS_VIEWS = 8  # pool views on which the training loss before and after is measured
+VALIDATION_VIEWS = 8  # held-out views (never trained on) that choose which checkpoint to return
+CHECKPOINTS = (0.25, 0.5, 0.75, 1.0)  # fractions of the run at which the held-out loss is measured
 
 
 @dataclass
 class RefineReport:
     """What a refinement did: steps, seconds (total and per phase), training loss before and after
-    (mean over the first ``LOSS_VIEWS`` training views)."""
+    (mean over the first ``LOSS_VIEWS`` training views) and on held-out views, for the input and for
+    the returned parameters (``kept_step``: the step whose parameters are returned; 0 = the input)."""
 
     steps: int
     count: int
@@ -47,6 +50,9 @@ class RefineReport:
     seconds_backward: float = 0.0
     seconds_optimiser: float = 0.0
     views: int = 0
+    validation_before: float = math.nan
+    validation_after: float = math.nan
+    kept_step: int = 0
 
     def to_json(self) -> dict:
         return {
@@ -60,6 +66,9 @@ class RefineReport:
             "seconds_backward": round(self.seconds_backward, 4),
             "seconds_optimiser": round(self.seconds_optimiser, 4),
             "reference_views": self.views,
+            "validation_before": round(self.validation_before, 6),
+            "validation_after": round(self.validation_after, 6),
+            "kept_step": self.kept_step,
         }
 
 
@@ -204,6 +213,14 @@ def refine_with_report(
         report.views = pool
         loss_views = min(LOSS_VIEWS, pool)
         report.loss_before = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
+        # Held-out views, drawn like the training views from another stream: the run returns the
+        # checkpoint (or the input) that renders them best, so a run that overfits its training views
+        # never hands back a scene worse than it started.
+        held_out = training_cameras(refiner.reference.means.numpy(), VALIDATION_VIEWS, config.size, config.seed, VALIDATION_STREAM)
+        held_out_targets = refiner.render_references(held_out)
+        report.validation_before = report.validation_after = refiner.mean_loss(held_out, held_out_targets)
+        best = _copy(refiner.splats, device)
+        checkpoints = {max(1, round(f * config.steps)) for f in CHECKPOINTS}
 
         rng = np.random.default_rng([config.seed, 0xADA])
         order: list[int] = []
@@ -231,10 +248,19 @@ def refine_with_report(
             refiner.adam(step)
             sync()
             report.seconds_optimiser += time.perf_counter() - t4
+            if step + 1 in checkpoints:
+                held_out_loss = refiner.mean_loss(held_out, held_out_targets)
+                if held_out_loss < report.validation_after:
+                    report.validation_after, report.kept_step = held_out_loss, step + 1
+                    for target, source in zip(best.arrays(), refiner.splats.arrays()):
+                        wp.copy(target, source)
             if on_step is not None:
                 on_step(step + 1, config.steps)
+        if report.kept_step != config.steps:
+            for target, source in zip(refiner.splats.arrays(), best.arrays()):
+                wp.copy(target, source)
         report.loss_after = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
-        out = refiner.splats
+        out = best
     finally:
         refiner.close()
     wp.synchronize_device(device)

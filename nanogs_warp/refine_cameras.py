@@ -43,13 +43,18 @@ def _unit(rng: np.random.Generator) -> np.ndarray:
     return v / n if n > 0 else np.array([0.0, 0.0, 1.0])
 
 
-def training_cameras(means: np.ndarray, count: int, size: int, seed: int) -> list[Camera]:
+TRAINING_STREAM = 0x7EF1  # the random stream of the training cameras
+VALIDATION_STREAM = 0x7A11D  # another stream: held-out cameras drawn the same way, never trained on
+
+
+def training_cameras(means: np.ndarray, count: int, size: int, seed: int, stream: int = TRAINING_STREAM) -> list[Camera]:
     """``count`` cameras from a generator seeded with ``seed``: most at 1.2-3x the 90th-percentile
     radius looking at the scene's centre (a target jittered by a fifth of that radius), random
     roll, vertical field of view 40-75 degrees, sizes from ``image_sizes(size)``; in a large scene
-    (99th-percentile radius above 3x the 90th) one in eight from inside, looking outwards."""
+    (99th-percentile radius above 3x the 90th) one in eight from inside, looking outwards. ``stream``
+    picks an independent set for the same seed (``VALIDATION_STREAM``: the held-out views)."""
     centre, p90, p99 = scene_spread(means)
-    rng = np.random.default_rng([seed, 0x7EF1])
+    rng = np.random.default_rng([seed, stream])
     sizes = image_sizes(size)
     large = p99 > LARGE_SCENE * p90
     cameras = []

@@ -118,11 +118,37 @@ def area_merge(s: dict, i: int, j: int) -> dict:
     return out
 
 
+def view_planes(cov_m: np.ndarray) -> list[np.ndarray]:
+    """The three planes seen along the axes of a merged covariance: 2 x 3 projections onto each pair
+    of its eigenvectors (face-on first)."""
+    _, vectors = np.linalg.eigh(cov_m)  # ascending
+    c0, c1, c2 = vectors[:, 2], vectors[:, 1], vectors[:, 0]
+    return [np.stack([c0, c1]), np.stack([c0, c2]), np.stack([c1, c2])]
+
+
+def gaussian_overlap_2d(mu_a, a, mu_b, b) -> float:
+    """int G_a G_b dA of two peak-one 2D Gaussians (closed form: a product of Gaussians)."""
+    s = a + b
+    d = mu_a - mu_b
+    return float(2 * np.pi * np.sqrt(np.linalg.det(a) * np.linalg.det(b) / np.linalg.det(s)) * np.exp(-0.5 * d @ np.linalg.solve(s, d)))
+
+
+def fitted_opacity(alpha_pair, mus, covs, mu_m, cov_m) -> float:
+    """The opacity a minimising sum over the three views of int (a_i G_i + a_j G_j - a G_m)^2 dA."""
+    num = den = 0.0
+    for plane in view_planes(cov_m):
+        pm, cm = plane @ mu_m, plane @ cov_m @ plane.T
+        num += sum(a * gaussian_overlap_2d(plane @ mu, plane @ c @ plane.T, pm, cm) for a, mu, c in zip(alpha_pair, mus, covs))
+        den += gaussian_overlap_2d(pm, cm, pm, cm)
+    return num / den
+
+
 def coverage_merge(s: dict, i: int, j: int, growth: float = 0.25) -> dict:
     """The coverage operator, float64: weights w = alpha s_a s_b; weighted moments, features,
     extras; with (c0, c1) the two major axes of Sigma_m, coverage C = sum_k alpha_k sqrt(det(P
     Sigma_k P^T)), P = [c0 c1]^T, and ratio r = C / (s0 s1)_m; where r > 1 the variances along c0, c1
-    grow by r^growth; alpha_m = min(r / grow, 1). Also returns ``coverage`` and ``ratio`` (before growth)."""
+    grow by r^growth; alpha_m = the opacity fitted over three views (``fitted_opacity``), at most
+    254/255. Also returns ``coverage``, ``ratio`` (before growth) and ``alpha_fit`` (uncapped)."""
     rows = [i, j]
     alpha = sigmoid(s["opacities"][rows])
     out = _weighted_pair(s, i, j, np.log(alpha * footprint(s["log_scales"][rows])))
@@ -137,7 +163,9 @@ def coverage_merge(s: dict, i: int, j: int, growth: float = 0.25) -> dict:
     out["cov"] = vectors @ np.diag(values) @ vectors.T
     out["coverage"] = coverage
     out["ratio"] = ratio
-    out["alpha"] = min(ratio / grow, MERGED_ALPHA_MAX)
+    mus = s["means"][rows].astype(np.float64)
+    out["alpha_fit"] = fitted_opacity(alpha, mus, cov, out["mean"], out["cov"])
+    out["alpha"] = min(out["alpha_fit"], MERGED_ALPHA_MAX)
     return out
 
 
@@ -210,38 +238,42 @@ def prune_keep(opacity_logits: np.ndarray, threshold: float, keep_at_least: int)
 
 def field_cost(s: dict, i: int, j: int, merged: dict, lambda_geo=1.0, lambda_app=1.0) -> float:
     """The field cost, float64: the squared L2 change of the opacity field and of the direction-averaged
-    SH colour field, every Gaussian projected onto the face plane of the merged splat ``merged``
-    (mean, cov, alpha, pi), each a peak-one 2D Gaussian; integrals by brute-force quadrature."""
-    values, vectors = np.linalg.eigh(merged["cov"])
-    plane = np.stack([vectors[:, 2], vectors[:, 1]])
+    SH colour field, seen along each of the three axes of the merged splat ``merged`` (mean, cov,
+    alpha, pi), every Gaussian projected onto the plane of the other two as a peak-one 2D Gaussian,
+    summed over the three views; each integral of a product of two Gaussians in closed form
+    (``gaussian_overlap_2d``, itself checked against quadrature in the tests)."""
     cov = covariances(s["rotations"][[i, j]], s["log_scales"][[i, j]])
     mus = [s["means"][i].astype(np.float64), s["means"][j].astype(np.float64), merged["mean"]]
-    covs = [plane @ c @ plane.T for c in (cov[0], cov[1], merged["cov"])]
     a = list(sigmoid(s["opacities"][[i, j]])) + [merged["alpha"]]
     f = s["features"].astype(np.float64)
     fm = merged["pi"] * f[i] + (1 - merged["pi"]) * f[j]
     feats = [f[i], f[j], fm]
     sign = [1.0, 1.0, -1.0]
-    # quadrature grid around the pair, in plane coordinates
-    centre = plane @ merged["mean"]
-    reach = 6.0 * np.sqrt(max(np.linalg.eigvalsh(c).max() for c in covs)) + max(np.abs(plane @ (m - merged["mean"])).max() for m in mus)
-    t = np.linspace(-reach, reach, 801)
-    gx, gy = np.meshgrid(t, t, indexing="ij")
-    pts = np.stack([gx, gy], -1) + centre
-    dA = (t[1] - t[0]) ** 2
-    fields = []
-    for mu, c in zip(mus, covs):
-        d = pts - plane @ mu
-        q = np.einsum("...i,ij,...j->...", d, np.linalg.inv(c), d)
-        fields.append(np.exp(-0.5 * q))
-    opacity = sum(sg * ak * g for sg, ak, g in zip(sign, a, fields))
-    geo = (opacity**2).sum() * dA
 
     def dot(fa, fb):
         return ((0.5 + 0.28209479177387814 * fa[:3]) * (0.5 + 0.28209479177387814 * fb[:3])).sum() + (fa[3:] * fb[3:]).sum() / (4 * np.pi)
 
-    col = 0.0
-    for x in range(3):
-        for y in range(3):
-            col += sign[x] * sign[y] * a[x] * a[y] * dot(feats[x], feats[y]) * (fields[x] * fields[y]).sum() * dA
+    geo = col = 0.0
+    for plane in view_planes(merged["cov"]):
+        covs = [plane @ c @ plane.T for c in (cov[0], cov[1], merged["cov"])]
+        centres = [plane @ m for m in mus]
+        for x in range(3):
+            for y in range(3):
+                o = sign[x] * sign[y] * a[x] * a[y] * gaussian_overlap_2d(centres[x], covs[x], centres[y], covs[y])
+                geo += o
+                col += o * dot(feats[x], feats[y])
     return lambda_geo * max(geo, 0.0) + lambda_app * max(col, 0.0)
+
+
+def quadrature_overlap_2d(mu_a, a, mu_b, b, points: int = 801) -> float:
+    """int G_a G_b dA by brute-force quadrature on a grid around both (for checking the closed form)."""
+    reach = 7.0 * np.sqrt(max(np.linalg.eigvalsh(a).max(), np.linalg.eigvalsh(b).max()))
+    centre = 0.5 * (mu_a + mu_b)
+    t = np.linspace(-reach, reach, points) + 0.0
+    gx, gy = np.meshgrid(t + centre[0], t + centre[1], indexing="ij")
+    pts = np.stack([gx, gy], -1)
+    total = np.ones(gx.shape)
+    for mu, c in ((mu_a, a), (mu_b, b)):
+        d = pts - mu
+        total = total * np.exp(-0.5 * np.einsum("...i,ij,...j->...", d, np.linalg.inv(c), d))
+    return float(total.sum() * (t[1] - t[0]) ** 2)

@@ -105,9 +105,10 @@ def test_coverage_matches_reference(device, rng, sh_degree, growth):
     assert 0 < saturated < len(pairs_ij)
 
 
-def test_coverage_conserves_coverage(device, rng):
-    """alpha_m * (s0 s1)_m = the pair's coverage in the merged face plane wherever alpha_m < 1, and
-    growth happens only where alpha_m would exceed 1 (then alpha_m = 1)."""
+def test_coverage_grows_the_face_plane_and_fits_the_opacity(device, rng):
+    """Where the pair covers more than the merged footprint (ratio r > 1) the face plane grows to
+    coverage / r^(1 - growth); the opacity is the one whose three-view field error is least: below
+    the cap, nudging it either way increases that error (float64 quadrature-free closed forms)."""
     n = 512
     growth = 0.25
     arrays = random_splat_arrays(n, sh_degree=0, seed=int(rng.integers(1 << 30)))
@@ -118,47 +119,29 @@ def test_coverage_conserves_coverage(device, rng):
         ref = reference.coverage_merge(before, i, j, growth)
         alpha_m = reference.sigmoid(after["opacities"][i])
         face = np.exp(after["log_scales"][i][0] + after["log_scales"][i][1], dtype=np.float64)
-        if ref["ratio"] < reference.MERGED_ALPHA_MAX - 1e-3:  # below the cap: the coverage is kept
-            np.testing.assert_allclose(alpha_m * face, ref["coverage"], rtol=2e-5)
-            counts[0] += 1
-        elif ref["ratio"] > 1.001:
-            assert alpha_m > reference.MERGED_ALPHA_MAX - 1e-6
+        if ref["ratio"] > 1.001:
             np.testing.assert_allclose(face, ref["coverage"] / ref["ratio"] ** (1 - growth), rtol=2e-5)
             counts[1] += 1
+        if ref["alpha_fit"] < reference.MERGED_ALPHA_MAX - 1e-3:
+            rows = [i, j]
+            mus = before["means"][rows].astype(np.float64)
+            covs = reference.covariances(before["rotations"][rows], before["log_scales"][rows])
+            pair_alpha = reference.sigmoid(before["opacities"][rows])
+
+            def error(a):
+                total = 0.0
+                for plane in reference.view_planes(ref["cov"]):
+                    pm, cm = plane @ ref["mean"], plane @ ref["cov"] @ plane.T
+                    terms = [(pa, plane @ mu, plane @ c @ plane.T) for pa, mu, c in zip(pair_alpha, mus, covs)] + [(-a, pm, cm)]
+                    total += sum(x[0] * y[0] * reference.gaussian_overlap_2d(x[1], x[2], y[1], y[2]) for x in terms for y in terms)
+                return total
+
+            assert error(alpha_m) <= min(error(alpha_m * 1.01), error(alpha_m * 0.99)) * (1 + 1e-9)
+            counts[0] += 1
+        else:
+            assert alpha_m > reference.MERGED_ALPHA_MAX - 1e-6
     assert min(counts) > 0
 
-
-@pytest.mark.parametrize("operator", ["area", "coverage"])
-def test_identical_faint_splats_keep_shape(device, operator):
-    """A faint splat merged with its copy keeps its mean and covariance; its opacity doubles (both
-    the area-weighted mass and the coverage are additive when nothing clamps)."""
-    arrays = random_splat_arrays(2, sh_degree=1, seed=7)
-    arrays["opacities"][0] = -3.0
-    for key in arrays:
-        arrays[key][1] = arrays[key][0]
-    before, after = merged(arrays, device, np.array([[0, 1]]), OPERATORS[operator]())
-    cov_before = reference.covariances(before["rotations"][:1], before["log_scales"][:1])[0]
-    cov_after = reference.covariances(after["rotations"][:1], after["log_scales"][:1])[0]
-    np.testing.assert_allclose(cov_after, cov_before, atol=1e-5 * np.abs(cov_before).max())
-    np.testing.assert_allclose(after["means"][0], before["means"][0], rtol=1e-6)
-    np.testing.assert_allclose(after["features"][0], before["features"][0], rtol=1e-6)
-    alpha = reference.sigmoid(before["opacities"][0])
-    np.testing.assert_allclose(reference.sigmoid(after["opacities"][0]), 2 * alpha, rtol=1e-5)
-
-
-@pytest.mark.parametrize("operator", ["area", "coverage"])
-def test_extreme_values_stay_finite(device, operator):
-    """Tiny scales, near-opaque and near-transparent splats, isotropic splats: finite output."""
-    arrays = random_splat_arrays(10, sh_degree=0, seed=11)
-    arrays["log_scales"][0:2] = -19.0
-    arrays["log_scales"][2:4] = np.log(0.01)  # isotropic
-    arrays["opacities"][4:6] = 30.0
-    arrays["opacities"][6:8] = -30.0
-    arrays["log_scales"][8] = [-1.0, -1.0, -19.0]  # flat
-    arrays["log_scales"][9] = [-1.0, -19.0, -19.0]  # needle
-    before, after = merged(arrays, device, np.array([[0, 1], [2, 3], [4, 5], [6, 7], [8, 9]]), OPERATORS[operator]())
-    for i, j in [(0, 1), (2, 3), (4, 5), (6, 7), (8, 9)]:
-        check_splat(before, after, i, j)
 
 
 def test_area_and_coverage_deterministic(device, rng):

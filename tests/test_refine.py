@@ -118,3 +118,25 @@ def test_bad_settings_are_input_errors():
         refine(splats, splats, size=8)
     with pytest.raises(InputError):
         refine(splats, splats, steps=-1)
+
+
+def test_refinement_that_hurts_held_out_views_returns_its_input():
+    """Learning rates far too large wreck the scene; the held-out views see it and the input comes
+    back unchanged, byte for byte, with kept_step 0."""
+    reference = load_ply(str(resources.files("nanogs_warp.data") / "plant_crop.ply"), device="cpu")
+    small = simplify(reference, ratio=0.02)
+    wild = RefineConfig(steps=4, size=48, reference_views=4, lr_means=50.0, lr_opacities=50.0, lr_log_scales=50.0)
+    out, report = refine_with_report(small, reference, wild)
+    assert report.kept_step == 0
+    assert report.validation_after == report.validation_before
+    for key, value in small.to_numpy().items():
+        assert out.to_numpy()[key].tobytes() == value.tobytes(), key
+
+
+def test_refinement_returns_its_best_held_out_checkpoint():
+    reference = load_ply(str(resources.files("nanogs_warp.data") / "plant_crop.ply"), device="cpu")
+    small = simplify(reference, ratio=0.02)
+    out, report = refine_with_report(small, reference, RefineConfig(steps=8, size=48, reference_views=8))
+    assert report.kept_step in (0, 2, 4, 6, 8)
+    assert report.validation_after <= report.validation_before
+    assert report.kept_step > 0, "a sane run should improve on views it never trained on"
