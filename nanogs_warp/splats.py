@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
-from .ply_layout import PlyLayout  # noqa: F401 - where it was defined before
+if TYPE_CHECKING:
+    from .io.ply_layout import PlyLayout
 
 
 @dataclass

@@ -13,10 +13,11 @@ import plyfile
 import pytest
 from scene_factory import random_splat_arrays, random_splats_ply, write_splats_ply
 
-from nanogs_warp import ply
+from nanogs_warp.cli.info import format_info
 from nanogs_warp.errors import InputError
-from nanogs_warp.info import format_info, scene_info
-from nanogs_warp.ply import load_ply, save_ply
+from nanogs_warp.io import ply
+from nanogs_warp.io.ply import load_ply, save_ply
+from nanogs_warp.io.scene_info import scene_info
 from nanogs_warp.splats import SplatSet
 
 INRIA = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]

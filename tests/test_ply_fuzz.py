@@ -17,8 +17,8 @@ from hypothesis import strategies as st
 from scene_factory import random_splats_ply
 
 from nanogs_warp.errors import InputError
-from nanogs_warp.info import scene_info
-from nanogs_warp.ply import load_ply
+from nanogs_warp.io.ply import load_ply
+from nanogs_warp.io.scene_info import scene_info
 
 SEEDS = [  # (n, sh_degree, byte_order, text, dtype, shuffle, extras, other elements)
     (3, 0, "<", False, "f4", False, (), False),

@@ -25,8 +25,8 @@ import numpy as np
 import warp as wp
 
 from nanogs_warp.device import init_warp, resolve_device
+from nanogs_warp.io.ply import load_ply
 from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively, target_count
-from nanogs_warp.ply import load_ply
 from nanogs_warp.splats import SplatSet
 
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..ply_write import output_properties
-from ..ply_layout import PlyLayout
+from .ply_layout import PlyLayout
+from .ply_write import output_properties
 
 SH_C0 = 0.28209479177387814  # the degree-0 SH basis: colour = 0.5 + SH_C0 * f_dc
 SQRT1_2 = float(np.sqrt(0.5))

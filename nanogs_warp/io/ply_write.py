@@ -1,7 +1,7 @@
 """Writing a :class:`SplatSet`'s host arrays as a binary little-endian 3DGS PLY file.
 
 Packs the vertex rows in chunks, block by block, behind a header made by plyfile, into a temporary
-file that then replaces the target (see :func:`nanogs_warp.ply.save_ply`, the public entry point).
+file that then replaces the target (see :func:`nanogs_warp.io.ply.save_ply`, the public entry point).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import plyfile
 
-from .errors import InputError
+from ..errors import InputError
 from .ply_header import (
     DC_NAMES,
     MEAN_NAMES,

@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import plyfile
 
-from .domain import LOG_SCALE_LIMIT
-from .errors import InputError
+from ..domain import LOG_SCALE_LIMIT
+from ..errors import InputError
 from .ply_header import (
     DC_NAMES,
     MAX_HEADER_BYTES,
@@ -39,12 +39,12 @@ from .ply_header import (
     one_line,
     parse_header,
 )
+from .ply_layout import PlyLayout
 from .ply_write import atomic_write, output_properties
 from .ply_write import write_ply_stream as _write_ply_stream  # by this name: the tests patch it here
-from .ply_layout import PlyLayout
 
 if TYPE_CHECKING:
-    from .splats import SplatSet
+    from ..splats import SplatSet
 
 DROP_HINT = "load with drop_invalid (CLI: --drop-invalid) to drop them"
 
@@ -148,7 +148,7 @@ def _to_splat_set(a: dict[str, np.ndarray], layout: PlyLayout, device) -> SplatS
     copy (Warp keeps a reference to them); this saves a quarter of the load time."""
     import warp as wp  # here, not at the top: reading a file's header and values needs no Warp
 
-    from .splats import SplatSet
+    from ..splats import SplatSet
 
     device = wp.get_device(device)
     if not device.is_cpu:
