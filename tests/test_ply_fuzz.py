@@ -139,7 +139,8 @@ def check_outcome(path):
             assert np.isfinite(host[key]).all(), key
         norms = np.linalg.norm(host["rotations"].astype(np.float64), axis=1)
         np.testing.assert_allclose(norms, 1.0, atol=1e-6)
-        assert host["extras"].shape == (splats.count, len(splats.layout.extra_names))
+        assert host["extras"].shape == (splats.count, len(splats.layout.float_extra_names))
+        assert host["integer_extras"].shape == (splats.count, len(splats.layout.integer_extra_names))
     try:
         json.dumps(scene_info(path))
     except InputError as e:

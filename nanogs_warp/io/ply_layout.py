@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 
 @dataclass
 class PlyLayout:
@@ -12,8 +14,10 @@ class PlyLayout:
 
     ``properties`` lists the vertex properties in file order as (name, numpy dtype string).
     ``extra_names`` are the vertex properties that are not part of the 3DGS model; they are carried
-    through as ``SplatSet.extras`` columns in this order. ``other_elements``, ``comments`` and
-    ``obj_info`` are kept verbatim from the input file.
+    through a simplification in this order: the floating-point ones (:attr:`float_extra_names`) as
+    ``SplatSet.extras`` columns, the integer ones (:attr:`integer_extra_names`) exactly as
+    ``SplatSet.integer_extras`` columns. ``other_elements``, ``comments`` and ``obj_info`` are
+    kept verbatim from the input file.
     """
 
     properties: list[tuple[str, str]]
@@ -21,3 +25,16 @@ class PlyLayout:
     other_elements: list = field(default_factory=list)
     comments: list[str] = field(default_factory=list)
     obj_info: list[str] = field(default_factory=list)
+
+    def extra_dtype(self, name: str) -> np.dtype:
+        return np.dtype(dict(self.properties).get(name, "f4"))
+
+    @property
+    def integer_extra_names(self) -> list[str]:
+        """The extra properties of an integer type (char to uint), in file order."""
+        return [n for n in self.extra_names if self.extra_dtype(n).kind in "iu"]
+
+    @property
+    def float_extra_names(self) -> list[str]:
+        """The other extra properties (float, double), in file order."""
+        return [n for n in self.extra_names if self.extra_dtype(n).kind not in "iu"]

@@ -32,7 +32,7 @@ def scene_info(path) -> dict:
     a = data.arrays
     layout = data.layout
     model = check_values(a)
-    with_extras = check_values(a, extra_names=layout.extra_names)
+    with_extras = check_values(a, extra_names=layout.float_extra_names)  # integer ones are always finite
     means = a["means"]
     finite_means = means[np.isfinite(means).all(axis=1)]
     with np.errstate(all="ignore"):

@@ -85,7 +85,7 @@ def _flat(a: wp.array) -> wp.array:
 
 
 def _copy(splats: SplatSet, device) -> SplatSet:
-    return SplatSet(*(wp.clone(a, device=device) for a in splats.arrays()), layout=splats.layout)
+    return splats.clone(device)
 
 
 class _Refiner:
