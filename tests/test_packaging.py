@@ -82,3 +82,14 @@ def test_the_console_script_and_python_m_run_the_command():
     assert callable(getattr(importlib.import_module(module), name))
     done = subprocess.run([sys.executable, "-m", "nanogs_warp", "--version"], capture_output=True, text=True)
     assert done.returncode == 0 and done.stdout.strip() == "nanogs-warp 0.1.0" and done.stderr == ""
+
+
+def test_the_readme_explains_the_warp_pin_the_package_has():
+    """The README's note on the warp-lang pin names the pin in pyproject.toml and how it moves."""
+    import tomllib
+
+    pin = next(d for d in tomllib.loads(PYPROJECT)["project"]["dependencies"] if d.startswith("warp-lang"))
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = re.search(r"^## The warp-lang pin\n(.*?)(?=^## |\Z)", readme, flags=re.MULTILINE | re.DOTALL)
+    assert section is not None
+    assert f"`{pin}`" in section.group(1) and "one minor version at a time" in section.group(1)
