@@ -32,3 +32,5 @@ def gather_rows(
         out.features[d, c] = src.features[i, c]
     for c in range(src.extras.shape[1]):
         out.extras[d, c] = src.extras[i, c]
+    for c in range(src.integer_extras.shape[1]):
+        out.integer_extras[d, c] = src.integer_extras[i, c]

@@ -3,7 +3,8 @@ at row destination[i] (the row where i itself went when the absorbed rows j were
 
 Every operator is a weighted moment match of the pair (``pair_moments``, ``blend_appearance``):
 weights (pi, 1 - pi) give the merged mean, covariance (within-splat average + between-mean
-dispersion), features and extras. Operators differ in their weights and in the merged opacity:
+dispersion), features and extras; integer extras are the heavier splat's (pi >= 1/2: i's, ties
+included; else j's). Operators differ in their weights and in the merged opacity:
 
 - ``mpmm``: mass w = (2 pi)^{3/2} alpha prod s; opacity by the over rule (NanoGS eq. 6-9).
 - ``area``: w = alpha (s0 s1 + s0 s2 + s1 s2) (opacity x surface-area proxy, as hierarchical 3DGS);
@@ -81,6 +82,17 @@ def blend_rows(values: wp.array2d(dtype=float), i: int, j: int, pi: wp.float64, 
 
 
 @wp.func
+def heavier_rows(values: wp.array2d(dtype=wp.int64), i: int, j: int, pi: wp.float64, out: wp.array2d(dtype=wp.int64), row: int):
+    """out[row] = values[i] when i weighs at least as much as j (pi >= 1/2, ties to i), else values[j]:
+    integer properties are carried exactly, never averaged."""
+    k = i
+    if pi < wp.float64(0.5):
+        k = j
+    for c in range(values.shape[1]):
+        out[row, c] = values[k, c]
+
+
+@wp.func
 def blend_appearance(
     i: int,
     j: int,
@@ -89,9 +101,11 @@ def blend_appearance(
     src: Splats,
     out: Splats,
 ):
-    """Weighted features (SH) and extras of the pair, written at ``row``."""
+    """Weighted features (SH) and extras of the pair, and the heavier splat's integer extras,
+    written at ``row``."""
     blend_rows(src.features, i, j, pi, out.features, row)
     blend_rows(src.extras, i, j, pi, out.extras, row)
+    heavier_rows(src.integer_extras, i, j, pi, out.integer_extras, row)
 
 
 @wp.func

@@ -53,7 +53,7 @@ SH_C3_6 = wp.constant(-0.5900435899266435)
 
 @wp.struct
 class CameraParams:
-    """A pinhole camera as the kernels see it (built by ``nanogs_warp.render``)."""
+    """A pinhole camera as the kernels see it (built by ``nanogs_warp.eval.render``)."""
 
     rotation: wp.mat33  # world-to-camera
     translation: wp.vec3

@@ -22,6 +22,7 @@ class Splats:
     opacities: wp.array(dtype=float)
     features: wp.array2d(dtype=float)
     extras: wp.array2d(dtype=float)
+    integer_extras: wp.array2d(dtype=wp.int64)
 
 
 @wp.func

@@ -12,11 +12,11 @@ _EXPORTS = {
     "SimplifyConfig": "config",
     "simplify": "pipeline",
     "simplify_progressively": "pipeline",
-    "load_ply": "ply",
-    "save_ply": "ply",
+    "load_ply": "io.ply",
+    "save_ply": "io.ply",
     "SplatSet": "splats",
-    "RefineConfig": "refine_config",
-    "refine": "refine",
+    "RefineConfig": "refinement.config",
+    "refine": "refinement.refine",
     "load_splats": "io",
     "save_splats": "io",
 }
@@ -30,7 +30,7 @@ def __getattr__(name: str):
         raise AttributeError(f"module 'nanogs_warp' has no attribute {name!r}")
     import importlib
 
-    if module in ("pipeline", "ply", "splats", "io", "refine"):
+    if module in ("pipeline", "io.ply", "splats", "io", "refinement.refine"):
         importlib.import_module(".device", __name__).quiet_warp()
     value = getattr(importlib.import_module(f".{module}", __name__), name)
     globals()[name] = value

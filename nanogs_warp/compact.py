@@ -14,7 +14,8 @@ def select_rows(splats: SplatSet, keep: wp.array, kept_count: int) -> tuple[Spla
     device = splats.device
     destination = wp.empty(splats.count, dtype=wp.int32, device=device)
     wp.utils.array_scan(keep, destination, inclusive=False)
-    out = SplatSet.empty(kept_count, splats.features.shape[1], splats.extras.shape[1], device, splats.layout)
+    out = SplatSet.empty(kept_count, splats.features.shape[1], splats.extras.shape[1], device, splats.layout,
+                         splats.integer_extras.shape[1])  # fmt: skip
     wp.launch(
         kernels.gather_rows, splats.count,
         inputs=[keep, destination, splats.kernel_view(), out.kernel_view()], device=device,

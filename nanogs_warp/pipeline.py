@@ -9,6 +9,7 @@ import numbers
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import warp as wp
 
@@ -19,9 +20,12 @@ from .errors import InputError, NanogsWarning
 from .operators import OPERATORS
 from .pairing import select_pairs
 from .prune import prune_low_opacity
-from .splats import PlyLayout, SplatSet
+from .splats import SplatSet
 from .timing import StageClock, no_clock
 from .topology import KnnTopology
+
+if TYPE_CHECKING:
+    from .io.ply_layout import PlyLayout
 
 
 # The kNN table (N x k neighbour slots) and the edge offsets are indexed with int32, as Warp's

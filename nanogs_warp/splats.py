@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
-from .ply_layout import PlyLayout  # noqa: F401 - where it was defined before
+if TYPE_CHECKING:
+    from .io.ply_layout import PlyLayout
 
 
 @dataclass
@@ -20,7 +22,10 @@ class SplatSet:
     - ``opacities``: opacity logits (the activated opacity is sigmoid(logit)).
     - ``features``: (N, F) spherical-harmonics coefficients in file order, f_dc_0..2 then f_rest_*
       (channel-major: all R coefficients, then G, then B).
-    - ``extras``: (N, E) other per-vertex properties carried through a simplification (E may be 0).
+    - ``extras``: (N, E) the other per-vertex properties of a floating-point type, carried through a
+      simplification (merged: weighted as the features; E may be 0).
+    - ``integer_extras``: (N, I) int64, the other per-vertex properties of an integer type, carried
+      exactly (merged: the value of the pair's heavier splat; I may be 0, and is by default).
 
     Every array's layout here, in ``to_numpy()`` and in ``to_torch()`` (gsplat's: w-first
     quaternions, SH as (N, K, 3)) is described in one place, docs/api.md.
@@ -33,6 +38,11 @@ class SplatSet:
     features: wp.array
     extras: wp.array
     layout: PlyLayout | None = None
+    integer_extras: wp.array | None = None  # None: (N, 0)
+
+    def __post_init__(self):
+        if self.integer_extras is None:
+            self.integer_extras = wp.empty((self.means.shape[0], 0), dtype=wp.int64, device=self.means.device)
 
     @property
     def count(self) -> int:
@@ -59,16 +69,26 @@ class SplatSet:
         extras: np.ndarray | None = None,
         layout: PlyLayout | None = None,
         device=None,
+        integer_extras: np.ndarray | None = None,
     ) -> SplatSet:
-        """Builds a splat set from host arrays; quaternions are given w-first, as PLY stores them."""
+        """Builds a splat set from host arrays; quaternions are given w-first, as PLY stores them.
+
+        ``extras`` may also hold every extra property of ``layout`` (integer ones included, as
+        floats) when ``integer_extras`` is not given: the integer columns are then rounded (half to
+        even) and clipped to their type."""
         device = wp.get_device(device)
         n = means.shape[0]
         quat_xyzw = np.ascontiguousarray(np.asarray(rotations, dtype=np.float32)[:, [1, 2, 3, 0]])
         if extras is None:
             extras = np.zeros((n, 0), np.float32)
+        if integer_extras is None:
+            extras, integer_extras = split_integer_extras(np.asarray(extras), layout)
 
         def f32(a, shape):
             return np.ascontiguousarray(np.asarray(a, dtype=np.float32).reshape(shape))
+
+        def i64(a, shape):
+            return np.ascontiguousarray(np.asarray(a, dtype=np.int64).reshape(shape))
 
         return SplatSet(
             means=wp.array(f32(means, (n, 3)), dtype=wp.vec3, device=device),
@@ -78,11 +98,12 @@ class SplatSet:
             features=wp.array(f32(features, (n, features.shape[1])), dtype=wp.float32, device=device),
             extras=wp.array(f32(extras, (n, extras.shape[1])), dtype=wp.float32, device=device),
             layout=layout,
+            integer_extras=wp.array(i64(integer_extras, (n, integer_extras.shape[1])), dtype=wp.int64, device=device),
         )
 
     def to_numpy(self) -> dict[str, np.ndarray]:
         """Host copies of every attribute (never views of device memory): means, rotations (w-first),
-        log_scales, opacities, features, extras."""
+        log_scales, opacities, features, extras, integer_extras."""
         quat = self.rotations.numpy().reshape(-1, 4)
         return {
             "means": self.means.numpy().reshape(-1, 3).copy(),
@@ -91,13 +112,14 @@ class SplatSet:
             "opacities": self.opacities.numpy().reshape(-1).copy(),
             "features": self.features.numpy().reshape(self.count, -1).copy(),
             "extras": self.extras.numpy().reshape(self.count, -1).copy(),
+            "integer_extras": self.integer_extras.numpy().reshape(self.count, -1).copy(),
         }
 
     def to_gsplat_numpy(self) -> dict[str, np.ndarray]:
         """Host arrays in gsplat's layout (docs/api.md): ``means`` (N, 3); ``quats`` (N, 4) w-first;
         ``scales`` (N, 3) natural-log; ``opacities`` (N,) logits; ``sh`` (N, K, 3) with K = (d + 1)^2,
         coefficient-major (``sh[:, 0]`` the DC term, as gsplat's sh0 = sh[:, :1], shN = sh[:, 1:]);
-        ``extras`` (N, E). float32, fresh copies."""
+        ``extras`` (N, E). float32, fresh copies; and ``integer_extras`` (N, I) int64."""
         host = self.to_numpy()
         n, f = host["features"].shape
         k = f // 3
@@ -111,6 +133,7 @@ class SplatSet:
             "opacities": host["opacities"],
             "sh": sh,
             "extras": host["extras"],
+            "integer_extras": host["integer_extras"],
         }
 
     def to_torch(self, device=None) -> dict:
@@ -129,10 +152,12 @@ class SplatSet:
         device = wp.get_device(device)
         if device == self.device:
             return self
-        return SplatSet(
-            *(wp.clone(a, device=device) for a in self.arrays()),
-            layout=self.layout,
-        )
+        return self.clone(device)
+
+    def clone(self, device=None) -> SplatSet:
+        """A copy of every array, on ``device`` (default: this splat set's), with the same layout."""
+        device = self.device if device is None else device
+        return replace(self, **{f.name: wp.clone(getattr(self, f.name), device=device) for f in _ARRAY_FIELDS})
 
     def kernel_view(self):
         """The arrays bundled as the kernels' ``Splats`` struct."""
@@ -141,13 +166,16 @@ class SplatSet:
         view = Splats()
         view.means, view.rotations, view.log_scales = self.means, self.rotations, self.log_scales
         view.opacities, view.features, view.extras = self.opacities, self.features, self.extras
+        view.integer_extras = self.integer_extras
         return view
 
     def arrays(self) -> tuple[wp.array, ...]:
-        return (self.means, self.rotations, self.log_scales, self.opacities, self.features, self.extras)
+        return tuple(getattr(self, f.name) for f in _ARRAY_FIELDS)
 
     @staticmethod
-    def empty(count: int, feature_count: int, extra_count: int, device, layout=None) -> SplatSet:
+    def empty(
+        count: int, feature_count: int, extra_count: int, device, layout=None, integer_extra_count: int = 0
+    ) -> SplatSet:
         """An uninitialised splat set of ``count`` rows (callers fill every row)."""
         return SplatSet(
             means=wp.empty(count, dtype=wp.vec3, device=device),
@@ -157,7 +185,30 @@ class SplatSet:
             features=wp.empty((count, feature_count), dtype=wp.float32, device=device),
             extras=wp.empty((count, extra_count), dtype=wp.float32, device=device),
             layout=layout,
+            integer_extras=wp.empty((count, integer_extra_count), dtype=wp.int64, device=device),
         )
+
+
+_ARRAY_FIELDS = [f for f in fields(SplatSet) if f.name != "layout"]
+
+
+def split_integer_extras(extras: np.ndarray, layout: PlyLayout | None) -> tuple[np.ndarray, np.ndarray]:
+    """(float extras, int64 integer extras) from ``extras`` holding either only the float extra
+    properties of ``layout`` or all of them: then the integer columns are taken out, rounded (half
+    to even; NaN as 0) and clipped to their type."""
+    n = extras.shape[0]
+    names = layout.integer_extra_names if layout is not None else []
+    if not names or extras.shape[1] != len(layout.extra_names):
+        return extras, np.zeros((n, 0), np.int64)
+    where = {name: k for k, name in enumerate(layout.extra_names)}
+    columns = []
+    for name in names:
+        info = np.iinfo(layout.extra_dtype(name))
+        with np.errstate(invalid="ignore"):
+            values = np.rint(np.nan_to_num(extras[:, where[name]].astype(np.float64)))
+        columns.append(np.clip(values, info.min, info.max).astype(np.int64))
+    floats = [where[name] for name in layout.float_extra_names]
+    return np.ascontiguousarray(extras[:, floats]), np.stack(columns, axis=1)
 
 
 def sh_degree_for_features(feature_count: int) -> int:

@@ -68,6 +68,8 @@ def mpmm(s: dict, i: int, j: int) -> dict:
     }
     if s.get("extras") is not None:
         out["extras"] = pi * s["extras"][i].astype(np.float64) + (1 - pi) * s["extras"][j]
+    if s.get("integer_extras") is not None:
+        out["integer_extras"] = heavier_values(s["integer_extras"], i, j, pi)
     return out
 
 
@@ -87,7 +89,15 @@ def _weighted_pair(s: dict, i: int, j: int, log_w: np.ndarray) -> dict:
     }
     if s.get("extras") is not None:
         out["extras"] = pi * s["extras"][i].astype(np.float64) + (1 - pi) * s["extras"][j]
+    if s.get("integer_extras") is not None:
+        out["integer_extras"] = heavier_values(s["integer_extras"], i, j, pi)
     return out
+
+
+def heavier_values(values: np.ndarray, i: int, j: int, pi: float) -> np.ndarray:
+    """Integer properties of a merge: the row of the heavier splat (weight pi of i against 1 - pi
+    of j), i's on a tie; never an average."""
+    return values[i] if pi >= 0.5 else values[j]
 
 
 def area_proxy(log_scales) -> np.ndarray:

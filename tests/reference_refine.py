@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nanogs_warp.metrics import gaussian_window
+from nanogs_warp.eval.metrics import gaussian_window
 
 C1, C2 = 0.01**2, 0.03**2
 

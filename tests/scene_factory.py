@@ -46,7 +46,7 @@ def random_splats_ply(
 
     The file has ``nx ny nz`` (zeros) like INRIA's, so they lead the loaded ``extras``, followed by
     ``extra_props``: names (float32) or ``(name, dtype)`` pairs, filled with random values that
-    the dtype holds exactly. ``dtype`` ('f4' or 'f8') is the type of the 3DGS properties and the
+    the dtype holds exactly (those of an integer dtype are the loaded ``integer_extras``). ``dtype`` ('f4' or 'f8') is the type of the 3DGS properties and the
     normals; ``shuffle`` writes the vertex properties in a random (seeded) order.
     """
     arrays = random_splat_arrays(n, sh_degree, seed)
@@ -69,7 +69,8 @@ def write_splats_ply(
 ) -> dict[str, np.ndarray]:
     """Writes ``arrays`` (``random_splat_arrays`` names; quaternions need not be unit) as a PLY
     file; see ``random_splats_ply``. Returns the arrays, ready for ``SplatSet.from_numpy(**arrays)``,
-    with ``extras`` (N, E) float32 holding the normals and the extra properties in file order."""
+    with ``extras`` (N, E) float32 holding the normals and the float extra properties in file order,
+    ``integer_extras`` (N, I) int64 the integer ones."""
     rng = np.random.default_rng(seed + 1)
     n = arrays["means"].shape[0]
     n_rest = arrays["features"].shape[1] - 3
@@ -96,14 +97,14 @@ def write_splats_ply(
             values = rng.normal(size=n).astype(np.float32).astype(pdtype)
         columns[name] = (values, pdtype.str[1:])
         extra_names.append(name)
-        extra_cols.append(values.astype(np.float32))
+        extra_cols.append(values)
 
     order = [*MEANS, *(NORMALS if normals else ()), *DC, *(f"f_rest_{i}" for i in range(n_rest)),
              "opacity", *SCALES, *ROTS, *extra_names[3 if normals else 0 :]]
     if shuffle:
         order = [order[i] for i in rng.permutation(len(order))]
         extra_names = [name for name in order if name in set(extra_names)]
-        extra_cols = [columns[name][0].astype(np.float32) for name in extra_names]
+        extra_cols = [columns[name][0] for name in extra_names]
     record = np.empty(n, [(name, columns[name][1]) for name in order])
     for name in order:
         record[name] = columns[name][0]
@@ -113,6 +114,9 @@ def write_splats_ply(
     ).write(str(path))
 
     with np.errstate(over="ignore"):  # float64 test values may overflow float32, as in load_ply
-        out = {k: np.array(v, dtype=np.float32) for k, v in arrays.items() if k != "extras"}
-    out["extras"] = np.stack(extra_cols, axis=1) if extra_cols else np.zeros((n, 0), np.float32)
+        out = {k: np.array(v, dtype=np.float32) for k, v in arrays.items() if k not in ("extras", "integer_extras")}
+    floats = [c.astype(np.float32) for c in extra_cols if c.dtype.kind not in "iu"]
+    integers = [c.astype(np.int64) for c in extra_cols if c.dtype.kind in "iu"]
+    out["extras"] = np.stack(floats, axis=1) if floats else np.zeros((n, 0), np.float32)
+    out["integer_extras"] = np.stack(integers, axis=1) if integers else np.zeros((n, 0), np.int64)
     return out

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scene_factory import random_splats_ply
 
-from nanogs_warp.ply import load_ply
+from nanogs_warp.io.ply import load_ply
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 

@@ -16,13 +16,13 @@ import typer
 from scene_factory import random_splats_ply
 from typer.testing import CliRunner
 
-from nanogs_warp.batch import BatchProgress, SceneJob, SceneResult, find_scenes, select_shard
-from nanogs_warp.cli import user_errors
-from nanogs_warp.cli_batch import batch_command
+from nanogs_warp.batch.run import BatchProgress, SceneJob, SceneResult, find_scenes, select_shard
+from nanogs_warp.cli.batch import batch_command
+from nanogs_warp.cli.errors import user_errors
+from nanogs_warp.io.ply import load_ply
 from nanogs_warp.pipeline import SimplifyConfig
-from nanogs_warp.ply import load_ply
 
-# As cli.py registers it: `nanogs-warp batch ...`.
+# As cli/app.py registers it: `nanogs-warp batch ...`.
 app = typer.Typer(pretty_exceptions_enable=False)
 app.callback()(lambda: None)
 app.command("batch")(user_errors(batch_command))
@@ -108,7 +108,7 @@ def test_killed_run_resumes_without_redoing_finished_scenes(tmp_path):
     root.mkdir()
     for i in range(4):
         random_splats_ply(root / f"s{i}.ply", 40000, seed=i)
-    command = [sys.executable, "-m", "nanogs_warp.cli_batch", str(root), "-o", str(out), "--ratio", "0.1,0.01",
+    command = [sys.executable, "-m", "nanogs_warp.cli.batch", str(root), "-o", str(out), "--ratio", "0.1,0.01",
                "--devices", "cpu", "--json"]  # fmt: skip
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     deadline = time.monotonic() + 60
@@ -287,7 +287,7 @@ def test_a_dead_worker_fails_its_scene_and_is_replaced(tmp_path):
     random_splats_ply(root / "big.ply", 300)
     os.mkfifo(root / "a_fifo.ply")  # size 0: after big.ply; before z_empty.ply by name
     (root / "z_empty.ply").write_bytes(b"")
-    command = [sys.executable, "-m", "nanogs_warp.cli_batch", str(root), "-o", str(tmp_path / "out"),
+    command = [sys.executable, "-m", "nanogs_warp.cli.batch", str(root), "-o", str(tmp_path / "out"),
                "--count", "10", "--devices", "cpu", "--json"]  # fmt: skip
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     for line in process.stderr:
@@ -306,7 +306,7 @@ def test_a_dead_worker_fails_its_scene_and_is_replaced(tmp_path):
 
 
 def test_default_time_limit_scales_with_the_scene():
-    from nanogs_warp.batch_scenes import scene_timeout
+    from nanogs_warp.batch.scenes import scene_timeout
 
     job = SceneJob(Path("a.ply"), "a.ply", Path("o"), (), SimplifyConfig(), False, 1_500_000_000)
     assert scene_timeout(job, on_gpu=True) == pytest.approx(450.0)  # docs/batch.md's example
@@ -317,7 +317,7 @@ def test_default_time_limit_scales_with_the_scene():
 def test_devices_every_gpu_and_the_cpu():
     import warp as wp
 
-    from nanogs_warp.batch_local import parse_devices
+    from nanogs_warp.batch.local import parse_devices
     from nanogs_warp.errors import InputError
 
     gpus = [f"cuda:{i}" for i in range(wp.get_cuda_device_count())]

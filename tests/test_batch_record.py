@@ -5,8 +5,8 @@ import json
 import warp as wp
 from scene_factory import random_splats_ply
 
-from nanogs_warp.batch_scenes import find_scenes
-from nanogs_warp.batch_work import process_scene
+from nanogs_warp.batch.scenes import find_scenes
+from nanogs_warp.batch.work import process_scene
 from nanogs_warp.budgets import parse_budgets
 from nanogs_warp.pipeline import SimplifyConfig
 

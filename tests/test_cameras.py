@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from nanogs_warp.cameras import Camera, load_cameras_json, orbit_cameras, parse_up, scene_frame
 from nanogs_warp.errors import InputError
+from nanogs_warp.eval.cameras import Camera, load_cameras_json, orbit_cameras, parse_up, scene_frame
 from nanogs_warp.splats import SplatSet
 
 

@@ -15,8 +15,8 @@ import warp as wp
 from scene_factory import random_splats_ply
 from typer.testing import CliRunner
 
-from nanogs_warp.cli import app
-from nanogs_warp.ply import load_ply
+from nanogs_warp.cli.app import app
+from nanogs_warp.io.ply import load_ply
 
 SAMPLE = Path(str(resources.files("nanogs_warp.data") / "plant_crop.ply"))
 runner = CliRunner()
@@ -136,8 +136,8 @@ def test_commands_silence_warnings_unless_debugging(scene):
     import sys
 
     code = (
-        "import sys, warnings, numpy as np, nanogs_warp.info as info\n"
-        "from nanogs_warp.cli import app\n"
+        "import sys, warnings, numpy as np, nanogs_warp.io.scene_info as info\n"
+        "from nanogs_warp.cli.app import app\n"
         "real = info.scene_info\n"
         "def noisy(path):\n"
         "    warnings.warn('a library warning')\n"

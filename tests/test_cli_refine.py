@@ -8,9 +8,10 @@ import typer
 from scene_factory import random_splats_ply
 from typer.testing import CliRunner
 
-from nanogs_warp.cli import app, user_errors
-from nanogs_warp.cli_batch import batch_command
-from nanogs_warp.ply import load_ply
+from nanogs_warp.cli.app import app
+from nanogs_warp.cli.batch import batch_command
+from nanogs_warp.cli.errors import user_errors
+from nanogs_warp.io.ply import load_ply
 
 runner = CliRunner()
 

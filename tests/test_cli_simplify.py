@@ -8,9 +8,9 @@ import pytest
 from scene_factory import random_splats_ply
 from typer.testing import CliRunner
 
-from nanogs_warp.cli import app
+from nanogs_warp.cli.app import app
 from nanogs_warp.data import sample_path
-from nanogs_warp.ply import load_ply
+from nanogs_warp.io.ply import load_ply
 
 
 def run(*args):

@@ -10,14 +10,14 @@ import pytest
 from scene_factory import random_splats_ply
 from typer.testing import CliRunner
 
-from nanogs_warp.cli import app
-from nanogs_warp.cli_eval import scene_labels
-from nanogs_warp.evaluate import WORST_COLOUR, contact_sheet, view_label
-from nanogs_warp.glyphs import draw_text, text_width
+from nanogs_warp.cli.app import app
+from nanogs_warp.cli.eval import scene_labels
+from nanogs_warp.eval.evaluate import WORST_COLOUR, contact_sheet, view_label
+from nanogs_warp.eval.glyphs import draw_text, text_width
 
 
 def read_png(path):
-    """The RGB pixels of a PNG written by nanogs_warp.evaluate.write_png (filter 0, 8-bit RGB)."""
+    """The RGB pixels of a PNG written by nanogs_warp.eval.evaluate.write_png (filter 0, 8-bit RGB)."""
     data = path.read_bytes()
     width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
     at, idat = 8, b""

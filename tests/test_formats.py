@@ -15,8 +15,8 @@ from scene_factory import random_splat_arrays
 from nanogs_warp import SplatSet
 from nanogs_warp.io import detect_format, format_for_path, load_splats, save_splats
 from nanogs_warp.io.common import SH_C0, morton_order
+from nanogs_warp.io.ply import load_ply
 from nanogs_warp.io.spz import encode as spz_encode
-from nanogs_warp.ply import load_ply
 
 SAMPLE = Path(str(resources.files("nanogs_warp.data") / "plant_crop.ply"))
 ALPHA_ERROR = 0.5 / 255 + 1e-6  # every format: alpha in 8 bits

@@ -10,9 +10,9 @@ import pytest
 from scene_factory import random_splat_arrays, write_splats_ply
 from typer.testing import CliRunner
 
-from nanogs_warp.cli import app
+from nanogs_warp.cli.app import app
 from nanogs_warp.io import detect_format, load_splats
-from nanogs_warp.ply import load_ply
+from nanogs_warp.io.ply import load_ply
 
 runner = CliRunner()
 

@@ -19,10 +19,10 @@ from scene_factory import random_splat_arrays
 from typer.testing import CliRunner
 
 from nanogs_warp import SplatSet
-from nanogs_warp.cli import app
+from nanogs_warp.cli.app import app
 from nanogs_warp.errors import InputError
-from nanogs_warp.info import scene_info
 from nanogs_warp.io import load_splats, save_splats
+from nanogs_warp.io.scene_info import scene_info
 from nanogs_warp.io.spz import encode as spz_encode
 
 NAMES = {"splat": "seed.splat", "compressed-ply": "seed.compressed.ply", "spz": "seed.spz", "sog": "seed.sog"}

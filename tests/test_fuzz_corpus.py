@@ -48,7 +48,7 @@ from pathlib import Path
 sys.path.insert(0, sys.argv[1])
 from typer.testing import CliRunner
 from fuzz_run import check_refusal, check_simplified
-from nanogs_warp.cli import app
+from nanogs_warp.cli.app import app
 ratio = float(sys.argv[2])
 runner = CliRunner()
 for line in sys.stdin:

@@ -7,7 +7,7 @@ import pytest
 import reference_refine as ref
 import warp as wp
 
-from nanogs_warp.image_loss import ImageLoss
+from nanogs_warp.refinement.image_loss import ImageLoss
 
 
 @pytest.mark.parametrize("shape", [(16, 13), (23, 12)])

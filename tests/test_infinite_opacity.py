@@ -8,7 +8,7 @@ import pytest
 from scene_factory import random_splat_arrays, write_splats_ply
 
 from nanogs_warp import SimplifyConfig, simplify
-from nanogs_warp.ply import load_ply
+from nanogs_warp.io.ply import load_ply
 
 
 def _scene(logit_inf: float) -> dict[str, np.ndarray]:
@@ -38,8 +38,8 @@ def test_every_operator_and_cost_stays_finite(infinite_scene, device, operator, 
 
 def test_render_of_infinite_opacities(infinite_scene, device, tmp_path):
     """Alpha exactly 1 and 0 render as logits of +-30 do (sigmoid 1 in float32, and below 1/255)."""
-    from nanogs_warp.cameras import orbit_cameras
-    from nanogs_warp.evaluate import evaluate
+    from nanogs_warp.eval.cameras import orbit_cameras
+    from nanogs_warp.eval.evaluate import evaluate
 
     finite = tmp_path / "finite.ply"
     write_splats_ply(finite, _scene(30.0))

@@ -8,7 +8,7 @@ import pytest
 from scene_factory import random_splats_ply
 from typer.testing import CliRunner
 
-from nanogs_warp.cli import app
+from nanogs_warp.cli.app import app
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "json.md"
 TYPES = {

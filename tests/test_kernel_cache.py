@@ -7,8 +7,8 @@ import typer
 import warp as wp
 from typer.testing import CliRunner
 
-from nanogs_warp.cli import user_errors
-from nanogs_warp.cli_warmup import warmup_command
+from nanogs_warp.cli.errors import user_errors
+from nanogs_warp.cli.warmup import warmup_command
 from nanogs_warp.kernel_cache import SIMPLIFY_MODULES, load_kernels, missing_modules, warp_modules
 
 SAMPLE = "nanogs_warp/data/plant_crop.ply"
@@ -27,7 +27,7 @@ def test_import_is_quiet_and_loads_no_warp():
 
 
 def test_info_does_not_import_warp():
-    code = ("import sys\nfrom nanogs_warp.cli import app\nsys.argv = ['nanogs-warp', 'info', %r]\n"
+    code = ("import sys\nfrom nanogs_warp.cli.app import app\nsys.argv = ['nanogs-warp', 'info', %r]\n"
             "try:\n    app()\nexcept SystemExit:\n    pass\nprint('warp' in sys.modules)") % SAMPLE  # fmt: skip
     result = python(code)
     assert result.returncode == 0 and result.stdout.splitlines()[0].split() == ["file", "plant_crop.ply", "(1,360,498", "bytes,", "binary_little_endian)"]

@@ -8,7 +8,7 @@ from scene_factory import random_splat_arrays, random_splats_ply
 from typer.testing import CliRunner
 
 from nanogs_warp import pairing, pipeline
-from nanogs_warp.cli import app
+from nanogs_warp.cli.app import app
 from nanogs_warp.errors import InputError
 from nanogs_warp.pairing import select_pairs
 from nanogs_warp.pipeline import SimplifyConfig, check_index_limits, simplify

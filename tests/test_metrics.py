@@ -11,11 +11,12 @@ import skimage.metrics as skimage_metrics
 import typer
 from typer.testing import CliRunner
 
-from nanogs_warp import metrics, ply
-from nanogs_warp.cameras import orbit_cameras
-from nanogs_warp.cli_eval import eval_command, parse_background
+from nanogs_warp.cli.eval import eval_command, parse_background
 from nanogs_warp.errors import InputError
-from nanogs_warp.evaluate import evaluate, format_table, write_images, write_png
+from nanogs_warp.eval import metrics
+from nanogs_warp.eval.cameras import orbit_cameras
+from nanogs_warp.eval.evaluate import evaluate, format_table, write_images, write_png
+from nanogs_warp.io import ply
 from nanogs_warp.splats import SplatSet
 
 

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from nanogs_warp.data import sample_path
-from nanogs_warp.ply import load_ply
+from nanogs_warp.io.ply import load_ply
 
 ROOT = Path(__file__).resolve().parent.parent
 PYPROJECT = (ROOT / "pyproject.toml").read_text(encoding="utf-8")
@@ -59,3 +59,37 @@ def test_readme_first_command_runs_outside_the_source_tree(tmp_path):
     written = sorted(p.name for p in tmp_path.iterdir())
     assert written == sorted(Path(o["path"]).name for o in summary["outputs"]) and len(written) == 3
     assert [o["count"] for o in summary["outputs"]] == [2000, 200, 20]
+
+
+def test_the_wheel_lists_every_subpackage():
+    """setuptools is given the packages by name: each folder of the package with an __init__.py,
+    and the kernels folder as nanogs_warp.kernels, so that none is missing from a wheel."""
+    import tomllib
+
+    listed = set(tomllib.loads(PYPROJECT)["tool"]["setuptools"]["packages"])
+    package = ROOT / "nanogs_warp"
+    folders = {".".join(("nanogs_warp", *p.parent.relative_to(package).parts)) for p in package.rglob("__init__.py")}
+    assert {"nanogs_warp.io", "nanogs_warp.eval", "nanogs_warp.refinement", "nanogs_warp.batch", "nanogs_warp.cli"} <= folders
+    assert listed == folders | {"nanogs_warp.kernels"}
+
+
+def test_the_console_script_and_python_m_run_the_command():
+    import importlib
+    import tomllib
+
+    target = tomllib.loads(PYPROJECT)["project"]["scripts"]["nanogs-warp"]
+    module, _, name = target.partition(":")
+    assert callable(getattr(importlib.import_module(module), name))
+    done = subprocess.run([sys.executable, "-m", "nanogs_warp", "--version"], capture_output=True, text=True)
+    assert done.returncode == 0 and done.stdout.strip() == "nanogs-warp 0.1.0" and done.stderr == ""
+
+
+def test_the_readme_explains_the_warp_pin_the_package_has():
+    """The README's note on the warp-lang pin names the pin in pyproject.toml and how it moves."""
+    import tomllib
+
+    pin = next(d for d in tomllib.loads(PYPROJECT)["project"]["dependencies"] if d.startswith("warp-lang"))
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = re.search(r"^## The warp-lang pin\n(.*?)(?=^## |\Z)", readme, flags=re.MULTILINE | re.DOTALL)
+    assert section is not None
+    assert f"`{pin}`" in section.group(1) and "one minor version at a time" in section.group(1)

@@ -13,15 +13,16 @@ import plyfile
 import pytest
 from scene_factory import random_splat_arrays, random_splats_ply, write_splats_ply
 
-from nanogs_warp import ply
+from nanogs_warp.cli.info import format_info
 from nanogs_warp.errors import InputError
-from nanogs_warp.info import format_info, scene_info
-from nanogs_warp.ply import load_ply, save_ply
+from nanogs_warp.io import ply
+from nanogs_warp.io.ply import load_ply, save_ply
+from nanogs_warp.io.scene_info import scene_info
 from nanogs_warp.splats import SplatSet
 
 INRIA = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
 TAIL = ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
-KEYS = ("means", "rotations", "log_scales", "opacities", "features", "extras")
+KEYS = ("means", "rotations", "log_scales", "opacities", "features", "extras", "integer_extras")
 
 
 def bits(a: np.ndarray) -> np.ndarray:
@@ -134,7 +135,7 @@ def test_extras_other_elements_and_comments_survive(tmp_path):
     assert [list(v) for v in back["face"].data["vertex_indices"]] == [[0, 1, 2], [2, 3, 4, 5]]
     vertex = back["vertex"].data
     assert vertex.dtype["red"] == np.dtype("u1") and vertex.dtype["big"] == np.dtype("<u4")
-    np.testing.assert_array_equal(vertex["temp"], want["extras"][:, 4])
+    np.testing.assert_array_equal(vertex["temp"], want["integer_extras"][:, 1])
     assert_bitwise_equal(load_ply(out).to_numpy(), want)
 
 
@@ -194,13 +195,18 @@ def test_digest_sees_the_whole_file_once(tmp_path, monkeypatch, layout):
     assert digest.hexdigest() == hashlib.sha256(src.read_bytes()).hexdigest()
 
 
-def test_integer_extras_are_rounded_and_clipped(tmp_path):
+def test_float_values_of_integer_extras_are_rounded_and_clipped(tmp_path):
+    """``SplatSet.from_numpy`` given every extra property in ``extras`` (the integer ones as floats,
+    no ``integer_extras``) rounds and clips the integer ones to their type."""
     src, out = tmp_path / "in.ply", tmp_path / "out.ply"
     random_splats_ply(src, 5, extra_props=(("red", "u1"), ("temp", "i2")))
-    host = load_ply(src).to_numpy()
-    host["extras"][:, 3] = [300.7, -5.0, 3.6, np.nan, 254.5]
-    host["extras"][:, 4] = [1e9, -1e9, -2.4, 7.5, np.inf]
-    save_ply(SplatSet.from_numpy(**host, layout=load_ply(src).layout), out)
+    splats = load_ply(src)
+    host = splats.to_numpy()
+    every = np.concatenate([host["extras"], host.pop("integer_extras")], axis=1).astype(np.float32)
+    assert splats.layout.extra_names == ["nx", "ny", "nz", "red", "temp"]
+    every[:, 3] = [300.7, -5.0, 3.6, np.nan, 254.5]
+    every[:, 4] = [1e9, -1e9, -2.4, 7.5, np.inf]
+    save_ply(SplatSet.from_numpy(**dict(host, extras=every), layout=splats.layout), out)
     vertex = plyfile.PlyData.read(str(out))["vertex"].data
     np.testing.assert_array_equal(vertex["red"], [255, 0, 4, 0, 254])  # rint: half to even
     np.testing.assert_array_equal(vertex["temp"], [32767, -32768, -2, 8, 32767])

@@ -17,8 +17,8 @@ from hypothesis import strategies as st
 from scene_factory import random_splats_ply
 
 from nanogs_warp.errors import InputError
-from nanogs_warp.info import scene_info
-from nanogs_warp.ply import load_ply
+from nanogs_warp.io.ply import load_ply
+from nanogs_warp.io.scene_info import scene_info
 
 SEEDS = [  # (n, sh_degree, byte_order, text, dtype, shuffle, extras, other elements)
     (3, 0, "<", False, "f4", False, (), False),
@@ -139,7 +139,8 @@ def check_outcome(path):
             assert np.isfinite(host[key]).all(), key
         norms = np.linalg.norm(host["rotations"].astype(np.float64), axis=1)
         np.testing.assert_allclose(norms, 1.0, atol=1e-6)
-        assert host["extras"].shape == (splats.count, len(splats.layout.extra_names))
+        assert host["extras"].shape == (splats.count, len(splats.layout.float_extra_names))
+        assert host["integer_extras"].shape == (splats.count, len(splats.layout.integer_extra_names))
     try:
         json.dumps(scene_info(path))
     except InputError as e:

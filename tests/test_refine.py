@@ -12,8 +12,8 @@ from scene_factory import random_splat_arrays
 from nanogs_warp import InputError, load_ply, refine
 from nanogs_warp.kernels import adam as adam_kernels
 from nanogs_warp.pipeline import simplify
-from nanogs_warp.refine import RefineConfig, refine_with_report
-from nanogs_warp.refine_cameras import training_cameras
+from nanogs_warp.refinement.cameras import training_cameras
+from nanogs_warp.refinement.refine import RefineConfig, refine_with_report
 from nanogs_warp.splats import SplatSet
 
 

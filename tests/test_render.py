@@ -11,8 +11,8 @@ import pytest
 import reference_render as ref
 import warp as wp
 
-from nanogs_warp.cameras import Camera
-from nanogs_warp.render import _Rasteriser, render, render_views
+from nanogs_warp.eval.cameras import Camera
+from nanogs_warp.eval.render import _Rasteriser, render, render_views
 from nanogs_warp.splats import SplatSet
 
 TOLERANCE = 1e-4

@@ -14,8 +14,8 @@ import reference_render as ref
 import warp as wp
 from test_render import random_camera, random_scene
 
-from nanogs_warp.render import render
-from nanogs_warp.render_grad import GradRasteriser, SplatGradients
+from nanogs_warp.eval.render import render
+from nanogs_warp.refinement.render_grad import GradRasteriser, SplatGradients
 from nanogs_warp.splats import SplatSet
 
 GROUPS = ("means", "rotations", "log_scales", "opacities", "features")

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scene_factory import random_splats_ply
 
-from nanogs_warp.ply import load_ply
+from nanogs_warp.io.ply import load_ply
 from nanogs_warp.splats import SplatSet
 
 

@@ -9,10 +9,10 @@ import pytest
 from scene_factory import random_splat_arrays, random_splats_ply
 from typer.testing import CliRunner
 
-from nanogs_warp.cli import app
+from nanogs_warp.cli.app import app
 from nanogs_warp.errors import NanogsWarning
+from nanogs_warp.io.ply import load_ply, save_ply
 from nanogs_warp.pipeline import simplify
-from nanogs_warp.ply import load_ply, save_ply
 from nanogs_warp.splats import SplatSet
 
 

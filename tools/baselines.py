@@ -22,7 +22,7 @@ import numpy as np
 from nanogs_warp.budgets import output_paths, parse_budgets
 from nanogs_warp.device import init_warp
 from nanogs_warp.errors import InputError
-from nanogs_warp.ply import load_ply, save_ply
+from nanogs_warp.io.ply import load_ply, save_ply
 from nanogs_warp.splats import SplatSet
 
 METHODS = ("topk", "random")

@@ -32,8 +32,8 @@ from tile_scene import tile_splats  # noqa: E402
 
 from nanogs_warp.budgets import parse_budgets  # noqa: E402
 from nanogs_warp.device import keep_freed_host_memory, resolve_device  # noqa: E402
+from nanogs_warp.io.ply import load_ply, save_ply  # noqa: E402
 from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively  # noqa: E402
-from nanogs_warp.ply import load_ply, save_ply  # noqa: E402
 from nanogs_warp.timing import StageClock  # noqa: E402
 
 

@@ -25,8 +25,8 @@ import numpy as np
 import warp as wp
 
 from nanogs_warp.device import init_warp, resolve_device
+from nanogs_warp.io.ply import load_ply
 from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively, target_count
-from nanogs_warp.ply import load_ply
 from nanogs_warp.splats import SplatSet
 
 
@@ -37,7 +37,8 @@ def with_rows_copied(splats: SplatSet, rows: np.ndarray, sources: np.ndarray) ->
         if isinstance(value, np.ndarray) and value.ndim >= 1 and value.shape[0] == splats.count:
             value[rows] = value[sources]
     return SplatSet.from_numpy(host["means"], host["rotations"], host["log_scales"], host["opacities"],
-                               host["features"], host["extras"], layout=splats.layout, device="cpu")  # fmt: skip
+                               host["features"], host["extras"], layout=splats.layout, device="cpu",
+                               integer_extras=host["integer_extras"])  # fmt: skip
 
 
 def variants(splats: SplatSet, cluster: int, seed: int) -> dict[str, SplatSet]:
@@ -84,7 +85,7 @@ def main(argv=None) -> int:
         m = args.splats
         splats = SplatSet.from_numpy(host["means"][:m], host["rotations"][:m], host["log_scales"][:m],
                                      host["opacities"][:m], host["features"][:m], host["extras"][:m],
-                                     layout=splats.layout, device="cpu")  # fmt: skip
+                                     layout=splats.layout, device="cpu", integer_extras=host["integer_extras"][:m])  # fmt: skip
     target = target_count(splats.count, args.ratio)
     config = SimplifyConfig.paper() if args.config == "paper" else SimplifyConfig()
     reference = None

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from nanogs_warp.ply import load_ply
+from nanogs_warp.io.ply import load_ply
 
 
 def compare(a_path: Path, b_path: Path) -> str:

@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from tile_scene import tile_arrays  # noqa: E402
 
-from nanogs_warp.ply import load_ply, save_ply  # noqa: E402
+from nanogs_warp.io.ply import load_ply, save_ply  # noqa: E402
 from nanogs_warp.splats import SplatSet  # noqa: E402
 
 

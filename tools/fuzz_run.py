@@ -33,8 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nanogs_warp.io.ply import read_ply_arrays
 from nanogs_warp.pipeline import target_count
-from nanogs_warp.ply import read_ply_arrays
 
 ERROR_PREFIX = "nanogs-warp: error: "
 

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from nanogs_warp.device import init_warp, keep_freed_host_memory
-from nanogs_warp.ply import load_ply, save_ply
+from nanogs_warp.io.ply import load_ply, save_ply
 
 
 def timed(fn) -> float:

@@ -36,12 +36,12 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from baselines import baseline  # noqa: E402
 
-from nanogs_warp.cameras import orbit_cameras  # noqa: E402
 from nanogs_warp.cost import COSTS  # noqa: E402
 from nanogs_warp.device import resolve_device  # noqa: E402
-from nanogs_warp.evaluate import compare_images, render_all  # noqa: E402
+from nanogs_warp.eval.cameras import orbit_cameras  # noqa: E402
+from nanogs_warp.eval.evaluate import compare_images, render_all  # noqa: E402
+from nanogs_warp.io.ply import load_ply, save_ply  # noqa: E402
 from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively, target_count  # noqa: E402
-from nanogs_warp.ply import load_ply, save_ply  # noqa: E402
 
 RATIOS = (0.1, 0.01, 0.001)
 PAPER = {"k": 16, "prune_opacity": 0.1, "samples": 1, "seed": 0, "lambda_geo": 1.0, "lambda_app": 1.0, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5}

@@ -21,9 +21,9 @@ from pathlib import Path
 import warp as wp
 
 from nanogs_warp.device import init_warp, resolve_device
+from nanogs_warp.io.ply import load_ply, save_ply
 from nanogs_warp.pipeline import simplify
-from nanogs_warp.ply import load_ply, save_ply
-from nanogs_warp.refine import RefineConfig, refine_with_report
+from nanogs_warp.refinement.refine import RefineConfig, refine_with_report
 
 
 def commit() -> str | None:

@@ -18,13 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from nanogs_warp.cameras import Camera, orbit_cameras, parse_up
 from nanogs_warp.device import init_warp, resolve_device
-from nanogs_warp.evaluate import evaluate
+from nanogs_warp.eval.cameras import Camera, orbit_cameras, parse_up
+from nanogs_warp.eval.evaluate import evaluate
+from nanogs_warp.io.ply import load_ply
 from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively
-from nanogs_warp.ply import load_ply
-from nanogs_warp.refine import RefineConfig, refine_with_report
-from nanogs_warp.refine_cameras import scene_spread
+from nanogs_warp.refinement.cameras import scene_spread
+from nanogs_warp.refinement.refine import RefineConfig, refine_with_report
 
 CLOSEUP_DISTANCE = 1.3
 CLOSEUP_FOV_DEG = 45.0

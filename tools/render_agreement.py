@@ -11,10 +11,10 @@ import argparse
 
 import numpy as np
 
-from nanogs_warp.cameras import orbit_cameras
 from nanogs_warp.device import resolve_device
-from nanogs_warp.ply import load_ply
-from nanogs_warp.render import render_views
+from nanogs_warp.eval.cameras import orbit_cameras
+from nanogs_warp.eval.render import render_views
+from nanogs_warp.io.ply import load_ply
 
 
 def main() -> None:

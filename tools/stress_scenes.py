@@ -178,7 +178,7 @@ def main(argv=None) -> int:
     parser.add_argument("--scale", type=float, default=1.0, help="multiplies every splat count")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    from nanogs_warp.ply import save_ply
+    from nanogs_warp.io.ply import save_ply
     from nanogs_warp.splats import SplatSet
 
     args.out_dir.mkdir(parents=True, exist_ok=True)

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from nanogs_warp.ply import load_ply, save_ply
+from nanogs_warp.io.ply import load_ply, save_ply
 from nanogs_warp.splats import SplatSet
 
 

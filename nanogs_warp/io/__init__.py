@@ -1,7 +1,7 @@
 """Splat files in the formats people ship: reading detects the format by content (the extension
 is a hint), writing picks it by ``format`` or by the output's name.
 
-Formats: ``ply`` (INRIA 3DGS PLY, :mod:`nanogs_warp.ply`), ``compressed-ply`` (PlayCanvas),
+Formats: ``ply`` (INRIA 3DGS PLY, :mod:`nanogs_warp.io.ply`), ``compressed-ply`` (PlayCanvas),
 ``spz`` (Niantic, versions 2 and 3), ``sog`` (PlayCanvas; bundled ``.sog`` zip or unbundled
 ``meta.json``), ``splat`` (antimatter15) and ``lod`` (a PlayCanvas ``lod-meta.json`` set of SOG
 levels). What each keeps and loses: docs/formats.md.
@@ -15,11 +15,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import InputError
-from ..ply import PlyArrays, checked_rows, normalize_quaternions, read_ply_arrays, read_splats, save_ply, splats_from_host
-from ..ply_layout import PlyLayout
-from ..ply_write import atomic_write
 from . import compressed_ply, lod, sog, spz, splat
 from .common import dropped_parts, plain_layout, read_file_bytes
+from .ply import PlyArrays, checked_rows, normalize_quaternions, read_ply_arrays, read_splats, save_ply, splats_from_host
+from .ply_layout import PlyLayout
+from .ply_write import atomic_write
 
 if TYPE_CHECKING:
     from ..splats import SplatSet
@@ -120,7 +120,7 @@ def _read_splat_arrays(path: Path) -> PlyArrays:
 def load_splats(path, device="cpu", drop_invalid: bool = False, on_drop=None) -> SplatSet:
     """Reads a splat file of any supported format into a :class:`SplatSet` on ``device``.
 
-    Values are checked as :func:`nanogs_warp.ply.load_ply` checks them (``drop_invalid`` and
+    Values are checked as :func:`nanogs_warp.io.ply.load_ply` checks them (``drop_invalid`` and
     ``on_drop`` likewise). Scenes from non-PLY files get the plain INRIA layout.
     """
     arrays, layout = read_any_splats(path, drop_invalid, on_drop)
@@ -129,7 +129,7 @@ def load_splats(path, device="cpu", drop_invalid: bool = False, on_drop=None) ->
 
 def read_any_splats(path, drop_invalid: bool = False, on_drop=None) -> tuple[dict[str, np.ndarray], PlyLayout]:
     """load_splats' part on the host, without Warp: the checked host arrays (quaternions
-    normalised) and the layout; :func:`nanogs_warp.ply.splats_from_host` makes them a SplatSet."""
+    normalised) and the layout; :func:`nanogs_warp.io.ply.splats_from_host` makes them a SplatSet."""
     path = Path(path)
     if detect_format(path) == "ply":
         return read_splats(path, drop_invalid=drop_invalid, on_drop=on_drop)

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..ply_write import output_properties
-from ..ply_layout import PlyLayout
+from .ply_layout import PlyLayout
+from .ply_write import output_properties
 
 SH_C0 = 0.28209479177387814  # the degree-0 SH basis: colour = 0.5 + SH_C0 * f_dc
 SQRT1_2 = float(np.sqrt(0.5))
@@ -155,6 +155,7 @@ def host_arrays(means, rotations, log_scales, opacities, features) -> dict[str, 
         "opacities": np.ascontiguousarray(np.reshape(opacities, n), dtype=np.float32),
         "features": np.ascontiguousarray(features, dtype=np.float32),
         "extras": np.zeros((n, 0), np.float32),
+        "integer_extras": np.zeros((n, 0), np.int64),
     }
 
 
@@ -169,8 +170,10 @@ def dropped_parts(host: dict[str, np.ndarray], layout: PlyLayout | None, max_sh_
         kept = 3 * (max_sh_degree + 1) ** 2
         parts.append(f"SH degree {degree} -> {max_sh_degree} ({features - kept} coefficients per splat)")
     extras = host["extras"]
-    names = list(layout.extra_names) if layout is not None else [f"extra_{i}" for i in range(extras.shape[1])]
-    lost = [nm for i, nm in enumerate(names) if not (nm in ("nx", "ny", "nz") and not extras[:, i].any())]
+    floats = list(layout.float_extra_names) if layout is not None else [f"extra_{i}" for i in range(extras.shape[1])]
+    zero_normals = {nm for i, nm in enumerate(floats) if nm in ("nx", "ny", "nz") and not extras[:, i].any()}
+    names = list(layout.extra_names) if layout is not None else floats
+    lost = [nm for nm in names if nm not in zero_normals]
     if lost:
         shown = ", ".join(lost[:6]) + (f", ... ({len(lost)} properties)" if len(lost) > 6 else "")
         parts.append(f"extra properties {shown}")

@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..ply_header import check_sizes, parse_header
 from .common import (
     SH_C0,
     SQRT1_2,
@@ -27,6 +26,7 @@ from .common import (
     morton_order,
     opacity_to_byte,
 )
+from .ply_header import check_sizes, parse_header
 
 CHUNK = 256
 MAX_SH_DEGREE = 3

@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import plyfile
 
-from .domain import LOG_SCALE_LIMIT
-from .errors import InputError
+from ..domain import LOG_SCALE_LIMIT
+from ..errors import InputError
 from .ply_header import (
     DC_NAMES,
     MAX_HEADER_BYTES,
@@ -39,12 +39,12 @@ from .ply_header import (
     one_line,
     parse_header,
 )
+from .ply_layout import PlyLayout
 from .ply_write import atomic_write, output_properties
 from .ply_write import write_ply_stream as _write_ply_stream  # by this name: the tests patch it here
-from .ply_layout import PlyLayout
 
 if TYPE_CHECKING:
-    from .splats import SplatSet
+    from ..splats import SplatSet
 
 DROP_HINT = "load with drop_invalid (CLI: --drop-invalid) to drop them"
 
@@ -122,15 +122,16 @@ def saturate_opacity_logits(logits: np.ndarray) -> np.ndarray:
 def save_ply(splats: SplatSet, path) -> None:
     """Writes ``splats`` as a binary little-endian PLY file, atomically.
 
-    Vertex properties follow ``splats.layout`` (names, order, dtypes; integer extras are rounded and
-    clipped to their type's range); with no layout the INRIA order ``x y z nx ny nz f_dc_* f_rest_*
+    Vertex properties follow ``splats.layout`` (names, order, dtypes; integer extras are clipped to
+    their type's range); with no layout the INRIA order ``x y z nx ny nz f_dc_* f_rest_*
     opacity scale_* rot_*`` in float32 with zero normals (extras, if any, follow as ``extra_<i>``).
     Other elements, comments and obj_info of the layout are written back unchanged, after the
     vertex element. The data goes to a temporary file beside ``path`` that then replaces it, so a
     failure never leaves a partial file and never touches an existing one.
     """
     host = _host_arrays(splats)
-    props = output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1])
+    props = output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1],
+                              host["integer_extras"].shape[1])  # fmt: skip
     atomic_write(Path(path), lambda stream: _write_ply_stream(stream, host, props, splats.layout, _CHUNK_BYTES))
 
 
@@ -139,7 +140,8 @@ def _host_arrays(splats: SplatSet) -> dict[str, np.ndarray]:
     copy), one device-to-host copy each from a GPU; quaternions in Warp's x, y, z, w order."""
     n = splats.count
     arrays = {"means": splats.means, "quats_xyzw": splats.rotations, "log_scales": splats.log_scales,
-              "opacities": splats.opacities, "features": splats.features, "extras": splats.extras}  # fmt: skip
+              "opacities": splats.opacities, "features": splats.features, "extras": splats.extras,
+              "integer_extras": splats.integer_extras}  # fmt: skip
     return {key: a.numpy().reshape(n, -1) for key, a in arrays.items()}
 
 
@@ -148,16 +150,17 @@ def _to_splat_set(a: dict[str, np.ndarray], layout: PlyLayout, device) -> SplatS
     copy (Warp keeps a reference to them); this saves a quarter of the load time."""
     import warp as wp  # here, not at the top: reading a file's header and values needs no Warp
 
-    from .splats import SplatSet
+    from ..splats import SplatSet
 
     device = wp.get_device(device)
     if not device.is_cpu:
         return SplatSet.from_numpy(a["means"], a["rotations"], a["log_scales"], a["opacities"],
-                                   a["features"], a["extras"], layout=layout, device=device)
+                                   a["features"], a["extras"], layout=layout, device=device,
+                                   integer_extras=a["integer_extras"])  # fmt: skip
     n = a["means"].shape[0]
 
-    def share(x, dtype):
-        return wp.array(np.ascontiguousarray(x, dtype=np.float32), dtype=dtype, device=device, copy=False)
+    def share(x, dtype, host_dtype=np.float32):
+        return wp.array(np.ascontiguousarray(x, dtype=host_dtype), dtype=dtype, device=device, copy=False)
 
     return SplatSet(
         means=share(a["means"], wp.vec3),
@@ -167,6 +170,7 @@ def _to_splat_set(a: dict[str, np.ndarray], layout: PlyLayout, device) -> SplatS
         features=share(a["features"], wp.float32),
         extras=share(a["extras"].reshape(n, -1), wp.float32),
         layout=layout,
+        integer_extras=share(a["integer_extras"].reshape(n, -1), wp.int64, np.int64),
     )
 
 
@@ -179,7 +183,8 @@ class PlyArrays:
     """A 3DGS PLY file's vertex data as float32 host arrays, before any value check.
 
     ``arrays`` has ``means`` (N,3), ``rotations`` (N,4, w first, as stored), ``log_scales`` (N,3),
-    ``opacities`` (N,), ``features`` (N,F) and ``extras`` (N,E).
+    ``opacities`` (N,), ``features`` (N,F), ``extras`` (N,E) (the extra properties of a float type)
+    and ``integer_extras`` (N,I) int64 (those of an integer type, exact).
     """
 
     arrays: dict[str, np.ndarray]
@@ -298,15 +303,18 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     n_rest = sum(1 for p in names if p.startswith("f_rest_"))
     known = set(REQUIRED_NAMES) | {f"f_rest_{i}" for i in range(n_rest)}
     extra_names = [p for p in names if p not in known]
+    integer_names = [p.name for p in vertex_h.props if p.name in extra_names and p.dtype.kind in "iu"]
     groups = {
         "means": MEAN_NAMES,
         "rotations": ROT_NAMES,
         "log_scales": SCALE_NAMES,
         "opacities": OPACITY_NAMES,
         "features": DC_NAMES + tuple(f"f_rest_{i}" for i in range(n_rest)),
-        "extras": tuple(extra_names),
+        "extras": tuple(p for p in extra_names if p not in integer_names),
+        "integer_extras": tuple(integer_names),
     }
-    arrays = {key: np.empty((n, len(group)), np.float32) for key, group in groups.items()}
+    arrays = {key: np.empty((n, len(group)), np.int64 if key == "integer_extras" else np.float32)
+              for key, group in groups.items()}  # fmt: skip
     plans = [(arrays[key], _runs(fields, group)) for key, group in groups.items()]
     for start, rows in _vertex_chunks(header, data, path, digest):
         stop = start + rows.shape[0]

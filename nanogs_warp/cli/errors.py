@@ -11,7 +11,7 @@ import warnings
 
 import typer
 
-from .errors import InputError
+from ..errors import InputError
 
 
 def examples(*lines: str) -> str:

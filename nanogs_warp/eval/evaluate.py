@@ -17,12 +17,12 @@ from typing import Sequence
 import numpy as np
 import warp as wp
 
+from ..errors import InputError
+from ..splats import SplatSet
 from . import metrics
 from .cameras import Camera
-from .errors import InputError
 from .glyphs import GLYPH_HEIGHT, draw_text, text_width
 from .render import render_views
-from .splats import SplatSet
 
 DIFF_GAIN = 4.0
 

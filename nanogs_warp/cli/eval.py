@@ -1,6 +1,6 @@
 """``nanogs-warp eval``: what simplification costs, as image metrics against the reference scene.
 
-Registered in ``cli.py`` as ``app.command("eval")(user_errors(eval_command))``.
+Registered in ``app.py`` as ``app.command("eval")(user_errors(eval_command))``.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from .cli_options import JSON_SCHEMA
-from .errors import InputError
+from ..errors import InputError
+from .options import JSON_SCHEMA
 
 
 def parse_background(text: str) -> tuple[float, float, float]:
@@ -60,11 +60,11 @@ def eval_command(
 ) -> None:
     """Render the reference and each test scene from identical cameras and report PSNR, SSIM,
     foreground PSNR and colour shift (mean and worst view)."""
-    from .cameras import load_cameras_json, orbit_cameras, parse_up
-    from .device import resolve_device
-    from .evaluate import evaluate, format_table, write_images
-    from .io import load_splats
-    from .kernel_cache import EVAL_MODULES, load_kernels
+    from ..device import resolve_device
+    from ..eval.cameras import load_cameras_json, orbit_cameras, parse_up
+    from ..eval.evaluate import evaluate, format_table, write_images
+    from ..io import load_splats
+    from ..kernel_cache import EVAL_MODULES, load_kernels
 
     if not tests:
         raise InputError("give at least one test scene to compare with the reference")

@@ -18,11 +18,11 @@ from typing import Sequence
 import numpy as np
 import warp as wp
 
+from ..errors import InputError
+from ..kernels import render as kernels
+from ..parallel import cpu_workers
+from ..splats import SplatSet
 from .cameras import Camera
-from .errors import InputError
-from .kernels import render as kernels
-from .parallel import cpu_workers
-from .splats import SplatSet
 
 TILE = 16
 

@@ -1,4 +1,5 @@
-"""The ``nanogs-warp`` command: simplify and inspect 3DGS scenes. Only this module knows about paths."""
+"""The ``nanogs-warp`` command (``main``) and its ``simplify``; the other commands have a module each
+in this package, the only one that knows about paths, terminals and exit codes."""
 
 from __future__ import annotations
 
@@ -12,15 +13,16 @@ from typing import Annotated, Optional
 
 import typer
 
-from . import cli_options as opts
-from . import __version__
-from .budgets import Budget, output_paths, parse_budgets
-from .cli_batch import batch_command
-from .cli_eval import eval_command
-from .cli_errors import examples, readable_placeholders, user_errors
-from .cli_warmup import warmup_command
-from .errors import InputError, NanogsWarning
-from .refine_config import RefineConfig
+from .. import __version__
+from ..budgets import Budget, output_paths, parse_budgets
+from ..errors import InputError, NanogsWarning
+from ..refinement.config import RefineConfig
+from . import options as opts
+from .batch import batch_command
+from .errors import examples, readable_placeholders, user_errors
+from .eval import eval_command
+from .info import info_command
+from .warmup import warmup_command
 
 readable_placeholders()
 app = typer.Typer(
@@ -105,9 +107,9 @@ def simplify(
     quiet: opts.Quiet = False,
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
-    from .device import WarpStart, keep_freed_host_memory
-    from .io import format_for_path, read_any_splats, save_levels
-    from .ply import splats_from_host
+    from ..device import WarpStart, keep_freed_host_memory
+    from ..io import format_for_path, read_any_splats, save_levels
+    from ..io.ply import splats_from_host
 
     config = opts.method_config(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
@@ -144,7 +146,7 @@ def simplify(
     except BaseException:
         warp_start.wait()
         raise
-    from .kernel_cache import REFINE_MODULES, SIMPLIFY_MODULES, load_kernels
+    from ..kernel_cache import REFINE_MODULES, SIMPLIFY_MODULES, load_kernels
 
     load_kernels(target_device, SIMPLIFY_MODULES + (REFINE_MODULES if refine_config else ()), announce=not quiet)
     splats = splats_from_host(arrays, layout)
@@ -223,8 +225,8 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
     """Runs the progressive merge and writes each budget as it is reached (appending to ``written``);
     for a level-of-detail set (``levels`` a list) keeps each level on the host instead. With
     ``refine_config``, each budget's result is refined toward the input first."""
-    from .io import save_splats
-    from .pipeline import simplify_progressively
+    from ..io import save_splats
+    from ..pipeline import simplify_progressively
 
     on_pass = lambda r: (passes.append(r), progress(r))  # noqa: E731
     for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass):
@@ -249,7 +251,7 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
 
 def _refine(result, reference, config: RefineConfig, show_progress: bool):
     """``result`` refined toward ``reference``, with a progress line on stderr when asked."""
-    from .refine import refine_with_report
+    from ..refinement.refine import refine_with_report
 
     def on_step(step: int, steps: int) -> None:
         if step == steps or step % max(1, steps // 100) == 0:
@@ -265,7 +267,7 @@ def _refine(result, reference, config: RefineConfig, show_progress: bool):
 
 def _import_pipeline(config) -> None:
     """Imports the pipeline (Warp and the kernel definitions with it) and checks ``config``."""
-    from . import pipeline  # noqa: F401
+    from .. import pipeline  # noqa: F401
 
     config.validate()
 
@@ -282,7 +284,7 @@ def _input_path(input: Path | None, sample: bool) -> Path:
     if sample and input is not None:
         raise InputError("give an input file or --sample, not both")
     if sample:
-        from .data import sample_path
+        from ..data import sample_path
 
         return sample_path()
     if input is None:
@@ -332,24 +334,10 @@ def _check_outputs(input: Path, outputs: list[Path], overwrite: bool = False, fo
             raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it")
 
 
-@app.command(epilog=examples(
+app.command("info", epilog=examples(
     "nanogs-warp info scene.ply",
     "nanogs-warp info scene.ply --json   # for scripts: see docs/json.md",
-))  # fmt: skip
-@user_errors
-def info(
-    input: Annotated[Path, typer.Argument(help="A scene file: INRIA or compressed .ply, .spz, .sog, meta.json, lod-meta.json or .splat.", show_default=False, metavar="SCENE")],
-    json_output: Annotated[bool, typer.Option("--json", help="Print JSON instead of text.")] = False,
-) -> None:
-    """Describe a 3DGS scene: count, SH degree, properties, bounds, opacity and scale statistics."""
-    from .info import format_info, scene_info
-
-    details = scene_info(input)
-    if json_output:
-        details = {"schema": opts.JSON_SCHEMA, "command": "info", "path": str(input.resolve()), **details}
-    typer.echo(json.dumps(details, indent=2) if json_output else format_info(details))
-
-
+))(user_errors(info_command))  # fmt: skip
 app.command("eval", epilog=examples(
     "nanogs-warp eval scene.ply lod_0.1.ply lod_0.01.ply                 # table of PSNR, SSIM, ...",
     "nanogs-warp eval scene.ply lod_0.01.ply --images eval/              # + contact sheets",

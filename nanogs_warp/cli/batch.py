@@ -1,7 +1,7 @@
 """``nanogs-warp batch``: simplify many scenes to several budgets each, on every local GPU, a
 Slurm array (``--shard``) or a Ray cluster (``--ray``), resumably.
 
-Registered in ``cli.py`` as ``app.command("batch")(user_errors(batch_command))``.
+Registered in ``app.py`` as ``app.command("batch")(user_errors(batch_command))``.
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ from typing import Annotated, Optional
 
 import typer
 
-from . import cli_options as opts
-from .errors import InputError
-from .refine_config import RefineConfig
+from ..errors import InputError
+from ..refinement.config import RefineConfig
+from . import options as opts
 
 
 def batch_command(
@@ -53,9 +53,9 @@ def batch_command(
     """Simplify many scenes to every budget (one progressive run each) on all local GPUs, a shard
     of a Slurm array, or a Ray cluster. Finished scenes are skipped when run again; one failing
     scene is reported and the others go on (exit code 1 if any failed)."""
-    from .batch import BatchProgress, find_scenes, format_summary, parse_shard, run_batch, select_shard, summary_json
-    from .batch_scenes import OUTPUT_SUFFIXES
-    from .budgets import parse_budgets
+    from ..batch.run import BatchProgress, find_scenes, format_summary, parse_shard, run_batch, select_shard, summary_json
+    from ..batch.scenes import OUTPUT_SUFFIXES
+    from ..budgets import parse_budgets
 
     started = time.perf_counter()
     config = opts.method_config(
@@ -83,12 +83,12 @@ def batch_command(
     selected = select_shard(jobs, shard_index, shard_count)
     device_list, ray_gpu = None, None
     if ray is not None:
-        from .batch_ray import import_ray
+        from ..batch.ray_cluster import import_ray
 
         import_ray()  # fails here, with one line, when Ray is missing
         ray_gpu = None if devices.strip().lower() == "auto" else devices.strip().lower() != "cpu"
     else:
-        from .batch_local import parse_devices
+        from ..batch.local import parse_devices
 
         device_list = parse_devices(devices)
     _make_output_dir(output)
@@ -124,8 +124,8 @@ def _make_output_dir(output: Path) -> None:
 
 
 def main() -> None:
-    """``python -m nanogs_warp.cli_batch``: the batch command on its own (as ``nanogs-warp batch``)."""
-    from .cli_errors import user_errors
+    """``python -m nanogs_warp.cli.batch``: the batch command on its own (as ``nanogs-warp batch``)."""
+    from .errors import user_errors
 
     app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None,
                       context_settings={"help_option_names": ["-h", "--help"]})  # fmt: skip

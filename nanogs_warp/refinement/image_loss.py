@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .kernels import image_loss as kernels
-from .metrics import gaussian_window
-from .parallel import launch_rows_from
+from ..eval.metrics import gaussian_window
+from ..kernels import image_loss as kernels
+from ..parallel import launch_rows_from
 
 MIN_PIXELS_TO_SPLIT = 4096
 

@@ -1,6 +1,6 @@
 """Refinement: distil a simplified scene toward the original's appearance, with the splat count fixed.
 
-Each step renders the simplified scene from a few training cameras (``refine_cameras``), compares it
+Each step renders the simplified scene from a few training cameras (``cameras``), compares it
 with the original's render of the same camera by L1 + 0.2 (1 - SSIM) (``image_loss``), back-propagates
 through the rasteriser (``render_grad``) and takes an Adam step on every parameter group with 3DGS's
 per-group learning rates (the means' scaled by the scene's extent and decayed tenfold over the run).
@@ -20,14 +20,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from ..eval.render import _Rasteriser
+from ..kernels import adam as adam_kernels
+from ..parallel import launch_rows_from
+from ..splats import SplatSet
+from .cameras import VALIDATION_STREAM, scene_spread, training_cameras
+from .config import RefineConfig
 from .image_loss import ImageLoss
-from .kernels import adam as adam_kernels
-from .parallel import launch_rows_from
-from .refine_cameras import VALIDATION_STREAM, scene_spread, training_cameras
-from .render import _Rasteriser
-from .refine_config import RefineConfig
 from .render_grad import GradRasteriser, SplatGradients
-from .splats import SplatSet
 
 LOSS_VIEWS = 8  # pool views on which the training loss before and after is measured
 VALIDATION_VIEWS = 8  # held-out views (never trained on) that choose which checkpoint to return
@@ -94,7 +94,7 @@ def _flat(a: wp.array) -> wp.array:
 
 
 def _copy(splats: SplatSet, device) -> SplatSet:
-    return SplatSet(*(wp.clone(a, device=device) for a in splats.arrays()), layout=splats.layout)
+    return splats.clone(device)
 
 
 class _Refiner:

@@ -1,7 +1,7 @@
 """``nanogs-warp warmup``: compile every kernel ahead of time into Warp's kernel cache (or a given
 directory), so that no command compiles on first use, e.g. while a farm's container image is built.
 
-Registered in ``cli.py`` as ``app.command("warmup")(user_errors(warmup_command))``.
+Registered in ``app.py`` as ``app.command("warmup")(user_errors(warmup_command))``.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from .errors import InputError
+from ..errors import InputError
 
 
 def warmup_command(
@@ -22,8 +22,8 @@ def warmup_command(
 ) -> None:
     """Compile every kernel for this machine's devices (and other GPU architectures) into the
     kernel cache, so that later commands only load them."""
-    from .device import init_warp
-    from .kernel_cache import DEFAULT_ARCHS, cache_dir_from_environment, use_cache_dir, warmup
+    from ..device import init_warp
+    from ..kernel_cache import DEFAULT_ARCHS, cache_dir_from_environment, use_cache_dir, warmup
 
     archs = _parse_archs(arch)
     use_cache_dir(cache_dir if cache_dir is not None else cache_dir_from_environment())

@@ -1,8 +1,8 @@
 """``nanogs-warp batch``: many scenes, every budget each, on all local devices or a Ray cluster.
 
-The pieces: :mod:`.batch_scenes` finds the scenes and shards them, :mod:`.batch_work` runs one
-scene (resume records included), :mod:`.batch_local` schedules worker processes on this machine,
-:mod:`.batch_ray` Ray tasks. This module ties them together and reports: progress on stderr, the
+The pieces: :mod:`.scenes` finds the scenes and shards them, :mod:`.work` runs one scene (resume
+records included), :mod:`.local` schedules worker processes on this machine, :mod:`.ray_cluster`
+Ray tasks. This module ties them together and reports: progress on stderr, the
 summary table or JSON.
 """
 
@@ -11,8 +11,8 @@ from __future__ import annotations
 import sys
 import time
 
-from .batch_scenes import SceneJob, find_scenes, parse_shard, select_shard
-from .batch_work import SceneResult, process_scene
+from .scenes import SceneJob, find_scenes, parse_shard, select_shard
+from .work import SceneResult, process_scene
 
 __all__ = ["BatchProgress", "SceneJob", "SceneResult", "find_scenes", "format_summary", "parse_shard",
            "process_scene", "run_batch", "select_shard", "summary_json"]  # fmt: skip
@@ -36,11 +36,11 @@ def run_batch(
         if not jobs:
             results = []
         elif ray_address is not None:
-            from .batch_ray import run_ray
+            from .ray_cluster import run_ray
 
             results = run_ray(jobs, ray_address, ray_gpu, force, progress, scene_timeout_s)
         else:
-            from .batch_local import run_local
+            from .local import run_local
 
             results = run_local(jobs, devices or ["cpu"], workers_per_device, force, progress, scene_timeout_s)
     finally:

@@ -20,9 +20,9 @@ from collections import deque
 from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 
-from .batch_scenes import SceneJob, largest_first, scene_timeout
-from .batch_work import SceneResult
-from .errors import InputError
+from ..errors import InputError
+from .scenes import SceneJob, largest_first, scene_timeout
+from .work import SceneResult
 
 _PASS_EVENT_EVERY_S = 0.25
 _MAX_RESTARTS = 3  # per device: a worker that keeps dying is not started again
@@ -36,7 +36,7 @@ def parse_devices(text: str) -> list[str]:
     names = [t.strip().lower() for t in text.split(",") if t.strip()]
     if names == ["cpu"]:
         return ["cpu"]
-    from .device import init_warp
+    from ..device import init_warp
 
     import warp as wp
 
@@ -94,7 +94,7 @@ def run_local(
     """Runs every job on worker processes, ``workers_per_device`` per device; returns the results
     in the order the scenes finished. ``progress`` gets started / advanced / finished calls.
     ``timeout_s``: each scene's time limit on its worker (None: scaled with its size, see
-    :func:`~nanogs_warp.batch_scenes.scene_timeout`; 0: none)."""
+    :func:`~nanogs_warp.batch.scenes.scene_timeout`; 0: none)."""
     context = multiprocessing.get_context("spawn")
     pending = deque(largest_first(jobs))
     results: list[SceneResult] = []
@@ -262,8 +262,8 @@ def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bo
         try:
             import warp as wp
 
-            from .device import init_warp, keep_freed_host_memory
-            from .kernel_cache import load_kernels
+            from ..device import init_warp, keep_freed_host_memory
+            from ..kernel_cache import load_kernels
 
             init_warp()
             keep_freed_host_memory()
@@ -281,7 +281,7 @@ def _serve(device: str, warp_device, conn, force: bool) -> None:
     """Three stages on three threads, joined by queues: read (and hash) the next scene, simplify
     the current one on the device (this thread), write the last one's outputs. At most one read
     scene waits for the device and one simplified scene for the writer, so memory stays bounded."""
-    from .batch_work import read_scene, simplify_scene, write_scene
+    from .work import read_scene, simplify_scene, write_scene
 
     lock = threading.Lock()
 

@@ -12,9 +12,9 @@ import os
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from .budgets import Budget, parse_budgets
-from .errors import InputError
-from .config import SimplifyConfig
+from ..budgets import Budget, parse_budgets
+from ..config import SimplifyConfig
+from ..errors import InputError
 
 RECORD_SUFFIX = ".nanogs.json"
 _GLOB_CHARS = set("*?[")

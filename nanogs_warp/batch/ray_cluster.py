@@ -1,5 +1,5 @@
 """The batch on a Ray cluster: each scene is a Ray task that asks for one GPU (or one CPU) and runs
-the same :func:`~nanogs_warp.batch_work.process_scene` as a local worker, so outputs, records and
+the same :func:`~nanogs_warp.batch.work.process_scene` as a local worker, so outputs, records and
 results are the same. Ray is imported only here, and only when ``--ray`` is given."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import socket
 import time
 from collections import deque
 
-from .batch_scenes import SceneJob, largest_first, scene_timeout
-from .batch_work import SceneResult
-from .errors import InputError
+from ..errors import InputError
+from .scenes import SceneJob, largest_first, scene_timeout
+from .work import SceneResult
 
 INSTALL_HINT = "pip install 'nanogs-warp[ray]'"
 
@@ -97,8 +97,8 @@ def _scene_task(job: SceneJob, force: bool, gpu: bool) -> SceneResult:
     """Runs on a Ray worker: Warp on the GPU Ray assigned (visible as cuda:0) or on the CPU."""
     import warp as wp
 
-    from .batch_work import process_scene
-    from .device import init_warp, keep_freed_host_memory
+    from ..device import init_warp, keep_freed_host_memory
+    from .work import process_scene
 
     init_warp()
     keep_freed_host_memory()

@@ -8,7 +8,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from .refine_config import RefineConfig
+from ..refinement.config import RefineConfig
 
 # The version of every --json output's layout (docs/json.md): raised when a field changes meaning or goes.
 JSON_SCHEMA = 1
@@ -36,7 +36,7 @@ Quiet = Annotated[bool, typer.Option("-q", "--quiet", help="Print nothing but er
 
 def method_config(preset: str, **options):
     """The SimplifyConfig of ``preset`` with every option that was given (not None)."""
-    from .config import SimplifyConfig
+    from ..config import SimplifyConfig
 
     return SimplifyConfig.preset(preset, **{name: value for name, value in options.items() if value is not None})
 Refine = Annotated[bool, typer.Option("--refine", help=f"Refine each output toward the input's appearance ({RefineConfig.steps} steps of Adam on renders from training cameras; the count is kept).")]

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .splats import SplatSet
+from ..errors import InputError
+from ..splats import SplatSet
 
 UP_AXES = {
     "+x": (1.0, 0.0, 0.0),

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .errors import InputError
+from ..errors import InputError
 
 MIN_SIZE = 32  # the half-size training views must fit the 11-pixel SSIM window
 

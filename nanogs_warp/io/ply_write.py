@@ -1,7 +1,7 @@
 """Writing a :class:`SplatSet`'s host arrays as a binary little-endian 3DGS PLY file.
 
 Packs the vertex rows in chunks, block by block, behind a header made by plyfile, into a temporary
-file that then replaces the target (see :func:`nanogs_warp.ply.save_ply`, the public entry point).
+file that then replaces the target (see :func:`nanogs_warp.io.ply.save_ply`, the public entry point).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import plyfile
 
-from .errors import InputError
+from ..errors import InputError
 from .ply_header import (
     DC_NAMES,
     MEAN_NAMES,
@@ -33,13 +33,22 @@ _INRIA_HEAD = MEAN_NAMES + NORMAL_NAMES + DC_NAMES
 _INRIA_TAIL = OPACITY_NAMES + SCALE_NAMES + ROT_NAMES
 
 
-def output_properties(layout: PlyLayout | None, n_rest: int, n_extra: int) -> list[tuple[str, str]]:
+def output_properties(
+    layout: PlyLayout | None, n_rest: int, n_extra: int, n_integer_extra: int = 0
+) -> list[tuple[str, str]]:
+    """The vertex properties to write: the layout's (the f_rest block resized to ``n_rest``), or
+    without a layout the INRIA ones in float32 and ``n_extra`` float extras ``extra_<i>``.
+    ``n_extra`` and ``n_integer_extra`` are the splats' float and integer extra columns."""
     rest = [f"f_rest_{i}" for i in range(n_rest)]
     if layout is None:
+        if n_integer_extra:
+            raise ValueError(f"{n_integer_extra} integer extras need a layout that names and types them")
         names = list(_INRIA_HEAD) + rest + list(_INRIA_TAIL) + [f"extra_{i}" for i in range(n_extra)]
         return [(n, "f4") for n in names]
-    if len(layout.extra_names) != n_extra:
-        raise ValueError(f"layout names {len(layout.extra_names)} extras but the splats have {n_extra}")
+    counts = (len(layout.float_extra_names), len(layout.integer_extra_names))
+    if counts != (n_extra, n_integer_extra):
+        raise ValueError(f"layout names {counts[0]} float and {counts[1]} integer extras but the splats have "
+                         f"{n_extra} and {n_integer_extra}")  # fmt: skip
     props = list(layout.properties)
     old_rest = [i for i, (n, _) in enumerate(props) if n.startswith("f_rest_")]
     if len(old_rest) != n_rest:  # SH degree changed: new f_rest block where the old one began
@@ -62,7 +71,8 @@ def write_ply_stream(stream, host: dict[str, np.ndarray], props: list[tuple[str,
     """Writes the header (via plyfile), the vertex rows in packed chunks of about ``chunk_bytes``,
     then the other elements (serialised by plyfile) to a binary stream. ``host`` holds 2D float32
     arrays ``means``, ``log_scales``, ``opacities``, ``features``, ``extras`` and the quaternions,
-    as ``rotations`` (w first, as in the file) or ``quats_xyzw`` (Warp's order). One chunk is
+    as ``rotations`` (w first, as in the file) or ``quats_xyzw`` (Warp's order), and, when the
+    layout has integer extras, their int64 ``integer_extras``. One chunk is
     written on a background thread while the next is packed."""
     n = host["means"].shape[0]
     dtype = np.dtype([(nm, "<" + dt) for nm, dt in props])
@@ -117,8 +127,11 @@ def _pack_plan(host, props, layout, dtype) -> list[tuple[int, np.dtype, int, np.
         where.update({nm: ("quats_xyzw", (i + 3) % 4) for i, nm in enumerate(ROT_NAMES)})
     for i in range(host["features"].shape[1]):
         where[DC_NAMES[i] if i < 3 else f"f_rest_{i - 3}"] = ("features", i)
-    extra_names = layout.extra_names if layout is not None else [f"extra_{i}" for i in range(host["extras"].shape[1])]
-    where.update({nm: ("extras", i) for i, nm in enumerate(extra_names)})
+    if layout is None:
+        where.update({f"extra_{i}": ("extras", i) for i in range(host["extras"].shape[1])})
+    else:
+        where.update({nm: ("extras", i) for i, nm in enumerate(layout.float_extra_names)})
+        where.update({nm: ("integer_extras", i) for i, nm in enumerate(layout.integer_extra_names)})
     sources = {k: v.reshape(n, -1) for k, v in host.items()}
     plan = []
     i = 0
@@ -144,9 +157,9 @@ def _pack_rows(plan, rows: np.ndarray, start: int) -> None:
             block[...] = 0
             continue
         values = columns[start:stop]
-        if dt.kind in "iu":  # integer extras: round and clip the float32 values to the type
+        if dt.kind in "iu":  # integer extras (int64): clipped to the type
             info = np.iinfo(dt)
-            values = np.clip(np.rint(np.nan_to_num(values.astype(np.float64))), info.min, info.max)
+            values = np.clip(values, info.min, info.max)
         copy_columns(block, values, dt)
 
 

@@ -10,8 +10,8 @@ import math
 
 import numpy as np
 
-from .cameras import Camera
-from .errors import InputError
+from ..errors import InputError
+from ..eval.cameras import Camera
 
 DISTANCE = (1.2, 3.0)  # x the 90th-percentile distance of the centres from the scene's centre
 FOV_Y_DEG = (40.0, 75.0)

@@ -2,7 +2,7 @@
 
 The header is parsed here (strictly, mirroring plyfile's grammar) so that structure and sizes are
 checked before plyfile allocates anything. Also holds the 3DGS property names shared by reading
-(:mod:`nanogs_warp.ply`) and writing (:mod:`nanogs_warp.ply_write`).
+(:mod:`nanogs_warp.io.ply`) and writing (:mod:`nanogs_warp.io.ply_write`).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import plyfile
 
-from .errors import InputError
+from ..errors import InputError
 
 # Required vertex properties, grouped as SplatSet stores them; f_rest_* follow f_dc_* in `features`.
 MEAN_NAMES = ("x", "y", "z")

@@ -21,9 +21,9 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from . import __version__
-from .batch_scenes import SceneJob
-from .errors import InputError
+from .. import __version__
+from ..errors import InputError
+from .scenes import SceneJob
 
 RECORD_FORMAT = 1
 
@@ -106,7 +106,7 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
     if scene.final:
         return
     with _stage(scene, "simplify"):
-        from .pipeline import simplify_progressively
+        from ..pipeline import simplify_progressively
 
         job, splats = scene.job, scene.splats
         by_target: dict[int, list] = {}
@@ -117,8 +117,8 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
         on_device = splats.to(device)
         for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
             if job.refine_steps > 0:
-                from .refine import refine_with_report
-                from .refine_config import RefineConfig
+                from ..refinement.refine import refine_with_report
+                from ..refinement.config import RefineConfig
 
                 config = RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed)
                 simplified = refine_with_report(simplified, on_device, config)[0]
@@ -162,8 +162,8 @@ def _stage(scene: LoadedScene, name: str):
 
 
 def _read(scene: LoadedScene, force: bool) -> None:
-    from .io import detect_format, load_splats
-    from .ply import load_ply
+    from ..io import detect_format, load_splats
+    from ..io.ply import load_ply
 
     job, result = scene.job, scene.result
     spin_if_asked(job)
@@ -202,7 +202,7 @@ def _read(scene: LoadedScene, force: bool) -> None:
 
 
 def _write(scene: LoadedScene) -> None:
-    from .io import save_splats
+    from ..io import save_splats
 
     job, result = scene.job, scene.result
     outputs = []

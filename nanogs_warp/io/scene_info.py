@@ -1,4 +1,5 @@
-"""``nanogs-warp info``: what a splat file holds, including the values that would fail a load."""
+"""What a splat file holds, including the values that would fail a load, as a JSON-ready dict
+(``nanogs-warp info`` prints it: :mod:`nanogs_warp.cli.info`)."""
 
 from __future__ import annotations
 
@@ -6,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .domain import LOG_SCALE_LIMIT
-from .io import read_splat_arrays
+from . import read_splat_arrays
 from .ply import check_values, sh_degree_for_rest_count
 
 
@@ -32,7 +32,7 @@ def scene_info(path) -> dict:
     a = data.arrays
     layout = data.layout
     model = check_values(a)
-    with_extras = check_values(a, extra_names=layout.extra_names)
+    with_extras = check_values(a, extra_names=layout.float_extra_names)  # integer ones are always finite
     means = a["means"]
     finite_means = means[np.isfinite(means).all(axis=1)]
     with np.errstate(all="ignore"):
@@ -69,48 +69,6 @@ def scene_info(path) -> dict:
     }
 
 
-def format_info(info: dict) -> str:
-    """Human-readable text for a :func:`scene_info` dict."""
-    lines = [
-        f"file        {info['file']} ({info['file_bytes']:,} bytes, {info['format']})",
-        f"splats      {info['count']:,}",
-        f"SH degree   {info['sh_degree']} ({3 * (info['sh_degree'] + 1) ** 2} coefficients)",
-    ]
-    props = info["properties"]
-    lines.append(f"properties  {len(props)}: " + " ".join(_compress_names(props)))
-    if info["extra_properties"]:
-        lines.append(f"extras      {', '.join(info['extra_properties'])}")
-    box = info["bbox"]
-    if box["min"] is not None:
-        lines.append(f"bbox min    {_vec(box['min'])}")
-        lines.append(f"bbox max    {_vec(box['max'])}")
-        lines.append(f"bbox size   {_vec([hi - lo for lo, hi in zip(box['min'], box['max'])])}")
-    else:
-        lines.append("bbox        (no finite positions)")
-    lines.append("opacity     " + _stats_text(info["opacity"]))
-    lines.append("scale       " + _stats_text(info["scale"]))
-    nonfinite = info["nonfinite"]
-    if nonfinite:
-        shown = ", ".join(f"{k} {v:,}" for k, v in nonfinite.items())
-        lines.append(f"NaN/Inf     {info['nonfinite_rows']:,} splats; per property: {shown}")
-    else:
-        lines.append("NaN/Inf     none")
-    pos, neg = info["infinite_opacity"]["+inf"], info["infinite_opacity"]["-inf"]
-    if pos or neg:
-        lines.append(f"opacity Inf {pos:,} logits +Inf (alpha 1), {neg:,} -Inf (alpha 0); valid")
-    lines.append(f"zero quats  {info['zero_norm_quaternions']:,}")
-    if info["out_of_domain"]:
-        shown = ", ".join(f"{k} {v:,}" for k, v in info["out_of_domain"].items())
-        lines.append(f"log-scales  {info['out_of_domain_rows']:,} splats beyond +-{LOG_SCALE_LIMIT:g}; per property: {shown}")
-    for e in info["other_elements"]:
-        lines.append(f"element     {e['name']} ({e['count']:,} rows: {', '.join(e['properties'])})")
-    for c in info["comments"]:
-        lines.append(f"comment     {c}")
-    for c in info["obj_info"]:
-        lines.append(f"obj_info    {c}")
-    return "\n".join(lines)
-
-
 def _finite(x: np.ndarray) -> np.ndarray:
     x = x.reshape(-1)
     return x[np.isfinite(x)]
@@ -126,30 +84,3 @@ def _stats(values: np.ndarray, keys) -> dict | None:
         return None
     funcs = {"min": np.min, "median": np.median, "mean": np.mean, "max": np.max}
     return {k: float(funcs[k](values)) for k in keys}
-
-
-def _stats_text(stats: dict | None) -> str:
-    if stats is None:
-        return "(no finite values)"
-    return "  ".join(f"{k} {v:.4g}" for k, v in stats.items())
-
-
-def _vec(v) -> str:
-    return "  ".join(f"{x:+.4g}" for x in v)
-
-
-def _compress_names(props: list[dict]) -> list[str]:
-    """``f_rest_0..44 (f4)``-style runs instead of 45 separate names."""
-    out = []
-    i = 0
-    while i < len(props):
-        name, dtype = props[i]["name"], props[i]["dtype"]
-        stem, _, num = name.rpartition("_")
-        j = i + 1
-        if stem and num.isdigit():
-            while (j < len(props) and props[j]["dtype"] == dtype
-                   and props[j]["name"] == f"{stem}_{int(num) + j - i}"):
-                j += 1
-        out.append(f"{name}..{int(num) + j - i - 1}:{dtype}" if j - i > 1 else f"{name}:{dtype}")
-        i = j
-    return out

@@ -1,7 +1,7 @@
-"""The differentiable rasteriser: ``render.py``'s forward pass, which keeps what the backward pass needs,
+"""The differentiable rasteriser: ``eval/render.py``'s forward pass, which keeps what the backward pass needs,
 and the backward pass (``kernels/render_grad.py``) from dL/dimage to every splat parameter.
 
-The forward launches ``render.py``'s kernels in the same order on the same data, so the image is the
+The forward launches ``eval/render.py``'s kernels in the same order on the same data, so the image is the
 renderer's, bit for bit; the only addition is a numbering of the emitted entries, so that after the
 sort each splat's entries can be found in emit order. Gradients are summed in a fixed order (per
 entry over the tile's pixels in row order, per splat over its entries in emit order, per view in the
@@ -14,12 +14,12 @@ from dataclasses import dataclass
 
 import warp as wp
 
-from .cameras import Camera
-from .kernels import render as kernels
-from .kernels import render_grad as grad_kernels
-from .parallel import launch_rows_from
-from .render import _Rasteriser, camera_params
-from .splats import SplatSet
+from ..eval.cameras import Camera
+from ..eval.render import _Rasteriser, camera_params
+from ..kernels import render as kernels
+from ..kernels import render_grad as grad_kernels
+from ..parallel import launch_rows_from
+from ..splats import SplatSet
 
 
 @dataclass
