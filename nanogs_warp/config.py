@@ -67,21 +67,19 @@ class SimplifyConfig:
         return K_SMALL_SCENE if splat_count < SMALL_SCENE_SPLATS else K_LARGE_SCENE
 
     def validate(self) -> None:
-        from .cost import COSTS, FieldCost  # the registries hold Warp kernels: imported when needed
-        from .operators import OPERATORS
-        from .topology import KnnTopology
-
-        if self.k is not None and not 1 <= self.k <= KnnTopology.MAX_K:
-            raise InputError(f"--k must be between 1 and {KnnTopology.MAX_K}, got {self.k}")
+        """Checks every option without importing Warp (the names below are those of the kernel
+        registries, ``cost.COSTS``, ``operators.OPERATORS`` and ``topology.KnnTopology.MAX_K``)."""
+        if self.k is not None and not 1 <= self.k <= MAX_K:
+            raise InputError(f"--k must be between 1 and {MAX_K}, got {self.k}")
         if not 0.0 <= self.prune_opacity <= 1.0:
             raise InputError(f"--prune-opacity must be in [0, 1], got {self.prune_opacity}")
         if not 1 <= self.samples <= 1024:
             raise InputError(f"--samples must be between 1 and 1024, got {self.samples}")
-        if self.cost not in COSTS:
-            raise InputError(f"unknown cost {self.cost!r}; choose one of {', '.join(COSTS)}")
-        if self.operator not in OPERATORS:
-            raise InputError(f"unknown operator {self.operator!r}; choose one of {', '.join(OPERATORS)}")
-        if self.cost == "field" and self.operator not in FieldCost.OPERATOR_IDS:
+        if self.cost not in COST_NAMES:
+            raise InputError(f"unknown cost {self.cost!r}; choose one of {', '.join(COST_NAMES)}")
+        if self.operator not in OPERATOR_NAMES:
+            raise InputError(f"unknown operator {self.operator!r}; choose one of {', '.join(OPERATOR_NAMES)}")
+        if self.cost == "field" and self.operator not in FIELD_COST_OPERATORS:
             raise InputError(f"--cost field scores the mpmm and coverage operators, not {self.operator!r}")
         if not (0.0 < self.pass_fraction <= 0.5):
             raise InputError(f"--pass-fraction must be in (0, 0.5], got {self.pass_fraction}")
@@ -90,6 +88,13 @@ class SimplifyConfig:
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}")
 
+
+# The kernel registries' names, here so that a configuration is checked without importing Warp (a
+# test checks them against cost.COSTS, operators.OPERATORS, FieldCost.OPERATOR_IDS and KnnTopology.MAX_K).
+COST_NAMES = ("field", "idiv", "mse", "runnalls")
+OPERATOR_NAMES = ("mpmm", "area", "coverage")
+FIELD_COST_OPERATORS = ("mpmm", "coverage")
+MAX_K = 32
 
 # Named configurations (``--preset``): the measured default, the previous default (the Runnalls
 # cost and whole matchings: about 3x faster on a CPU, best on the trained captures at the smaller

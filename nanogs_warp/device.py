@@ -7,6 +7,7 @@ import os
 import sys
 import tempfile
 import threading
+import time
 from collections.abc import Callable
 
 from .errors import InputError
@@ -88,22 +89,36 @@ def resolve_device(name: str):
 
 class WarpStart:
     """Imports and initialises Warp and resolves ``--device`` on a background thread (after
-    ``prepare``, e.g. importing the pipeline), so that a command can read its input meanwhile:
-    half a second to a second of start-up (more with CUDA) hidden behind the read. ``device()``
-    waits and returns the device, or raises what the thread raised; call ``wait()`` before
-    reporting an error of your own (the thread briefly redirects stderr while Warp starts)."""
+    ``prepare``, e.g. importing the pipeline), then loads the kernel ``modules`` there (see
+    :func:`~nanogs_warp.kernel_cache.load_kernels`), so that a command can read its input
+    meanwhile: a second or more of start-up hidden behind the read. ``device()`` waits and returns
+    the device, or raises what the thread raised; call ``wait()`` before reporting an error of
+    your own (the thread briefly redirects stderr while Warp starts). ``stages`` holds the seconds
+    of ``warp_import`` (prepare), ``warp_init`` and ``kernels`` once done."""
 
-    def __init__(self, name: str, prepare: Callable[[], None] | None = None):
+    def __init__(self, name: str, prepare: Callable[[], None] | None = None, modules: tuple[str, ...] = (),
+                 announce: bool = True):  # fmt: skip
         self._device = None
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, args=(name, prepare), name="nanogs-warp-start", daemon=True)
+        self.stages: dict[str, float] = {}
+        self._thread = threading.Thread(target=self._run, args=(name, prepare, modules, announce), name="nanogs-warp-start",
+                                        daemon=True)  # fmt: skip
         self._thread.start()
 
-    def _run(self, name: str, prepare) -> None:
+    def _run(self, name: str, prepare, modules, announce: bool) -> None:
         try:
+            begun = time.perf_counter()
             if prepare is not None:
                 prepare()
-            self._device = resolve_device(name)
+            imported = time.perf_counter()
+            device = resolve_device(name)
+            ready = time.perf_counter()
+            if modules:
+                from .kernel_cache import load_kernels
+
+                load_kernels(device, modules, announce=announce)
+            self.stages.update(warp_import=imported - begun, warp_init=ready - imported, kernels=time.perf_counter() - ready)
+            self._device = device
         except BaseException as e:  # noqa: BLE001 - handed to the caller by device()
             self._error = e
 
@@ -115,3 +130,16 @@ class WarpStart:
         if self._error is not None:
             raise self._error
         return self._device
+
+
+def process_age() -> float | None:
+    """Seconds since this process started (Linux; None elsewhere), to 10 ms: what the interpreter
+    and the imports took before a command's own clock starts."""
+    try:
+        with open("/proc/self/stat", "rb") as f:
+            start_ticks = int(f.read().rsplit(b")", 1)[1].split()[19])
+        with open("/proc/uptime", "rb") as f:
+            uptime = float(f.read().split()[0])
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return None

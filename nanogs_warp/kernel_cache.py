@@ -25,6 +25,17 @@ EVAL_MODULES = ("render",)
 REFINE_MODULES = ("render", "render_grad", "image_loss", "adam")
 ALL_MODULES = SIMPLIFY_MODULES + EVAL_MODULES + REFINE_MODULES[1:]
 
+def simplify_modules(config=None) -> tuple[str, ...]:
+    """The kernel modules a simplification with ``config`` (a SimplifyConfig) launches: its cost's
+    module and pruning only when it prunes (None: every one of SIMPLIFY_MODULES). A module left
+    out would still load when first launched."""
+    if config is None:
+        return SIMPLIFY_MODULES
+    cost = "field_cost" if config.cost == "field" else "cost"
+    prune = ("prune",) if config.prune_opacity > 0 else ()
+    return tuple(m for m in SIMPLIFY_MODULES if m not in ("cost", "field_cost", "prune")) + (cost,) + prune
+
+
 # GPU architectures compiled by `warmup` on a machine without a GPU (Turing to Hopper).
 DEFAULT_ARCHS = (75, 80, 86, 89, 90)
 

@@ -67,7 +67,7 @@ def test_every_budget_of_every_scene_with_exact_counts(scenes, tmp_path):
             assert entry["budget"] == f"{ratio:g}" and entry["count"] == expected
             assert load_ply(f"{stem}_{ratio:g}.ply").count == expected
         record = json.loads(Path(f"{stem}.nanogs.json").read_text())
-        assert record["input_count"] == n and len(record["input"]["sha256"]) == 64
+        assert record["input_count"] == n and len(record["input"]["sha256_pieces"]) == 64
     assert len(outputs(out)) == len(SCENES) * len(RATIOS)
     assert not list(out.rglob(".*"))  # no temporary files left
 

@@ -165,6 +165,7 @@ def test_elements_before_vertex(tmp_path, with_list, byte_order):
 def test_many_chunks(tmp_path, monkeypatch):
     """Rows are converted and written in chunks; a chunk of a few rows gives the same result."""
     monkeypatch.setattr(ply, "_CHUNK_BYTES", 7 * 68)  # 7 rows of 17 float32
+    monkeypatch.setattr(ply, "_READ_UNIT_BYTES", 7 * 68)
     src, out = tmp_path / "in.ply", tmp_path / "out.ply"
     want = random_splats_ply(src, 100, seed=3)
     splats = load_ply(src)
@@ -190,6 +191,7 @@ def test_digest_sees_the_whole_file_once(tmp_path, monkeypatch, layout):
         data.write(str(src))
     if layout == "many_chunks":
         monkeypatch.setattr(ply, "_CHUNK_BYTES", 7 * 68)
+        monkeypatch.setattr(ply, "_READ_UNIT_BYTES", 7 * 68)
     digest = hashlib.sha256()
     assert_bitwise_equal(load_ply(src, digest=digest).to_numpy(), want)
     assert digest.hexdigest() == hashlib.sha256(src.read_bytes()).hexdigest()

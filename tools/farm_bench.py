@@ -7,11 +7,14 @@ Makes ``--scenes`` copies of SOURCE tiled to ``--splats`` splats (each a few spl
 the same file) in WORKDIR/scenes, reads them once into the page cache, then runs ``batch --force``
 over them once per entry of ``--runs`` (``--devices`` values; default: ``cuda:0`` and, with several
 GPUs, ``all``; ``cpu`` without a GPU). For each run it reports the wall time, the steady-state rate
-(scenes finished per second after the first, per device), the median read / simplify / write
-seconds of a scene from the batch's JSON, and, when ``nvidia-smi`` is there, each GPU's busy
+(scenes finished per second after the first, per device), the median read / upload / simplify /
+download / write seconds of a scene from the batch's JSON, the device stages' share of the wall
+time (upload + simplify + download summed over the scenes of a device, divided by the wall time:
+how busy the pipeline kept the device) and, when ``nvidia-smi`` is there, each GPU's busy
 fraction (samples every 100 ms with utilisation above 0) and mean utilisation. The last line
 gives the scaling of the last run over the first. ``--simplify`` also times ``nanogs-warp
-simplify`` of the first scene end to end (a fresh process each time, median of 3).
+simplify`` of the first scene end to end (a fresh process each time, median of 3) and prints
+where its time went (``seconds.stages`` of its JSON, of the fastest run).
 Results are appended as JSON lines to ``--json``.
 """
 
@@ -118,9 +121,12 @@ def run_batch(scenes_dir: Path, out_dir: Path, ratios: str, devices: str, extra:
         values = [s["stages"][name] for s in scenes if name in s.get("stages", {})]
         return round(statistics.median(values), 4) if values else None
 
+    device_s = {d: sum(s.get("stages", {}).get(k, 0.0) for s in scenes if s["device"] == d for k in ("upload", "simplify", "download"))
+                for d in devices_used}  # fmt: skip
     return {
         "devices": devices,
         "devices_used": devices_used,
+        "device_stage_fraction": {d: round(v / wall, 3) for d, v in device_s.items()},
         "scenes": len(scenes),
         "failed": summary["failed"],
         "wall_s": round(wall, 3),
@@ -128,7 +134,9 @@ def run_batch(scenes_dir: Path, out_dir: Path, ratios: str, devices: str, extra:
         "steady_scenes_per_s": round(steady, 3) if steady else None,
         "steady_scenes_per_s_per_device": round(steady / len(devices_used), 3) if steady else None,
         "read_s": median_stage("read"),
+        "upload_s": median_stage("upload"),
         "simplify_s": median_stage("simplify"),
+        "download_s": median_stage("download"),
         "write_s": median_stage("write"),
         "scene_s": round(statistics.median(s["seconds"] for s in scenes), 4),
         "gpus": gpus,
@@ -136,7 +144,7 @@ def run_batch(scenes_dir: Path, out_dir: Path, ratios: str, devices: str, extra:
 
 
 def time_simplify(scene: Path, out_dir: Path, ratios: str, device: str) -> dict:
-    walls, reported = [], []
+    walls, reported, stages = [], [], []
     for _ in range(3):
         started = time.monotonic()
         result = subprocess.run([sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out_dir / "single.ply"),
@@ -147,7 +155,8 @@ def time_simplify(scene: Path, out_dir: Path, ratios: str, device: str) -> dict:
         reported.append(json.loads(result.stdout)["seconds"])
     best = min(range(3), key=lambda i: walls[i])
     return {"device": device, "wall_s_median": round(statistics.median(walls), 3), "wall_s": [round(w, 3) for w in walls],
-            "read_s": reported[best]["read"], "total_s": reported[best]["total"]}  # fmt: skip
+            "read_s": reported[best]["read"], "total_s": reported[best]["total"],
+            "stages": reported[best].get("stages", {})}  # fmt: skip
 
 
 def main() -> None:
@@ -183,12 +192,19 @@ def main() -> None:
     single = time_simplify(scenes[0], args.workdir, args.ratio, "cuda:0" if gpus else "cpu") if args.simplify else None
 
     print(f"{len(scenes)} scenes of {args.splats:,} splats ({size_mb:.0f} MB each), budgets {args.ratio}")
-    print(f"{'run':>18} {'devices':>8} {'wall s':>8} {'scenes/s':>9} {'steady/s/dev':>13} {'read s':>7} {'simplify s':>10} {'write s':>8}  GPU busy")
+    print(f"{'run':>18} {'devices':>8} {'wall s':>8} {'scenes/s':>9} {'steady/s/dev':>13} {'read s':>7} {'upload s':>8} "
+          f"{'simplify s':>10} {'download s':>10} {'write s':>8} {'device stages':>13}  GPU busy")  # fmt: skip
     for r in results:
         busy = ", ".join(f"{g}: {v['busy_fraction']:.0%} ({v['mean_utilisation']:.0f}%)" for g, v in r["gpus"].items()) or "-"
         steady = f"{r['steady_scenes_per_s_per_device']:.3f}" if r["steady_scenes_per_s_per_device"] else "-"
+        share = "/".join(f"{v:.0%}" for v in r["device_stage_fraction"].values())
+
+        def cell(key, width):
+            return f"{r[key]:>{width}.3f}" if r[key] is not None else f"{'-':>{width}}"
+
         print(f"{r['run']:>18} {len(r['devices_used']):>8} {r['wall_s']:>8.2f} {r['scenes_per_s']:>9.3f} {steady:>13} "
-              f"{r['read_s']:>7.3f} {r['simplify_s']:>10.3f} {r['write_s']:>8.3f}  {busy}")  # fmt: skip
+              f"{cell('read_s', 7)} {cell('upload_s', 8)} {cell('simplify_s', 10)} {cell('download_s', 10)} {cell('write_s', 8)} "
+              f"{share:>13}  {busy}")  # fmt: skip
         if r["failed"]:
             print(f"  {r['failed']} scene(s) failed")
     if len(results) > 1 and results[0]["steady_scenes_per_s"] and results[-1]["steady_scenes_per_s"]:
@@ -197,6 +213,8 @@ def main() -> None:
     if single:
         print(f"simplify {scenes[0].name} on {single['device']}: {single['wall_s_median']:.2f} s wall (median of 3; "
               f"read {single['read_s']:.2f} s, total in-process {single['total_s']:.2f} s)")  # fmt: skip
+        if single["stages"]:
+            print("  stages of the fastest run (s): " + ", ".join(f"{k} {v:.3f}" for k, v in single["stages"].items()))
     if args.json is not None:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                                 cwd=Path(__file__).parent).stdout.strip()  # fmt: skip

@@ -90,12 +90,16 @@ def run_local(
     force: bool,
     progress,
     timeout_s: float | None = None,
+    readers: int | None = None,
 ) -> list[SceneResult]:
     """Runs every job on worker processes, ``workers_per_device`` per device; returns the results
     in the order the scenes finished. ``progress`` gets started / advanced / finished calls.
     ``timeout_s``: each scene's time limit on its worker (None: scaled with its size, see
-    :func:`~nanogs_warp.batch.scenes.scene_timeout`; 0: none)."""
+    :func:`~nanogs_warp.batch.scenes.scene_timeout`; 0: none). ``readers``: threads per worker
+    that read each input (None: :func:`default_readers`)."""
     context = multiprocessing.get_context("spawn")
+    if readers is None:
+        readers = default_readers(len(devices) * workers_per_device)
     pending = deque(largest_first(jobs))
     results: list[SceneResult] = []
     workers: dict[str, _Worker] = {}
@@ -107,7 +111,7 @@ def run_local(
     def start(device: str) -> None:
         name = f"w{next(serial)}"
         here, there = context.Pipe()
-        process = context.Process(target=worker_main, args=(name, device, _visible_gpu(device), there, force),
+        process = context.Process(target=worker_main, args=(name, device, _visible_gpu(device), there, force, readers),
                                   name=f"nanogs-batch-{name}", daemon=True)  # fmt: skip
         process.start()
         there.close()
@@ -253,11 +257,21 @@ def run_local(
     return results
 
 
-def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bool) -> None:
+def default_readers(workers: int) -> int:
+    """Reader threads per worker: this machine's cores shared out among ``workers``, 1 to 8."""
+    from ..io.ply_read import cpu_count
+
+    return max(1, min(8, cpu_count() // max(1, workers)))
+
+
+def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bool, readers: int = 1) -> None:
     """A worker process: pins its GPU, initialises Warp, then simplifies the scenes it is sent
-    until it is sent None or its parent is gone."""
+    until it is sent None or its parent is gone; each input is read on ``readers`` threads."""
     if visible_gpu is not None:
         os.environ["CUDA_VISIBLE_DEVICES"] = visible_gpu  # before Warp initialises CUDA
+    from ..io.ply_read import set_read_threads
+
+    set_read_threads(readers)
     try:
         try:
             import warp as wp

@@ -24,7 +24,7 @@ def import_ray():
 
 
 def run_ray(jobs: list[SceneJob], address: str, gpu: bool | None, force: bool, progress,
-            timeout_s: float | None = None) -> list[SceneResult]:
+            timeout_s: float | None = None, readers: int | None = None) -> list[SceneResult]:
     """Runs every job as a Ray task on the cluster at ``address`` (``auto``: the one this machine
     belongs to; ``local``: a private instance started here; a connection already made by the
     caller is used as it is). ``gpu``: tasks ask for a GPU (True), a CPU (False), or a GPU when the
@@ -67,7 +67,7 @@ def run_ray(jobs: list[SceneJob], address: str, gpu: bool | None, force: bool, p
             while queued and len(running) < slots:
                 job = queued.popleft()
                 limit = scene_timeout(job, gpu, timeout_s)
-                running[task.remote(job, force, gpu)] = (job, None if limit is None else time.monotonic() + limit)
+                running[task.remote(job, force, gpu, readers)] = (job, None if limit is None else time.monotonic() + limit)
             deadlines = [d for _, d in running.values() if d is not None]
             wait_s = max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
             ready, _ = ray.wait(list(running), num_returns=1, timeout=wait_s)
@@ -93,12 +93,15 @@ def run_ray(jobs: list[SceneJob], address: str, gpu: bool | None, force: bool, p
             ray.shutdown()
 
 
-def _scene_task(job: SceneJob, force: bool, gpu: bool) -> SceneResult:
+def _scene_task(job: SceneJob, force: bool, gpu: bool, readers: int | None = None) -> SceneResult:
     """Runs on a Ray worker: Warp on the GPU Ray assigned (visible as cuda:0) or on the CPU."""
     import warp as wp
 
     from ..device import init_warp, keep_freed_host_memory
+    from ..io.ply_read import set_read_threads
     from .work import process_scene
+
+    set_read_threads(readers)
 
     init_warp()
     keep_freed_host_memory()

@@ -27,10 +27,13 @@ def run_batch(
     force: bool = False,
     progress: BatchProgress | None = None,
     scene_timeout_s: float | None = None,
+    readers: int | None = None,
 ) -> list[SceneResult]:
     """Simplifies every job, on local worker processes (``devices``, e.g. ``["cuda:0", "cuda:1"]``)
     or as Ray tasks (``ray_address``); returns one result per job, sorted by scene name.
-    ``scene_timeout_s``: each scene's time limit (None: scaled with its size; 0: none)."""
+    ``scene_timeout_s``: each scene's time limit (None: scaled with its size; 0: none).
+    ``readers``: threads per worker that read each input (None: the cores shared out among the
+    local workers, 1 to 8; a Ray task: the cores of its node, up to 8)."""
     progress = progress or BatchProgress(len(jobs), quiet=True)
     try:
         if not jobs:
@@ -38,11 +41,11 @@ def run_batch(
         elif ray_address is not None:
             from .ray_cluster import run_ray
 
-            results = run_ray(jobs, ray_address, ray_gpu, force, progress, scene_timeout_s)
+            results = run_ray(jobs, ray_address, ray_gpu, force, progress, scene_timeout_s, readers)
         else:
             from .local import run_local
 
-            results = run_local(jobs, devices or ["cpu"], workers_per_device, force, progress, scene_timeout_s)
+            results = run_local(jobs, devices or ["cpu"], workers_per_device, force, progress, scene_timeout_s, readers)
     finally:
         progress.close()
     return sorted(results, key=lambda r: r.relative)

@@ -2,7 +2,8 @@
 when its record says the outputs are up to date, else simplify it to every budget in one
 progressive run, write each output atomically and the record last.
 
-The record, ``OUTDIR/<rel>/<stem>.nanogs.json``, holds the input's size and SHA-256, the options
+The record, ``OUTDIR/<rel>/<stem>.nanogs.json``, holds the input's size and hash (SHA-256 over its
+1 MiB pieces' SHA-256, :class:`~nanogs_warp.io.ply_read.PieceHash`, hashed on every reader thread), the options
 and tool version the outputs were made with, and each output's budget, count and size. It is
 deleted before a scene is redone and written (atomically) only after every output, so a record
 always describes finished outputs: a run killed at any point leaves no record that lies.
@@ -10,7 +11,6 @@ always describes finished outputs: a run killed at any point leaves no record th
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import secrets
@@ -25,7 +25,7 @@ from .. import __version__
 from ..errors import InputError
 from .scenes import SceneJob
 
-RECORD_FORMAT = 1
+RECORD_FORMAT = 2  # 2: the input's hash is its PieceHash ("sha256_pieces"), no longer its plain SHA-256
 
 
 @dataclass
@@ -48,10 +48,12 @@ class SceneResult:
         return asdict(self)
 
 
-def file_sha256(path: Path) -> str:
-    """The file's SHA-256, read in blocks (constant memory)."""
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
+def input_hash(path: Path) -> str:
+    """The file's hash as records keep it (:class:`~nanogs_warp.io.ply_read.PieceHash`), read on
+    several threads."""
+    from ..io.ply_read import file_piece_hash
+
+    return file_piece_hash(path)
 
 
 @dataclass
@@ -102,19 +104,26 @@ def read_scene(job: SceneJob, force: bool, label: str) -> LoadedScene:
 
 def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) -> None:
     """Stage 2: every budget in one progressive run on ``device``; the results come back to the
-    host."""
+    host. Timed as three stages: ``upload`` (the input to the device), ``simplify`` and
+    ``download`` (the results back to the host)."""
     if scene.final:
         return
-    with _stage(scene, "simplify"):
-        from ..pipeline import simplify_progressively
-
+    with _stage(scene, "upload"):
         job, splats = scene.job, scene.splats
-        by_target: dict[int, list] = {}
-        for budget in job.budgets:
-            by_target.setdefault(budget.target(splats.count), []).append(budget)
         scene.splats = None  # the host copy is not needed again
         scene.device_kind = getattr(device, "name", str(device))
         on_device = splats.to(device)
+        del splats
+        _synchronize(device)
+    if scene.final:  # it failed (out of device memory, say)
+        return
+    download = 0.0
+    with _stage(scene, "simplify"):
+        from ..pipeline import simplify_progressively
+
+        by_target: dict[int, list] = {}
+        for budget in job.budgets:
+            by_target.setdefault(budget.target(on_device.count), []).append(budget)
         for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
             if job.refine_steps > 0:
                 from ..refinement.refine import refine_with_report
@@ -123,7 +132,19 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
                 config = RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed)
                 simplified = refine_with_report(simplified, on_device, config)[0]
             # to the host here, so that the writer thread never touches the GPU (and its memory is freed)
+            begun = time.perf_counter()
             scene.simplified.append((target, simplified.to("cpu"), by_target[target]))
+            download += time.perf_counter() - begun
+    if "simplify" in scene.result.stages:
+        scene.result.stages["simplify"] = round(scene.result.stages["simplify"] - download, 4)
+        scene.result.stages["download"] = round(download, 4)
+
+
+def _synchronize(device) -> None:
+    if not getattr(device, "is_cpu", True):
+        import warp as wp
+
+        wp.synchronize_device(device)
 
 
 def write_scene(scene: LoadedScene) -> SceneResult:
@@ -164,6 +185,7 @@ def _stage(scene: LoadedScene, name: str):
 def _read(scene: LoadedScene, force: bool) -> None:
     from ..io import detect_format, load_splats
     from ..io.ply import load_ply
+    from ..io.ply_read import PieceHash
 
     job, result = scene.job, scene.result
     spin_if_asked(job)
@@ -177,7 +199,7 @@ def _read(scene: LoadedScene, force: bool) -> None:
     record = None if force else read_record(job.record_path)
     if record_matches(record, job, scene.size, None, options):  # all but the hash: hash to be sure
         try:
-            scene.sha = file_sha256(job.input)
+            scene.sha = input_hash(job.input)
         except OSError as e:
             raise InputError(f"{job.relative}: cannot read the file: {e.strerror or e}") from None
         if record_matches(record, job, scene.size, scene.sha, options):
@@ -189,14 +211,15 @@ def _read(scene: LoadedScene, force: bool) -> None:
 
     job.out_dir.mkdir(parents=True, exist_ok=True)
     _remove_leftovers(job)  # the old record first: from here on, no record describes these outputs
-    if detect_format(job.input) == "ply":  # hashed as it is parsed
-        digest = None if scene.sha else hashlib.sha256()
-        scene.splats = load_ply(job.input, device="cpu", drop_invalid=job.drop_invalid, on_drop=result.notes.append, digest=digest)
-        if digest is not None:
-            scene.sha = digest.hexdigest()
+    if detect_format(job.input) == "ply":  # hashed as it is parsed, by the threads that read it
+        hasher = None if scene.sha else PieceHash(scene.size)
+        scene.splats = load_ply(job.input, device="cpu", drop_invalid=job.drop_invalid, on_drop=result.notes.append,
+                                file_hash=hasher)  # fmt: skip
+        if hasher is not None:
+            scene.sha = hasher.hexdigest()
     else:
         if not scene.sha:
-            scene.sha = file_sha256(job.input)
+            scene.sha = input_hash(job.input)
         scene.splats = load_splats(job.input, device="cpu", drop_invalid=job.drop_invalid, on_drop=result.notes.append)
     result.input_count = scene.splats.count
 
@@ -217,7 +240,7 @@ def _write(scene: LoadedScene) -> None:
         "format": RECORD_FORMAT,
         "tool": "nanogs-warp",
         "version": __version__,
-        "input": {"path": os.path.abspath(job.input), "relative": job.relative, "bytes": scene.size, "sha256": scene.sha},
+        "input": {"path": os.path.abspath(job.input), "relative": job.relative, "bytes": scene.size, "sha256_pieces": scene.sha},
         "options": job.options(),
         "input_count": result.input_count,
         "outputs": outputs,
@@ -262,7 +285,7 @@ def record_matches(record: dict | None, job: SceneJob, size: int, sha: str | Non
     input with this size)."""
     try:
         if (record["format"] != RECORD_FORMAT or record["version"] != __version__ or record["options"] != options
-                or record["input"]["bytes"] != size or (sha is not None and record["input"]["sha256"] != sha)):  # fmt: skip
+                or record["input"]["bytes"] != size or (sha is not None and record["input"]["sha256_pieces"] != sha)):  # fmt: skip
             return False
         outputs = record["outputs"]
         if sorted(o["budget"] for o in outputs) != sorted(b.label for b in job.budgets):

@@ -107,7 +107,7 @@ def simplify(
     quiet: opts.Quiet = False,
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
-    from ..device import WarpStart, keep_freed_host_memory
+    from ..device import WarpStart, keep_freed_host_memory, process_age
     from ..io import format_for_path, read_any_splats, save_levels
     from ..io.ply import splats_from_host
 
@@ -139,19 +139,27 @@ def simplify(
     notes = _Notes(quiet or json_output)
 
     started = time.perf_counter()
-    warp_start = WarpStart(device, prepare=lambda: _import_pipeline(config))  # while the file is read
+    stages: dict[str, float] = {}
+    age = process_age()
+    if age is not None:
+        stages["start"] = age  # process start to here: the interpreter and the imports
+    from ..kernel_cache import REFINE_MODULES, simplify_modules
+
+    # Warp starts, and loads the kernels this run launches, on another thread while the file is read
+    modules = simplify_modules(config) + (REFINE_MODULES if refine_config else ())
+    warp_start = WarpStart(device, prepare=lambda: _import_pipeline(config), modules=modules, announce=not quiet)
     try:
         arrays, layout = read_any_splats(input, drop_invalid=drop_invalid, on_drop=notes)
+        stages["read"] = time.perf_counter() - started
         target_device = warp_start.device()
     except BaseException:
         warp_start.wait()
         raise
-    from ..kernel_cache import REFINE_MODULES, SIMPLIFY_MODULES, load_kernels
-
-    load_kernels(target_device, SIMPLIFY_MODULES + (REFINE_MODULES if refine_config else ()), announce=not quiet)
+    loaded = time.perf_counter()
+    stages["warp_wait"] = loaded - started - stages["read"]  # what the read did not hide of Warp's start
+    stages.update(warp_start.stages)
     splats = splats_from_host(arrays, layout)
     del arrays
-    loaded = time.perf_counter()
     targets = {budget: budget.target(splats.count) for budget in budgets}
     progress = _PassProgress(sys.stderr.isatty() and not quiet and not json_output, max(targets.values()))
     passes = []
@@ -161,9 +169,21 @@ def simplify(
     for budget, target in targets.items():
         budgets_for_target.setdefault(target, []).append(budget)
     on_device = splats.to(target_device)
-    with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
-        warnings.simplefilter("always", NanogsWarning)
-        _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels, refine_config)
+    if not target_device.is_cpu:
+        import warp as wp
+
+        wp.synchronize_device(target_device)
+    stages["upload"] = time.perf_counter() - loaded
+    # The outputs are written on another thread while the next budget is simplified.
+    writer = _Writer(background=True)
+    try:
+        with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
+            warnings.simplefilter("always", NanogsWarning)
+            _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels,
+                               refine_config, writer, stages)  # fmt: skip
+        writer.finish(stages)
+    finally:
+        writer.close()
     progress.done()
     if lod_set:  # level 0 is the finest: the largest budget, reached first
         for level, out in enumerate(written):
@@ -187,7 +207,8 @@ def simplify(
         "passes": len(passes),
         "outputs": written,
         "notes": notes.lines,
-        "seconds": {"read": round(loaded - started, 4), "total": round(finished - started, 4)},
+        "seconds": {"read": round(loaded - started, 4), "total": round(finished - started, 4),
+                    "stages": {name: round(seconds, 4) for name, seconds in stages.items()}},
     }
     if json_output:
         typer.echo(json.dumps(summary, indent=2))
@@ -221,13 +242,59 @@ class _Notes:
         self._seen.add(what)
 
 
-def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels, refine_config=None):
+class _Writer:
+    """Writes outputs in turn, on one background thread (``background``) or on the caller's; its
+    clock: ``write`` (seconds spent writing) and ``write_wait`` (the caller waiting for the writes
+    at the end)."""
+
+    def __init__(self, background: bool):
+        self.pool = None
+        if background:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self.pool = ThreadPoolExecutor(1, thread_name_prefix="nanogs-write")
+        self.pending: list = []
+        self.seconds = 0.0
+
+    def submit(self, write) -> None:
+        for future in [f for f in self.pending if f.done()]:  # an error shows as soon as it is seen
+            self.pending.remove(future)
+            future.result()
+        if self.pool is None:
+            self._timed(write)
+        else:
+            self.pending.append(self.pool.submit(self._timed, write))
+
+    def _timed(self, write) -> None:
+        begun = time.perf_counter()
+        write()
+        self.seconds += time.perf_counter() - begun
+
+    def finish(self, stages: dict) -> None:
+        begun = time.perf_counter()
+        for future in self.pending:
+            future.result()
+        self.pending = []
+        stages["write"] = self.seconds
+        stages["write_wait"] = time.perf_counter() - begun
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
+
+
+def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels,
+                       refine_config=None, writer=None, stages=None):  # fmt: skip
     """Runs the progressive merge and writes each budget as it is reached (appending to ``written``);
     for a level-of-detail set (``levels`` a list) keeps each level on the host instead. With
-    ``refine_config``, each budget's result is refined toward the input first."""
+    ``refine_config``, each budget's result is refined toward the input first. Each result comes
+    to the host here (``stages["download"]``) and is handed to ``writer``."""
     from ..io import save_splats
     from ..pipeline import simplify_progressively
 
+    writer = writer or _Writer(background=False)
+    stages = {} if stages is None else stages
+    stages.setdefault("download", 0.0)
     on_pass = lambda r: (passes.append(r), progress(r))  # noqa: E731
     for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass):
         reached = time.perf_counter()
@@ -235,18 +302,23 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
         if refine_config is not None:
             progress.done()
             result, report = _refine(result, on_device, refine_config, progress.enabled)
+        begun = time.perf_counter()
+        host = result.to("cpu")
+        stages["download"] += time.perf_counter() - begun
         for budget in budgets_for_target[target]:
             paths[budget].parent.mkdir(exist_ok=True)  # -o DIR/: created with the first output, not before
             if levels is not None:
-                levels.append(result.to("cpu"))
+                levels.append(host)
             else:
-                save_splats(result, paths[budget], fmt, on_loss=notes)
+                writer.submit(lambda host=host, path=paths[budget]: save_splats(host, path, fmt, on_loss=notes))
             written.append({"path": str(paths[budget].resolve()), "budget": budget.label, "count": result.count,
                             "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
             if report is not None:
                 written[-1]["refine"] = report.to_json()
         smaller = [t for t in budgets_for_target if t < target]
         progress.target = max(smaller) if smaller else target
+    in_turn = writer.seconds if writer.pool is None else 0.0  # writes done on this thread
+    stages["simplify"] = time.perf_counter() - loaded - stages.get("upload", 0.0) - stages["download"] - in_turn
 
 
 def _refine(result, reference, config: RefineConfig, show_progress: bool):

@@ -28,6 +28,7 @@ def batch_command(
     count: opts.Count = None,
     devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, all,cpu (every GPU and the CPU), or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.")] = "auto",
     workers: Annotated[int, typer.Option(help="Worker processes per device (e.g. several on the CPU).")] = 1,
+    readers: Annotated[Optional[int], typer.Option("--readers", metavar="N", help="Threads per worker that read, check and hash each input file while the device works on the previous scene. [default: the CPU cores shared out among the workers, 1 to 8]", show_default=False)] = None,
     shard: Annotated[Optional[str], typer.Option(help="Only scenes i, i+n, i+2n, ... of the sorted list, as i/n (0-based), e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT.", show_default=False)] = None,
     ray: Annotated[Optional[str], typer.Option("--ray", help="Run each scene as a Ray task: auto (the cluster this machine belongs to), local (a Ray instance started here) or the head's ADDRESS. Needs nanogs-warp[ray].", show_default=False)] = None,
     scene_timeout: Annotated[Optional[float], typer.Option("--scene-timeout", metavar="SECONDS", help="Time limit per scene; a scene past it fails and its worker process is replaced. 0: no limit. [default: 300 s plus 0.1 s per MB of input on a GPU, 0.5 s per MB on the CPU]", show_default=False)] = None,
@@ -69,6 +70,8 @@ def batch_command(
         raise InputError(f"--scene-timeout must be a number of seconds >= 0, got {scene_timeout}")
     if workers < 1:
         raise InputError(f"--workers must be at least 1, got {workers}")
+    if readers is not None and readers < 1:
+        raise InputError(f"--readers must be at least 1, got {readers}")
     if output.exists() and not output.is_dir():
         raise InputError(f"--output {output} is not a directory")
 
@@ -96,7 +99,7 @@ def batch_command(
     progress = BatchProgress(len(selected), quiet=quiet)
     if shard_count > 1 and not quiet:
         typer.echo(f"nanogs-warp batch: shard {shard_index}/{shard_count}: {len(selected)} of {len(jobs)} scenes", err=True)
-    results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress, scene_timeout)
+    results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress, scene_timeout, readers)
     seconds = time.perf_counter() - started
     if json_output:
         summary = summary_json(results, seconds, (shard_index, shard_count))
@@ -104,7 +107,7 @@ def batch_command(
             scene["input"] = os.path.abspath(scene["input"])
             for out in scene["outputs"]:
                 out["path"] = os.path.abspath(out["path"])
-        settings = {**vars(config), "devices": devices, "workers": workers, "ray": ray, "drop_invalid": drop_invalid}
+        settings = {**vars(config), "devices": devices, "workers": workers, "readers": readers, "ray": ray, "drop_invalid": drop_invalid}
         summary = {"schema": opts.JSON_SCHEMA, "command": "batch", "output": os.path.abspath(output), "settings": settings, **summary}
         typer.echo(json.dumps(summary, indent=2))
     elif not quiet:

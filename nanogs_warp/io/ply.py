@@ -1,12 +1,17 @@
 """INRIA 3DGS ``.ply`` files <-> :class:`SplatSet`: the public API for reading and writing splat files.
 
 Reading checks the header itself first (structure, 3DGS properties, sizes against the file length),
-then lets plyfile read the data (a memory map for binary files) and copies each group of columns
-(means, features, ...) out of the record array as one strided block. Writing packs the vertex rows
-in chunks of a few MB, block by block, behind a header made by plyfile, into a temporary file that
-then replaces the target. Every problem with the input becomes an :class:`InputError` with a
-one-line message; values are checked on load (NaN/Inf, zero quaternions), not on save.
-The header parser and structure checks live in :mod:`.ply_header`, the writer in :mod:`.ply_write`.
+lets plyfile map the file (for the layout, the other elements and the comments), then reads a
+binary file's vertex rows itself, on several threads, block by block (:mod:`.ply_read`): each
+group of columns (means, features, ...) is copied out of the records as one strided block, its
+values checked and its quaternions normalised while the block is in cache; only a block with a
+suspicious value sends the load through the exact row-by-row checks. ASCII files and files with a
+list element before the vertices are converted from plyfile's array. Writing packs the vertex rows
+in chunks of a few MB on several threads, writes them in order behind a header made by plyfile,
+into a temporary file that then replaces the target. Every problem with the input becomes an
+:class:`InputError` with a one-line message; values are checked on load (NaN/Inf, zero
+quaternions, log-scales outside the domain), not on save. The header parser and structure checks
+live in :mod:`.ply_header`, the writer in :mod:`.ply_write`.
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ from .ply_header import (
 from .ply_layout import PlyLayout
 from .ply_write import atomic_write, output_properties
 from .ply_write import write_ply_stream as _write_ply_stream  # by this name: the tests patch it here
+from .ply_read import BlockCheck, Columns, copy_run, read_threads, read_vertex_rows
 
 if TYPE_CHECKING:
     from ..splats import SplatSet
@@ -53,7 +59,8 @@ DROP_HINT = "load with drop_invalid (CLI: --drop-invalid) to drop them"
 # Public API
 
 
-def load_ply(path, device="cpu", drop_invalid: bool = False, on_drop=None, digest=None) -> SplatSet:
+def load_ply(path, device="cpu", drop_invalid: bool = False, on_drop=None, digest=None, file_hash=None,
+             threads: int | None = None) -> SplatSet:
     """Reads a 3DGS PLY file into a :class:`SplatSet` on ``device`` with its layout filled in.
 
     Quaternions are normalised (left bit-exact when already unit to float32 precision, so that
@@ -62,17 +69,31 @@ def load_ply(path, device="cpu", drop_invalid: bool = False, on_drop=None, diges
     :class:`InputError`, or are dropped when ``drop_invalid`` is true (then ``on_drop``, if given,
     is called with one line saying how many rows went and why). Opacity logits of +Inf (alpha = 1)
     and -Inf (alpha = 0) are valid: see :func:`saturate_opacity_logits`.
-    ``digest`` (a :mod:`hashlib` object) is fed every byte of the file, in order, as it is read.
+    ``digest`` (a :mod:`hashlib` object) is fed every byte of the file, in order, as it is read
+    (on one thread); ``file_hash`` (a :class:`~nanogs_warp.io.ply_read.PieceHash`) gets every piece
+    of the file, hashed by the threads that read it. ``threads``: how many threads read the file
+    (None: :func:`~nanogs_warp.io.ply_read.read_threads`).
     """
-    arrays, layout = read_splats(path, drop_invalid, digest, on_drop)
+    arrays, layout = read_splats(path, drop_invalid, digest, on_drop, file_hash=file_hash, threads=threads)
     return _to_splat_set(arrays, layout, device)
 
 
-def read_splats(path, drop_invalid: bool = False, digest=None, on_drop=None) -> tuple[dict[str, np.ndarray], PlyLayout]:
-    """load_ply's part on the host, without Warp: the checked host arrays (``PlyArrays`` names,
-    quaternions normalised) and the layout; ``splats_from_host`` makes them a :class:`SplatSet`."""
-    data = read_ply_arrays(path, digest)
-    a = checked_rows(data.arrays, Path(path).name, drop_invalid, on_drop)
+def read_splats(path, drop_invalid: bool = False, digest=None, on_drop=None, file_hash=None,
+                threads: int | None = None) -> tuple[dict[str, np.ndarray], PlyLayout]:
+    """load_ply's part on the host, without Warp: the checked host arrays and the layout;
+    ``splats_from_host`` makes them a :class:`SplatSet`. The arrays have ``PlyArrays``' names,
+    except that the normalised quaternions are either ``rotations`` (w first) or, from a binary
+    file, ``quats_xyzw`` (Warp's x, y, z, w order, which a SplatSet on the CPU then shares)."""
+    name = Path(path).name
+    data = _read(path, digest, file_hash, threads, prepare=True)
+    a, check = data.arrays, data.check
+    if check is not None and not check.suspect:  # every value checked block by block: valid
+        if check.infinite_opacity:
+            a["opacities"] = saturate_opacity_logits(a["opacities"])
+        return a, data.layout
+    if "quats_xyzw" in a:  # a value to look at row by row: the exact checks, as for any file
+        a["rotations"] = a.pop("quats_xyzw")[:, [3, 0, 1, 2]]
+    a = checked_rows(a, name, drop_invalid, on_drop)
     a["rotations"] = normalize_quaternions(a["rotations"])
     return a, data.layout
 
@@ -119,7 +140,7 @@ def saturate_opacity_logits(logits: np.ndarray) -> np.ndarray:
     return out
 
 
-def save_ply(splats: SplatSet, path) -> None:
+def save_ply(splats: SplatSet, path, threads: int | None = None) -> None:
     """Writes ``splats`` as a binary little-endian PLY file, atomically.
 
     Vertex properties follow ``splats.layout`` (names, order, dtypes; integer extras are clipped to
@@ -127,12 +148,13 @@ def save_ply(splats: SplatSet, path) -> None:
     opacity scale_* rot_*`` in float32 with zero normals (extras, if any, follow as ``extra_<i>``).
     Other elements, comments and obj_info of the layout are written back unchanged, after the
     vertex element. The data goes to a temporary file beside ``path`` that then replaces it, so a
-    failure never leaves a partial file and never touches an existing one.
+    failure never leaves a partial file and never touches an existing one. ``threads`` pack the rows
+    (None: :func:`~nanogs_warp.io.ply_read.read_threads`, at least two).
     """
     host = _host_arrays(splats)
     props = output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1],
                               host["integer_extras"].shape[1])  # fmt: skip
-    atomic_write(Path(path), lambda stream: _write_ply_stream(stream, host, props, splats.layout, _CHUNK_BYTES))
+    atomic_write(Path(path), lambda stream: _write_ply_stream(stream, host, props, splats.layout, _CHUNK_BYTES, threads))
 
 
 def _host_arrays(splats: SplatSet) -> dict[str, np.ndarray]:
@@ -146,25 +168,23 @@ def _host_arrays(splats: SplatSet) -> dict[str, np.ndarray]:
 
 
 def _to_splat_set(a: dict[str, np.ndarray], layout: PlyLayout, device) -> SplatSet:
-    """SplatSet.from_numpy, but on the CPU the fresh host arrays become the Warp arrays without a
-    copy (Warp keeps a reference to them); this saves a quarter of the load time."""
+    """The host arrays as a SplatSet: on the CPU the fresh host arrays become the Warp arrays
+    without a copy (Warp keeps a reference to them); on a GPU that set is copied there."""
     import warp as wp  # here, not at the top: reading a file's header and values needs no Warp
 
     from ..splats import SplatSet
 
     device = wp.get_device(device)
-    if not device.is_cpu:
-        return SplatSet.from_numpy(a["means"], a["rotations"], a["log_scales"], a["opacities"],
-                                   a["features"], a["extras"], layout=layout, device=device,
-                                   integer_extras=a["integer_extras"])  # fmt: skip
+    cpu = wp.get_device("cpu")
     n = a["means"].shape[0]
+    quats = a["quats_xyzw"] if "quats_xyzw" in a else a["rotations"][:, [1, 2, 3, 0]]
 
     def share(x, dtype, host_dtype=np.float32):
-        return wp.array(np.ascontiguousarray(x, dtype=host_dtype), dtype=dtype, device=device, copy=False)
+        return wp.array(np.ascontiguousarray(x, dtype=host_dtype), dtype=dtype, device=cpu, copy=False)
 
-    return SplatSet(
+    splats = SplatSet(
         means=share(a["means"], wp.vec3),
-        rotations=share(a["rotations"][:, [1, 2, 3, 0]], wp.quat),
+        rotations=share(quats, wp.quat),
         log_scales=share(a["log_scales"], wp.vec3),
         opacities=share(a["opacities"].reshape(n), wp.float32),
         features=share(a["features"], wp.float32),
@@ -172,6 +192,7 @@ def _to_splat_set(a: dict[str, np.ndarray], layout: PlyLayout, device) -> SplatS
         layout=layout,
         integer_extras=share(a["integer_extras"].reshape(n, -1), wp.int64, np.int64),
     )
+    return splats if device.is_cpu else splats.to(device)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -191,6 +212,7 @@ class PlyArrays:
     layout: PlyLayout
     format: str
     file_bytes: int
+    check: BlockCheck | None = None  # read_splats' reading: the block checks' findings (None: not checked)
 
     @property
     def count(self) -> int:
@@ -211,9 +233,14 @@ class ValueCheck:
     infinite_opacities: tuple[int, int] = (0, 0)  # rows with opacity logit +Inf (alpha 1), -Inf (alpha 0): valid
 
 
-def read_ply_arrays(path, digest=None) -> PlyArrays:
+def read_ply_arrays(path, digest=None, file_hash=None, threads: int | None = None) -> PlyArrays:
     """Reads and structurally checks a 3DGS PLY file; values are not checked (see check_values).
-    ``digest`` (a :mod:`hashlib` object), when given, is fed the whole file in the same pass."""
+    ``digest`` (a :mod:`hashlib` object, fed in order) or ``file_hash`` (a
+    :class:`~nanogs_warp.io.ply_read.PieceHash`), when given, is fed the whole file in the same pass."""
+    return _read(path, digest, file_hash, threads, prepare=False)
+
+
+def _read(path, digest, file_hash, threads, prepare: bool) -> PlyArrays:
     path = Path(path)
     name = path.name
     header = None
@@ -223,12 +250,12 @@ def read_ply_arrays(path, digest=None) -> PlyArrays:
             if file_bytes == 0:
                 raise InputError(f"{name}: the file is empty")
             header = parse_header(f.read(MAX_HEADER_BYTES), name)
-        vertex_h = check_structure(header, name)
-        check_sizes(header, file_bytes, name)
-        ply = plyfile.PlyData.read(str(path), mmap="r")
-        check_agreement(header, ply, name)
-        with np.errstate(all="ignore"):
-            return _extract(header, vertex_h, ply, path, file_bytes, digest)
+            vertex_h = check_structure(header, name)
+            check_sizes(header, file_bytes, name)
+            ply = plyfile.PlyData.read(str(path), mmap="r")
+            check_agreement(header, ply, name)
+            with np.errstate(all="ignore"):
+                return _extract(header, vertex_h, ply, path, f, file_bytes, digest, file_hash, threads, prepare)
     except (InputError, MemoryError):
         raise
     except OSError as e:
@@ -292,21 +319,31 @@ def sh_degree_for_rest_count(count: int) -> int:
     return REST_COUNTS[count]
 
 
-def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path, file_bytes: int,
-             digest=None) -> PlyArrays:
+def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path, f, file_bytes: int,
+             digest=None, file_hash=None, threads=None, prepare: bool = False) -> PlyArrays:
+    """The vertex columns as host arrays (float32; int64 for integer extras). A binary vertex element
+    at a known offset is read from the file by :func:`~nanogs_warp.io.ply_read.read_vertex_rows` on several threads (with
+    ``prepare``: checked block by block and quaternions normalised, as ``quats_xyzw``); otherwise
+    plyfile's array is converted, and the file hashed in a pass of its own when asked."""
     n = vertex_h.count
     data = ply["vertex"].data
     if data.shape != (n,):
         raise ValueError(f"vertex data has shape {data.shape}, expected ({n},)")
     fields = data.dtype.fields
+    itemsize = data.dtype.itemsize
     names = [p.name for p in vertex_h.props]
     n_rest = sum(1 for p in names if p.startswith("f_rest_"))
     known = set(REQUIRED_NAMES) | {f"f_rest_{i}" for i in range(n_rest)}
     extra_names = [p for p in names if p not in known]
     integer_names = [p.name for p in vertex_h.props if p.name in extra_names and p.dtype.kind in "iu"]
+    offset = _binary_offset(header, "vertex")
+    # plyfile found the same first record at the offset: trust it (else use plyfile's array)
+    direct = (offset is not None and data.flags.c_contiguous
+              and os.pread(f.fileno(), itemsize, offset) == data[:1].view(np.uint8).tobytes())  # fmt: skip
+    quats = ("quats_xyzw", ROT_NAMES[1:] + ROT_NAMES[:1]) if direct and prepare else ("rotations", ROT_NAMES)
     groups = {
         "means": MEAN_NAMES,
-        "rotations": ROT_NAMES,
+        quats[0]: quats[1],
         "log_scales": SCALE_NAMES,
         "opacities": OPACITY_NAMES,
         "features": DC_NAMES + tuple(f"f_rest_{i}" for i in range(n_rest)),
@@ -315,12 +352,24 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     }
     arrays = {key: np.empty((n, len(group)), np.int64 if key == "integer_extras" else np.float32)
               for key, group in groups.items()}  # fmt: skip
-    plans = [(arrays[key], _runs(fields, group)) for key, group in groups.items()]
-    for start, rows in _vertex_chunks(header, data, path, digest):
-        stop = start + rows.shape[0]
-        for out, runs in plans:
-            for i, j, dt, off in runs:
-                _copy_run(out[start:stop, i:j], rows[:, off : off + (j - i) * dt.itemsize], dt)
+    columns = {key: Columns(arrays[key], _runs(fields, group)) for key, group in groups.items()}
+    threads = read_threads(file_bytes, threads)
+    check = None
+    if direct:
+        found = read_vertex_rows(f.fileno(), file_bytes, offset, n, itemsize, columns, threads, _READ_UNIT_BYTES,
+                                 prepare, file_hash, digest)  # fmt: skip
+        check = found if prepare else None
+    else:
+        if digest is not None or file_hash is not None:  # a pass of its own
+            read_vertex_rows(f.fileno(), file_bytes, 0, 0, 1, {}, threads, _CHUNK_BYTES, False, file_hash, digest)
+        rows = np.ascontiguousarray(data).view(np.uint8).reshape(n, itemsize)
+        step = max(1, _CHUNK_BYTES // itemsize)
+        for start in range(0, n, step):
+            block = rows[start : start + step]
+            for plan in columns.values():
+                out = plan.out[start : start + step]
+                for i, j, dt, off in plan.runs:
+                    copy_run(out[:, i:j], block[:, off : off + (j - i) * dt.itemsize], dt)
     arrays["opacities"] = arrays["opacities"].reshape(n)
 
     others = []
@@ -335,21 +384,11 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
         comments=list(ply.comments),
         obj_info=list(ply.obj_info),
     )
-    return PlyArrays(arrays, layout, header.format, file_bytes)
+    return PlyArrays(arrays, layout, header.format, file_bytes, check)
 
 
-_CHUNK_BYTES = 4 << 20  # rows are converted (and written, by save_ply) in chunks of about this size
-
-
-def _copy_run(out: np.ndarray, raw: np.ndarray, dt: np.dtype) -> None:
-    """``out`` ((rows, k) float32) = ``raw`` ((rows, k * itemsize) bytes of records) read as ``dt``.
-    Float32 runs are copied row by row as one opaque item, about twice as fast as numpy's
-    element-wise strided copy of short rows."""
-    if dt == out.dtype and raw.strides[-1] == 1 and out.strides[-1] == out.itemsize:
-        run = np.dtype((np.void, raw.shape[1]))
-        out.view(run)[:, 0] = raw.view(run)[:, 0]
-    else:
-        out[...] = raw.view(dt)
+_CHUNK_BYTES = 1 << 20  # rows are written by save_ply (and converted from plyfile's array) in chunks of about this size
+_READ_UNIT_BYTES = 1 << 20  # a reader thread's unit of rows: its buffer and the unit's columns stay in its core's cache
 
 
 def _runs(fields, names) -> list[tuple[int, int, np.dtype, int]]:
@@ -364,93 +403,6 @@ def _runs(fields, names) -> list[tuple[int, int, np.dtype, int]]:
         runs.append((i, j, dt, off))
         i = j
     return runs
-
-
-def _vertex_chunks(header: Header, data: np.ndarray, path: Path, digest=None):
-    """(first row, (rows, itemsize) uint8 view) chunks of the vertex records. A binary vertex
-    element at a known offset is read from the file into reused cache-sized buffers (about twice
-    as fast as touching plyfile's memory map); otherwise plyfile's array is sliced. ``digest`` is
-    fed the whole file: in the first case the bytes as they are read (hashed on another thread
-    while the next chunk is converted), else in a separate pass."""
-    n, itemsize = data.shape[0], data.dtype.itemsize
-    step = max(1, _CHUNK_BYTES // itemsize)
-    offset = _binary_offset(header, "vertex")
-    if offset is not None and data.flags.c_contiguous:
-        with open(path, "rb") as f:
-            f.seek(offset)
-            # plyfile found the same first record there: trust the offset (else use plyfile's array)
-            if f.read(itemsize) == data[:1].view(np.uint8).tobytes():
-                with _Hasher(digest) as hasher:
-                    f.seek(0)
-                    hasher.feed_from(f, offset)  # the header and any element before the vertices
-                    buffers = [np.empty((min(step, n), itemsize), np.uint8) for _ in range(2 if digest else 1)]
-                    for k, start in enumerate(range(0, n, step)):
-                        buffer = buffers[k % len(buffers)]
-                        hasher.wait_for(buffer)
-                        rows = buffer[: min(step, n - start)]
-                        if f.readinto(memoryview(rows).cast("B")) != rows.nbytes:
-                            raise ValueError("the file changed while it was read")
-                        hasher.feed(rows, buffer)
-                        yield start, rows
-                    hasher.feed_from(f, None)  # the elements after the vertices
-                return
-    if digest is not None:
-        with open(path, "rb") as f:
-            while chunk := f.read(_CHUNK_BYTES):
-                digest.update(chunk)
-    if not data.flags.c_contiguous:
-        data = np.ascontiguousarray(data)
-    rows = data.view(np.uint8).reshape(n, itemsize)
-    for start in range(0, n, step):
-        yield start, rows[start : start + step]
-
-
-class _Hasher:
-    """Feeds a digest on one background thread (hashlib releases the GIL on large buffers), in
-    order; ``wait_for(buffer)`` returns once no pending update still reads ``buffer``."""
-
-    def __init__(self, digest):
-        self.digest = digest
-        self.pool = None
-        self.pending: dict[int, object] = {}
-
-    def __enter__(self):
-        if self.digest is not None:
-            from concurrent.futures import ThreadPoolExecutor
-
-            self.pool = ThreadPoolExecutor(1, thread_name_prefix="nanogs-hash")
-        return self
-
-    def __exit__(self, *exc):
-        if self.pool is not None:
-            self.pool.shutdown(wait=True)
-        return False
-
-    def feed(self, rows: np.ndarray, buffer: np.ndarray) -> None:
-        if self.pool is not None:
-            self.pending[id(buffer)] = self.pool.submit(self.digest.update, memoryview(rows).cast("B"))
-
-    def wait_for(self, buffer: np.ndarray) -> None:
-        future = self.pending.pop(id(buffer), None)
-        if future is not None:
-            future.result()
-
-    def feed_from(self, f, length: int | None) -> None:
-        """Reads ``length`` bytes (None: to the end) from ``f`` into the digest, in order."""
-        if self.pool is None:
-            if length is not None:
-                f.seek(length, os.SEEK_CUR)
-            return
-        for future in self.pending.values():
-            future.result()
-        self.pending.clear()
-        while length is None or length > 0:
-            chunk = f.read(_CHUNK_BYTES if length is None else min(length, _CHUNK_BYTES))
-            if not chunk:
-                break
-            self.digest.update(chunk)
-            if length is not None:
-                length -= len(chunk)
 
 
 def _binary_offset(header: Header, name: str) -> int | None:

@@ -10,6 +10,7 @@ import errno
 import io
 import os
 import secrets
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from .ply_header import (
     one_line,
 )
 from .ply_layout import PlyLayout
+from .ply_read import read_threads
 
 _INRIA_HEAD = MEAN_NAMES + NORMAL_NAMES + DC_NAMES
 _INRIA_TAIL = OPACITY_NAMES + SCALE_NAMES + ROT_NAMES
@@ -67,13 +69,14 @@ def output_properties(
 
 
 def write_ply_stream(stream, host: dict[str, np.ndarray], props: list[tuple[str, str]], layout,
-                     chunk_bytes: int) -> None:
+                     chunk_bytes: int, threads: int | None = None) -> None:
     """Writes the header (via plyfile), the vertex rows in packed chunks of about ``chunk_bytes``,
     then the other elements (serialised by plyfile) to a binary stream. ``host`` holds 2D float32
     arrays ``means``, ``log_scales``, ``opacities``, ``features``, ``extras`` and the quaternions,
     as ``rotations`` (w first, as in the file) or ``quats_xyzw`` (Warp's order), and, when the
-    layout has integer extras, their int64 ``integer_extras``. One chunk is
-    written on a background thread while the next is packed."""
+    layout has integer extras, their int64 ``integer_extras``. Chunks are packed on ``threads``
+    threads (at least two when there are several chunks) and written in order, each by the thread
+    that packed it, so that packing the next chunks overlaps writing this one."""
     n = host["means"].shape[0]
     dtype = np.dtype([(nm, "<" + dt) for nm, dt in props])
     others = list(layout.other_elements) if layout is not None else []
@@ -88,31 +91,55 @@ def write_ply_stream(stream, host: dict[str, np.ndarray], props: list[tuple[str,
     stream.write(ply.header.encode("ascii") + b"\n")
     plan = _pack_plan(host, props, layout, dtype)
     step = max(1, chunk_bytes // dtype.itemsize)
-    chunks = range(0, n, step)
+    chunks = list(range(0, n, step))
     if len(chunks) == 1:
         rows = np.empty(n, dtype)
         _pack_rows(plan, rows, 0)
         stream.write(memoryview(rows.view(np.uint8)))
     else:
-        with ThreadPoolExecutor(1, thread_name_prefix="nanogs-write") as pool:
-            buffers = [np.empty(step, dtype) for _ in range(2)]
-            writing = [None, None]  # the pending write of each buffer
-            try:
-                for k, start in enumerate(chunks):
-                    if writing[k % 2] is not None:
-                        writing[k % 2].result()
-                    rows = buffers[k % 2][: min(step, n - start)]
-                    _pack_rows(plan, rows, start)
-                    writing[k % 2] = pool.submit(stream.write, memoryview(rows.view(np.uint8)))
-            finally:
-                for pending in writing:  # wait for both (and raise the first error) before returning
-                    if pending is not None:
-                        pending.result()
+        _write_chunks(stream, plan, dtype, n, step, chunks, max(2, read_threads(n * dtype.itemsize, threads)))
     if others:
         tail = plyfile.PlyData(others, text=False, byte_order="<")
         body = io.BytesIO()
         tail.write(body)
         stream.write(body.getbuffer()[len(tail.header) + 1 :])
+
+
+def _write_chunks(stream, plan, dtype: np.dtype, n: int, step: int, chunks: list[int], threads: int) -> None:
+    """Packs the chunks on ``threads`` threads, one buffer each, and writes them in order: a thread
+    packs its chunk, waits for the previous chunk to be written, writes its own and takes the next.
+    After an error no later chunk is written (the caller removes the file)."""
+    local = threading.local()
+    turns = [threading.Event() for _ in chunks]
+    failed = threading.Event()
+
+    def pack_and_write(k: int) -> None:
+        try:
+            buffer = getattr(local, "buffer", None)
+            if buffer is None:
+                buffer = local.buffer = np.empty(step, dtype)
+            rows = buffer[: min(step, n - chunks[k])]
+            _pack_rows(plan, rows, chunks[k])
+            if k > 0:
+                turns[k - 1].wait()
+            if failed.is_set():
+                return
+            stream.write(memoryview(rows.view(np.uint8)))
+        except BaseException:
+            failed.set()
+            raise
+        finally:
+            turns[k].set()
+
+    pool = ThreadPoolExecutor(threads, thread_name_prefix="nanogs-write")
+    try:
+        for future in [pool.submit(pack_and_write, k) for k in range(len(chunks))]:
+            future.result()
+    finally:
+        failed.set()
+        for turn in turns:  # no thread waits for ever
+            turn.set()
+        pool.shutdown(wait=True)
 
 
 def _pack_plan(host, props, layout, dtype) -> list[tuple[int, np.dtype, int, np.ndarray | None]]:
@@ -154,7 +181,7 @@ def _pack_rows(plan, rows: np.ndarray, start: int) -> None:
     for off, dt, k, columns in plan:
         block = raw[:, off : off + k * dt.itemsize]
         if columns is None:
-            block[...] = 0
+            block.view(np.dtype((np.void, block.shape[1])))[:, 0] = b"\0" * block.shape[1]
             continue
         values = columns[start:stop]
         if dt.kind in "iu":  # integer extras (int64): clipped to the type
