@@ -318,3 +318,19 @@ def test_simplify_says_where_its_time_went(tmp_path):
             "write_wait"} <= set(stages)  # fmt: skip
     assert all(v >= 0 for v in stages.values())
     assert stages["read"] + stages["warp_wait"] <= seconds["read"] + 1e-3 <= seconds["total"] + 2e-3
+
+
+def test_the_command_ends_without_teardown_but_with_its_output_and_exit_code(tmp_path):
+    """main() ends the process at once when the command is done: stdout (a pipe here) still holds
+    the whole output, and the exit code is the command's."""
+    base = [sys.executable, "-m", "nanogs_warp"]
+    done = subprocess.run([*base, "simplify", "--sample", "-o", str(tmp_path / "s.ply"), "--count", "500", "--device", "cpu",
+                           "--json"], capture_output=True, text=True)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert [o["count"] for o in json.loads(done.stdout)["outputs"]] == [500]
+    assert load_ply(tmp_path / "s.ply").count == 500
+    again = subprocess.run([*base, "simplify", "--sample", "-o", str(tmp_path / "s.ply"), "--count", "5"], capture_output=True, text=True)
+    assert again.returncode == 2 and again.stdout == ""
+    assert again.stderr.strip().endswith("already exists; pass --overwrite (-w) to replace it")
+    helped = subprocess.run([*base, "--help"], capture_output=True, text=True)
+    assert helped.returncode == 0 and "simplify" in helped.stdout
