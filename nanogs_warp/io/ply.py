@@ -387,7 +387,7 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     return PlyArrays(arrays, layout, header.format, file_bytes, check)
 
 
-_CHUNK_BYTES = 1 << 20  # rows are written by save_ply (and converted from plyfile's array) in chunks of about this size
+_CHUNK_BYTES = 4 << 20  # rows are written by save_ply (and converted from plyfile's array) in chunks of about this size
 _READ_UNIT_BYTES = 1 << 20  # a reader thread's unit of rows: its buffer and the unit's columns stay in its core's cache
 
 
