@@ -4,7 +4,7 @@ import warp as wp
 
 from .splat_math import Splats
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
 
 @wp.kernel

@@ -3,9 +3,21 @@
 import warp as wp
 
 from .merge import log_area_mass
-from .splat_math import LOG_2PI, covariance, first_weight, log_mass, moment_match, rotation_matrix, to_vec3d
+from .portable_math import exp64, log64, normal_from_uniforms
+from .splat_math import (
+    LOG_2PI,
+    axis_variances,
+    covariance,
+    first_weight,
+    frame_covariance,
+    log_det_axes,
+    log_mass,
+    moment_match,
+    rotation_matrix,
+    to_vec3d,
+)
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
 # Finite stand-in for costs that cannot be evaluated (a degenerate merged covariance): such an edge
 # sorts after every real one.
@@ -40,17 +52,15 @@ def appearance_distance(features: wp.array2d(dtype=float), i: int, j: int):
 
 
 @wp.func
-def log_normal_axes(x: wp.vec3d, mu: wp.vec3d, rot: wp.mat33d, log_scale: wp.vec3):
-    """log N(x; mu, R diag(s)^2 R^T), evaluated in the splat's own axes."""
+def log_normal_axes(x: wp.vec3d, mu: wp.vec3d, rot: wp.mat33d, inv_sd: wp.vec3d, log_det: wp.float64):
+    """log N(x; mu, R diag(v) R^T), evaluated in the splat's own axes: ``inv_sd`` = 1 / sqrt(v),
+    ``log_det`` = log det."""
     local = wp.transpose(rot) * (x - mu)
     m = wp.float64(0.0)
-    log_det_half = wp.float64(0.0)
     for k in range(3):
-        ls = wp.float64(log_scale[k])
-        u = local[k] * wp.exp(-ls)
+        u = local[k] * inv_sd[k]
         m += u * u
-        log_det_half += ls
-    return wp.float64(-0.5) * m - log_det_half - wp.float64(1.5) * wp.float64(LOG_2PI)
+    return wp.float64(-0.5) * m - wp.float64(0.5) * log_det - wp.float64(1.5) * wp.float64(LOG_2PI)
 
 
 @wp.func
@@ -91,16 +101,9 @@ def log_normal_cholesky(x: wp.vec3d, mu: wp.vec3d, l: wp.mat33d):
     y0 = d[0] / l[0, 0]
     y1 = (d[1] - l[1, 0] * y0) / l[1, 1]
     y2 = (d[2] - l[2, 0] * y0 - l[2, 1] * y1) / l[2, 2]
-    log_det_half = wp.log(l[0, 0]) + wp.log(l[1, 1]) + wp.log(l[2, 2])
+    log_det_half = log64(l[0, 0]) + log64(l[1, 1]) + log64(l[2, 2])
     return (
         wp.float64(-0.5) * (y0 * y0 + y1 * y1 + y2 * y2) - log_det_half - wp.float64(1.5) * wp.float64(LOG_2PI)
-    )
-
-
-@wp.func
-def scales(log_scale: wp.vec3):
-    return wp.vec3d(
-        wp.exp(wp.float64(log_scale[0])), wp.exp(wp.float64(log_scale[1])), wp.exp(wp.float64(log_scale[2]))
     )
 
 
@@ -108,7 +111,7 @@ def scales(log_scale: wp.vec3):
 def log_add(a: wp.float64, b: wp.float64):
     """log(exp(a) + exp(b))."""
     m = wp.max(a, b)
-    return m + wp.log(wp.exp(a - m) + wp.exp(b - m))
+    return m + log64(exp64(a - m) + exp64(b - m))
 
 
 @wp.func
@@ -131,17 +134,25 @@ def mixture_divergence(
 ):
     """Monte Carlo KL(p~ || q_m) of the normalised mixture p~ = pi N_i + (1 - pi) N_j against its
     moment-matched Gaussian q_m (NanoGS eq. 5 and Appendix A, eq. 12), and whether q_m is valid.
-    Each sample (z, u) is shared by every edge (common random numbers): x = mu_i + R_i (s_i * z)
-    if u < pi, else from splat j."""
-    log_pi = wp.log(pi)
-    log_pj = wp.log(wp.float64(1.0) - pi)
+    Each sample (z, u) is shared by every edge (common random numbers): x = mu_i + R_i (sd_i * z)
+    if u < pi, else from splat j. Every Gaussian is the regularised one (``axis_variances``,
+    ``moment_match``), as the merge operators see it."""
+    log_pi = log64(pi)
+    log_pj = log64(wp.float64(1.0) - pi)
     mu_i = to_vec3d(means[i])
     mu_j = to_vec3d(means[j])
     rot_i = rotation_matrix(rotations[i])
     rot_j = rotation_matrix(rotations[j])
-    mu_m, cov_m = moment_match(
-        pi, mu_i, covariance(rotations[i], log_scales[i]), mu_j, covariance(rotations[j], log_scales[j])
-    )
+    var_i = axis_variances(log_scales[i])
+    var_j = axis_variances(log_scales[j])
+    sd_i = wp.vec3d(wp.sqrt(var_i[0]), wp.sqrt(var_i[1]), wp.sqrt(var_i[2]))
+    sd_j = wp.vec3d(wp.sqrt(var_j[0]), wp.sqrt(var_j[1]), wp.sqrt(var_j[2]))
+    one = wp.float64(1.0)
+    inv_sd_i = wp.vec3d(one / sd_i[0], one / sd_i[1], one / sd_i[2])
+    inv_sd_j = wp.vec3d(one / sd_j[0], one / sd_j[1], one / sd_j[2])
+    log_det_i = log_det_axes(var_i)
+    log_det_j = log_det_axes(var_j)
+    mu_m, cov_m = moment_match(pi, mu_i, frame_covariance(rot_i, var_i), mu_j, frame_covariance(rot_j, var_j))
     l_m, ok = cholesky(cov_m)
     divergence = wp.float64(0.0)
     if not ok:
@@ -151,12 +162,12 @@ def mixture_divergence(
         z = wp.vec3d(wp.float64(zu[0]), wp.float64(zu[1]), wp.float64(zu[2]))
         x = wp.vec3d()
         if wp.float64(zu[3]) < pi:
-            x = mu_i + rot_i * wp.cw_mul(z, scales(log_scales[i]))
+            x = mu_i + rot_i * wp.cw_mul(z, sd_i)
         else:
-            x = mu_j + rot_j * wp.cw_mul(z, scales(log_scales[j]))
+            x = mu_j + rot_j * wp.cw_mul(z, sd_j)
         log_mixture = log_add(
-            log_pi + log_normal_axes(x, mu_i, rot_i, log_scales[i]),
-            log_pj + log_normal_axes(x, mu_j, rot_j, log_scales[j]),
+            log_pi + log_normal_axes(x, mu_i, rot_i, inv_sd_i, log_det_i),
+            log_pj + log_normal_axes(x, mu_j, rot_j, inv_sd_j, log_det_j),
         )
         divergence += log_mixture - log_normal_cholesky(x, mu_m, l_m)
     return divergence / wp.float64(samples.shape[0]), ok
@@ -198,11 +209,15 @@ def runnalls_splat_terms(
     opacities: wp.array(dtype=float),
     covariances: wp.array(dtype=wp.mat33d),
     weights: wp.array(dtype=wp.float64),
+    log_dets: wp.array(dtype=wp.float64),
 ):
-    """Per splat, once per pass (every edge reads two): Sigma and w = alpha (s0 s1 + s0 s2 + s1 s2)."""
+    """Per splat, once per pass (every edge reads two): the regularised Sigma, its log det and
+    w = alpha (s0 s1 + s0 s2 + s1 s2)."""
     i = wp.tid()
-    covariances[i] = covariance(rotations[i], log_scales[i])
-    weights[i] = wp.exp(log_area_mass(opacities[i], log_scales[i]))
+    variances = axis_variances(log_scales[i])
+    covariances[i] = frame_covariance(rotation_matrix(rotations[i]), variances)
+    log_dets[i] = log_det_axes(variances)
+    weights[i] = exp64(log_area_mass(opacities[i], log_scales[i]))
 
 
 @wp.func
@@ -212,24 +227,29 @@ def mass_power(w: wp.float64, exponent: float):
         return wp.sqrt(wp.sqrt(w))
     if exponent == 0.0:
         return wp.float64(1.0)
-    return wp.exp(wp.float64(exponent) * wp.log(w))
+    return exp64(wp.float64(exponent) * log64(w))
 
 
 @wp.func
 def log_det_positive(a: wp.mat33d):
-    """log det of a symmetric matrix and whether it is positive definite (Sylvester: every leading
-    minor positive)."""
-    m1 = a[0, 0]
-    m2 = m1 * a[1, 1] - a[0, 1] * a[1, 0]
-    det = wp.determinant(a)
-    ok = m1 > wp.float64(0.0) and m2 > wp.float64(0.0) and det > wp.float64(0.0)
-    return wp.log(wp.max(det, wp.float64(1e-300))), ok
-
-
-@wp.func
-def log_det_scales(log_scale: wp.vec3):
-    """log det Sigma = 2 sum_k log s_k."""
-    return wp.float64(2.0) * (wp.float64(log_scale[0]) + wp.float64(log_scale[1]) + wp.float64(log_scale[2]))
+    """log det of a symmetric matrix from its LDL^T pivots (Gaussian elimination without pivoting,
+    backward stable for a positive definite matrix: each pivot within a few ulp of tr(a) of its exact
+    value, so a regularised covariance's are all positive), and whether every pivot is positive.
+    The cofactor determinant would be noise for a needle: its two small eigenvalues multiply."""
+    d0 = a[0, 0]
+    ok = d0 > wp.float64(0.0)
+    if not ok:
+        return wp.float64(0.0), ok
+    l10 = a[1, 0] / d0
+    l20 = a[2, 0] / d0
+    d1 = a[1, 1] - l10 * a[1, 0]
+    ok = d1 > wp.float64(0.0)
+    if not ok:
+        return wp.float64(0.0), ok
+    e21 = a[2, 1] - l20 * a[1, 0]
+    d2 = (a[2, 2] - l20 * a[2, 0]) - (e21 / d1) * e21
+    ok = d2 > wp.float64(0.0)
+    return log64((d0 * d1) * d2), ok
 
 
 @wp.kernel
@@ -237,9 +257,9 @@ def runnalls_costs(
     edge_i: wp.array(dtype=wp.int32),
     edge_j: wp.array(dtype=wp.int32),
     means: wp.array(dtype=wp.vec3),
-    log_scales: wp.array(dtype=wp.vec3),
     covariances: wp.array(dtype=wp.mat33d),
     weights: wp.array(dtype=wp.float64),
+    log_dets: wp.array(dtype=wp.float64),
     features: wp.array2d(dtype=float),
     lambda_geo: float,
     lambda_app: float,
@@ -248,7 +268,8 @@ def runnalls_costs(
 ):
     """W^gamma [lambda_geo B(i, j) + lambda_app 4 pi (1 - pi) ||f_i - f_j||^2], deterministic and >= 0:
     weights w = alpha (s0 s1 + s0 s2 + s1 s2) (the area operator's), W = w_i + w_j,
-    pi = w_i / W, and B = 1/2 [log det Sigma_m - pi log det Sigma_i - (1 - pi) log det Sigma_j],
+    pi = w_i / W, and B = 1/2 [log det Sigma_m - pi log det Sigma_i - (1 - pi) log det Sigma_j]
+    (every Sigma regularised, ``splat_math``),
     Runnalls' upper bound on KL(p~ || q_m) for the normalised pair and its moment match q_m
     (Runnalls 2007, Kullback-Leibler approach to Gaussian mixture reduction). 4 pi (1 - pi) makes
     absorbing a light splat into a heavy one cheap (the weighted colour variance of the pair,
@@ -266,7 +287,7 @@ def runnalls_costs(
         costs[e] = wp.float32(UNMERGEABLE)
         return
     one = wp.float64(1.0)
-    bound = wp.float64(0.5) * (log_det_m - pi * log_det_scales(log_scales[i]) - (one - pi) * log_det_scales(log_scales[j]))
+    bound = wp.float64(0.5) * (log_det_m - pi * log_dets[i] - (one - pi) * log_dets[j])
     bound = wp.max(bound, wp.float64(0.0))
     app = wp.float64(4.0) * pi * (one - pi) * appearance_distance(features, i, j)
     costs[e] = finite_cost(mass_power(big_w, mass_exponent) * (wp.float64(lambda_geo) * bound + wp.float64(lambda_app) * app))
@@ -302,7 +323,17 @@ def mse_costs(
 
 @wp.kernel
 def draw_common_samples(seed: int, pass_index: int, samples: wp.array(dtype=wp.vec4)):
-    """Common random numbers of one pass: z ~ N(0, I_3) and u ~ U[0, 1) per sample."""
+    """Common random numbers of one pass: z ~ N(0, I_3) and u ~ U[0, 1) per sample. Warp's randn
+    uses float32 log and cos, which differ between the CPU and CUDA math libraries (and draws its
+    two uniforms within one expression, in an order C++ leaves open): the normals here come from
+    ``normal_from_uniforms`` (portable float64 Box-Muller), their uniforms drawn one statement at a
+    time."""
     s = wp.tid()
     state = wp.rand_init(seed, pass_index * samples.shape[0] + s)
-    samples[s] = wp.vec4(wp.randn(state), wp.randn(state), wp.randn(state), wp.randf(state))
+    z = wp.vec3()
+    for c in range(3):
+        u1 = wp.randf(state)
+        u2 = wp.randf(state)
+        z[c] = wp.float32(normal_from_uniforms(u1, u2))
+    u = wp.randf(state)
+    samples[s] = wp.vec4(z[0], z[1], z[2], u)

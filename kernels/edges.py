@@ -28,7 +28,7 @@ import warp as wp
 
 from .knn import neighbour_key, squared_distance
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
 MAX_K = wp.constant(32)  # foreign entries of a row are bits of a uint32
 # Part (b) is insertion-sorted up to this length, heap-sorted beyond it (a point listed by many rows)

@@ -9,7 +9,9 @@ one 3 x 3 change of basis per splat serves all three views.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from .portable_math import exp64
+
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
 PI = wp.constant(3.141592653589793)
 TWO_PI = wp.constant(6.283185307179586)
@@ -17,8 +19,19 @@ TWO_PI = wp.constant(6.283185307179586)
 
 @wp.func
 def in_frame(frame: wp.mat33d, cov: wp.mat33d):
-    """F^T Sigma F: the covariance in the frame's axes."""
-    return wp.transpose(frame) * cov * frame
+    """F^T Sigma F: the covariance in the frame's axes, exactly symmetric; written out (entry (a, b)
+    = sum_r F_ra (sum_k Sigma_rk F_kb), in that order) because Warp's matrix product calls fma()."""
+    t = wp.mat33d()
+    for r in range(3):
+        for b in range(3):
+            t[r, b] = cov[r, 0] * frame[0, b] + cov[r, 1] * frame[1, b] + cov[r, 2] * frame[2, b]
+    m = wp.mat33d()
+    for a in range(3):
+        for b in range(a, 3):
+            v = frame[0, a] * t[0, b] + frame[1, a] * t[1, b] + frame[2, a] * t[2, b]
+            m[a, b] = v
+            m[b, a] = v
+    return m
 
 
 @wp.func
@@ -46,7 +59,7 @@ def overlap(d: wp.vec3d, a: wp.mat33d, b: wp.mat33d, u: int, v: int):
     x = d[u]
     y = d[v]
     q = (s11 * x * x - wp.float64(2.0) * s01 * x * y + s00 * y * y) / det_s
-    return wp.float64(TWO_PI) * wp.sqrt(det_a * det_b / det_s) * wp.exp(wp.float64(-0.5) * q)
+    return wp.float64(TWO_PI) * wp.sqrt(det_a * det_b / det_s) * exp64(wp.float64(-0.5) * q)
 
 
 @wp.func

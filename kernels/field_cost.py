@@ -23,16 +23,10 @@ import warp as wp
 from .cost import UNMERGEABLE, finite_cost
 from .field import pair_view_overlaps
 from .merge import coverage_merged, mpmm_merged
+from .portable_math import sigmoid64
 from .splat_math import Splats, covariance, symmetric_eigen, to_vec3d
 
-
-@wp.kernel
-def splat_covariances(rotations: wp.array(dtype=wp.quat), log_scales: wp.array(dtype=wp.vec3), covariances: wp.array(dtype=wp.mat33d)):
-    """Sigma per splat, once per pass (every edge reads two)."""
-    i = wp.tid()
-    covariances[i] = covariance(rotations[i], log_scales[i])
-
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
 SH_C0 = wp.constant(0.28209479177387814)
 
@@ -42,16 +36,19 @@ COVERAGE = wp.constant(1)
 
 
 @wp.func
-def operator_merged(operator_id: int, i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, growth: float):
+def operator_merged(
+    operator_id: int, i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, a_i: wp.float64, a_j: wp.float64, growth: float
+):
     """The operator's merged splat as (pi, mu_m, eigenvalues, frame, alpha_m) and the overlap sums
-    (own, cross) of the pair and the merged splat over the three views along its axes."""
+    (own, cross) of the pair and the merged splat over the three views along its axes; ``a_i``,
+    ``a_j``: the pair's opacities."""
     if operator_id == MPMM:
         pi, mu_m, cov_m, logit_m = mpmm_merged(i, j, src)
         values, frame = symmetric_eigen(cov_m)
-        alpha_m = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(logit_m)))
+        alpha_m = sigmoid64(wp.float64(logit_m))
         own, cross = pair_view_overlaps(frame, values, to_vec3d(src.means[i]), to_vec3d(src.means[j]), mu_m, cov_i, cov_j)
         return pi, mu_m, values, frame, alpha_m, own, cross
-    return coverage_merged(i, j, src, cov_i, cov_j, growth)
+    return coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, growth)
 
 
 @wp.func
@@ -71,11 +68,27 @@ def colour_dot(features: wp.array2d(dtype=float), a: int, b: int):
 
 
 @wp.kernel
+def splat_terms(
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    features: wp.array2d(dtype=float),
+    covariances: wp.array(dtype=wp.mat33d),
+    colour_norms: wp.array(dtype=wp.float64),
+):
+    """Per splat, once per pass (every edge reads two): Sigma and mean_d |c(d)|^2 (``colour_dot`` of
+    the splat with itself, the same operations an edge would do)."""
+    i = wp.tid()
+    covariances[i] = covariance(rotations[i], log_scales[i])
+    colour_norms[i] = colour_dot(features, i, i)
+
+
+@wp.kernel
 def field_costs(
     edge_i: wp.array(dtype=wp.int32),
     edge_j: wp.array(dtype=wp.int32),
     src: Splats,
     covariances: wp.array(dtype=wp.mat33d),
+    colour_norms: wp.array(dtype=wp.float64),
     operator_id: int,
     growth: float,
     lambda_geo: float,
@@ -89,12 +102,12 @@ def field_costs(
     j = int(edge_j[e])
     cov_i = covariances[i]
     cov_j = covariances[j]
-    pi, mu_m, values, frame, alpha_m, own, cross = operator_merged(operator_id, i, j, src, cov_i, cov_j, growth)
+    a_i = sigmoid64(wp.float64(src.opacities[i]))
+    a_j = sigmoid64(wp.float64(src.opacities[j]))
+    pi, mu_m, values, frame, alpha_m, own, cross = operator_merged(operator_id, i, j, src, cov_i, cov_j, a_i, a_j, growth)
     if not (wp.isfinite(alpha_m) and wp.isfinite(values[0] * values[1] * values[2])):
         costs[e] = wp.float32(UNMERGEABLE)
         return
-    a_i = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(src.opacities[i])))
-    a_j = wp.float64(1.0) / (wp.float64(1.0) + wp.exp(-wp.float64(src.opacities[j])))
     two = wp.float64(2.0)
     # opacity: sum_v int (a_i G_i + a_j G_j - a_m G_m)^2 dA expanded into the overlap sums
     geo = (
@@ -103,8 +116,8 @@ def field_costs(
     )  # fmt: skip
     # colour: the same with the direction-averaged colour products c_x . c_y (c_m = pi c_i + (1 - pi) c_j)
     pj = wp.float64(1.0) - pi
-    d_ii = colour_dot(src.features, i, i)
-    d_jj = colour_dot(src.features, j, j)
+    d_ii = colour_norms[i]
+    d_jj = colour_norms[j]
     d_ij = colour_dot(src.features, i, j)
     d_im = pi * d_ii + pj * d_ij
     d_jm = pi * d_ij + pj * d_jj

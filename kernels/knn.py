@@ -31,7 +31,7 @@ alone, and a query that can prune nothing scans each point once per level it vis
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
 KMAX = wp.constant(32)
 GRID_BITS = wp.constant(21)  # bits per axis of the Morton code

@@ -18,9 +18,10 @@ included; else j's). Operators differ in their weights and in the merged opacity
 import warp as wp
 
 from .field import field_opacity, pair_view_overlaps
+from .portable_math import exp64, log64, pow64, sigmoid64
 from .splat_math import Splats, covariance, first_weight, log_mass, log_sigmoid, moment_match, quaternion_from_frame, symmetric_eigen, to_vec3d
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
 # Written values stay finite: |logit| <= 16.1 keeps sigmoid(logit) < 1 in float32, and scales
 # below exp(-30) are not distinguishable from zero in any renderer. A merged opacity stays at or
@@ -37,8 +38,8 @@ LOG_SCALE_MIN = wp.constant(-30.0)
 def over_opacity_logit(logit_i: float, logit_j: float):
     """logit of alpha_m = 1 - (1 - alpha_i)(1 - alpha_j) (NanoGS eq. 9), via log transmittances."""
     log_t = log_sigmoid(-wp.float64(logit_i)) + log_sigmoid(-wp.float64(logit_j))
-    alpha = wp.float64(1.0) - wp.exp(log_t)
-    logit = wp.log(wp.max(alpha, wp.float64(1e-300))) - log_t
+    alpha = wp.float64(1.0) - exp64(log_t)
+    logit = log64(wp.max(alpha, wp.float64(1e-300))) - log_t
     return wp.clamp(wp.float32(logit), -LOGIT_LIMIT, MERGED_LOGIT_MAX)
 
 
@@ -56,7 +57,7 @@ def store_gaussian(
     out.rotations[row] = quaternion_from_frame(frame)
     ls = wp.vec3()
     for k in range(3):
-        ls[k] = wp.max(wp.float32(wp.float64(0.5) * wp.log(wp.max(values[k], wp.float64(1e-300)))), LOG_SCALE_MIN)
+        ls[k] = wp.max(wp.float32(wp.float64(0.5) * log64(wp.max(values[k], wp.float64(1e-300)))), LOG_SCALE_MIN)
     out.log_scales[row] = ls
     return ls
 
@@ -128,7 +129,7 @@ def logit_of_log_alpha(log_alpha: wp.float64):
     """logit(alpha) from log alpha, clamped to [-LOGIT_LIMIT, MERGED_LOGIT_MAX]."""
     logit = wp.float32(MERGED_LOGIT_MAX)
     if log_alpha < wp.float64(0.0):
-        logit = wp.float32(log_alpha - wp.log(wp.max(wp.float64(1.0) - wp.exp(log_alpha), wp.float64(1e-300))))
+        logit = wp.float32(log_alpha - log64(wp.max(wp.float64(1.0) - exp64(log_alpha), wp.float64(1e-300))))
     return wp.clamp(logit, -LOGIT_LIMIT, MERGED_LOGIT_MAX)
 
 
@@ -139,7 +140,7 @@ def log_area(log_scale: wp.vec3):
     b = wp.float64(log_scale[0]) + wp.float64(log_scale[2])
     c = wp.float64(log_scale[1]) + wp.float64(log_scale[2])
     m = wp.max(a, wp.max(b, c))
-    return m + wp.log(wp.exp(a - m) + wp.exp(b - m) + wp.exp(c - m))
+    return m + log64(exp64(a - m) + exp64(b - m) + exp64(c - m))
 
 
 @wp.func
@@ -229,14 +230,16 @@ def area_weighted_moment_matching(
 
 
 @wp.func
-def coverage_merged(i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, growth: float):
+def coverage_merged(
+    i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, a_i: wp.float64, a_j: wp.float64, growth: float
+):
     """The coverage operator's merged splat: weights w = alpha s_a s_b (face-on footprint). With
     (c0, c1) the merged splat's two major axes (its face plane) and F_k = sqrt(det) of splat k's
     covariance projected onto that plane, the pair covers C = alpha_i F_i + alpha_j F_j there and the
     merged splat F_m = s0 s1; where C / F_m > 1, the variances along c0 and c1 grow by
     (C / F_m)^growth. The opacity is then the one that best keeps the pair's opacity field seen along
     each of the merged splat's three axes (``field_opacity``), at most MERGED_ALPHA_MAX.
-    ``cov_i``, ``cov_j``: the pair's covariances. Returns (pi, mu_m, eigenvalues, frame, alpha_m,
+    ``cov_i``, ``cov_j``: the pair's covariances; ``a_i``, ``a_j``: their opacities (``sigmoid64``). Returns (pi, mu_m, eigenvalues, frame, alpha_m,
     own, cross): ``own``/``cross`` the overlap sums of ``view_overlaps``, which the field cost reuses.
     The frame comes from the float64 Jacobi sweep, whose arithmetic (and sqrt) rounds alike on every
     device, so CPU and CUDA merges agree bit for bit."""
@@ -247,12 +250,10 @@ def coverage_merged(i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat
     values, frame = symmetric_eigen(cov_m)
     c0 = wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0])
     c1 = wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
-    a_i = wp.exp(log_sigmoid(wp.float64(src.opacities[i])))
-    a_j = wp.exp(log_sigmoid(wp.float64(src.opacities[j])))
     coverage = a_i * projected_footprint(cov_i, c0, c1) + a_j * projected_footprint(cov_j, c0, c1)
     ratio = coverage / wp.sqrt(wp.max(values[0] * values[1], wp.float64(1e-300)))
     if ratio > wp.float64(1.0):
-        grow = wp.pow(ratio, wp.float64(growth))
+        grow = pow64(ratio, wp.float64(growth))
         values = wp.vec3d(values[0] * grow, values[1] * grow, values[2])  # the frame and the order stay
     own, cross = pair_view_overlaps(frame, values, mu_i, mu_j, mu_m, cov_i, cov_j)
     alpha = wp.min(field_opacity(a_i, a_j, own, cross), wp.float64(MERGED_ALPHA_MAX))
@@ -277,8 +278,10 @@ def coverage_moment_matching(
     row = int(destination[i])
     cov_i = covariance(src.rotations[i], src.log_scales[i])
     cov_j = covariance(src.rotations[j], src.log_scales[j])
-    pi, mu_m, values, frame, alpha, own, cross = coverage_merged(i, j, src, cov_i, cov_j, growth)
+    a_i = sigmoid64(wp.float64(src.opacities[i]))
+    a_j = sigmoid64(wp.float64(src.opacities[j]))
+    pi, mu_m, values, frame, alpha, own, cross = coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, growth)
     blend_appearance(i, j, pi, row, src, out)
     store_gaussian(row, mu_m, values, frame, out)
-    out.opacities[row] = logit_of_log_alpha(wp.log(wp.max(alpha, wp.float64(1e-300))))
+    out.opacities[row] = logit_of_log_alpha(log64(wp.max(alpha, wp.float64(1e-300))))
 

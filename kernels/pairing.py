@@ -16,7 +16,7 @@ The greedy result capped at P pairs is the first P matched edges by rank.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
 NO_CLAIM = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
 SIGN_BIT = wp.constant(wp.uint32(0x80000000))

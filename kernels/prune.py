@@ -2,7 +2,9 @@
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from .portable_math import sigmoid64
+
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
 
 @wp.kernel
@@ -12,9 +14,9 @@ def activated_opacity(
     sort_keys: wp.array(dtype=float),
     sort_ids: wp.array(dtype=wp.int32),
 ):
-    """alpha = sigmoid(logit), plus a copy with row ids to sort."""
+    """alpha = sigmoid(logit) (float64, portable, then rounded), plus a copy with row ids to sort."""
     i = wp.tid()
-    a = 1.0 / (1.0 + wp.exp(-logits[i]))
+    a = wp.float32(sigmoid64(wp.float64(logits[i])))
     alpha[i] = a
     sort_keys[i] = a
     sort_ids[i] = i

@@ -3,13 +3,31 @@
 A splat is N(mu, Sigma) with Sigma = R diag(s)^2 R^T, R from its unit quaternion (Warp's x, y, z, w
 order) and s = exp(log_scale); its opacity alpha = sigmoid(logit) and its mass (NanoGS eq. 4)
 w = (2 pi)^{3/2} alpha prod_k s_k, used here as log w.
+
+Degenerate covariances. Every covariance the costs and the merge operators work with has each
+eigenvalue at least RIDGE = 1e-10 times its trace (a thickness at least 1e-5 of the largest
+scale): a splat's own variances along its axes are floored at RIDGE times their sum
+(``axis_variances``), and a moment match, whose between-mean dispersion can make a pair of thin
+splats' match thinner relative to its size than either of them, adds RIDGE times that dispersion
+to every variance (``moment_match``). float64 resolves a variance to about 1e-16 of the largest,
+so without a floor a very flat or thin splat (log-scales 17 apart; inputs may hold them 200 apart)
+has a determinant, a Cholesky factor and a smallest eigenvalue made of rounding noise: a cost that
+is noise, or none at all (such edges used to be marked unmergeable and merged last). With it,
+every factorisation resolves the smallest eigenvalue to about 1e-6, and no float32 renderer can
+tell the difference: its covariances resolve no better than about 1e-7 of their largest variance
+(a thickness of 2e-4). The floor is idempotent in effect: a merged splat stores the eigenvalues of
+its floored covariance, which the next pass's floor leaves as they are (to 1e-10), and two
+identical splats merge into themselves. Splats that are never merged keep their log-scales.
 """
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from .portable_math import exp64, log64
+
+wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
 LOG_2PI = wp.constant(1.8378770664093453)
+RIDGE = wp.constant(wp.float64(1.0e-10))  # variance floor, relative to the trace (module docstring)
 
 
 @wp.struct
@@ -32,13 +50,15 @@ def to_vec3d(v: wp.vec3):
 
 @wp.func
 def rotation_matrix(q: wp.quat):
-    """Rotation matrix of a unit quaternion (x, y, z, w), in float64."""
+    """Rotation matrix of the quaternion (x, y, z, w), normalised in float64: orthogonal to float64
+    rounding, where the float32 quaternion is unit only to about 1e-7 (which would blur a thin axis
+    with 1e-7 of the largest variance; the variance floor is 1e-10)."""
     x = wp.float64(q[0])
     y = wp.float64(q[1])
     z = wp.float64(q[2])
     w = wp.float64(q[3])
     one = wp.float64(1.0)
-    two = wp.float64(2.0)
+    two = wp.float64(2.0) / (((x * x + y * y) + z * z) + w * w)
     return wp.mat33d(
         one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y),
         two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x),
@@ -47,19 +67,49 @@ def rotation_matrix(q: wp.quat):
 
 
 @wp.func
+def frame_covariance(r: wp.mat33d, d: wp.vec3d):
+    """R diag(d) R^T, exactly symmetric: entry (a, b) = (R_a0 d_0) R_b0 + (R_a1 d_1) R_b1 + (R_a2 d_2) R_b2
+    in that order. Written out because Warp's matrix product calls fma(), which is correctly rounded
+    everywhere but a library call per term on a CPU without FMA in its baseline."""
+    m = wp.mat33d()
+    for a in range(3):
+        u0 = r[a, 0] * d[0]
+        u1 = r[a, 1] * d[1]
+        u2 = r[a, 2] * d[2]
+        for b in range(a, 3):
+            v = u0 * r[b, 0] + u1 * r[b, 1] + u2 * r[b, 2]
+            m[a, b] = v
+            m[b, a] = v
+    return m
+
+
+@wp.func
+def axis_variances(log_scale: wp.vec3):
+    """The splat's variances along its own axes, floored: max(s_k^2, RIDGE (s_0^2 + s_1^2 + s_2^2))."""
+    v0 = exp64(wp.float64(2.0) * wp.float64(log_scale[0]))
+    v1 = exp64(wp.float64(2.0) * wp.float64(log_scale[1]))
+    v2 = exp64(wp.float64(2.0) * wp.float64(log_scale[2]))
+    floor = RIDGE * ((v0 + v1) + v2)
+    return wp.vec3d(wp.max(v0, floor), wp.max(v1, floor), wp.max(v2, floor))
+
+
+@wp.func
+def log_det_axes(variances: wp.vec3d):
+    """log det of the covariance with these axis variances: one log of their product (each at most
+    3 e^200 and at least e^-200: the product stays finite and normal)."""
+    return log64((variances[0] * variances[1]) * variances[2])
+
+
+@wp.func
 def covariance(q: wp.quat, log_scale: wp.vec3):
-    """Sigma = R diag(s^2) R^T."""
-    r = rotation_matrix(q)
-    s0 = wp.exp(wp.float64(2.0) * wp.float64(log_scale[0]))
-    s1 = wp.exp(wp.float64(2.0) * wp.float64(log_scale[1]))
-    s2 = wp.exp(wp.float64(2.0) * wp.float64(log_scale[2]))
-    return r * wp.diag(wp.vec3d(s0, s1, s2)) * wp.transpose(r)
+    """Sigma = R diag(s^2) R^T, floored: R diag(axis_variances) R^T."""
+    return frame_covariance(rotation_matrix(q), axis_variances(log_scale))
 
 
 @wp.func
 def log_sigmoid(x: wp.float64):
     """log(sigmoid(x)), stable for large |x|."""
-    return -(wp.max(-x, wp.float64(0.0)) + wp.log(wp.float64(1.0) + wp.exp(-wp.abs(x))))
+    return -(wp.max(-x, wp.float64(0.0)) + log64(wp.float64(1.0) + exp64(-wp.abs(x))))
 
 
 @wp.func
@@ -77,19 +127,25 @@ def log_mass(opacity_logit: float, log_scale: wp.vec3):
 @wp.func
 def first_weight(log_w_i: wp.float64, log_w_j: wp.float64):
     """pi = w_i / (w_i + w_j), computed from log masses."""
-    return wp.float64(1.0) / (wp.float64(1.0) + wp.exp(log_w_j - log_w_i))
+    return wp.float64(1.0) / (wp.float64(1.0) + exp64(log_w_j - log_w_i))
 
 
 @wp.func
 def moment_match(pi: wp.float64, mu_i: wp.vec3d, cov_i: wp.mat33d, mu_j: wp.vec3d, cov_j: wp.mat33d):
     """Weighted moment matching of a two-component mixture (NanoGS eq. 7-8):
     mu_m = pi mu_i + (1 - pi) mu_j,
-    Sigma_m = pi (Sigma_i + d_i d_i^T) + (1 - pi) (Sigma_j + d_j d_j^T),  d = mu - mu_m."""
+    Sigma_m = pi (Sigma_i + d_i d_i^T) + (1 - pi) (Sigma_j + d_j d_j^T) + RIDGE D I,  d = mu - mu_m,
+    with D = pi |d_i|^2 + (1 - pi) |d_j|^2 the dispersion's trace: the floor of the module docstring
+    (the pair's own covariances carry theirs)."""
     pj = wp.float64(1.0) - pi
     mu_m = pi * mu_i + pj * mu_j
     d_i = mu_i - mu_m
     d_j = mu_j - mu_m
     cov_m = pi * (cov_i + wp.outer(d_i, d_i)) + pj * (cov_j + wp.outer(d_j, d_j))
+    t = RIDGE * (pi * wp.dot(d_i, d_i) + pj * wp.dot(d_j, d_j))
+    cov_m[0, 0] = cov_m[0, 0] + t
+    cov_m[1, 1] = cov_m[1, 1] + t
+    cov_m[2, 2] = cov_m[2, 2] + t
     return mu_m, cov_m
 
 

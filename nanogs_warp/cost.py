@@ -88,11 +88,12 @@ class RunnallsCost:
         device = splats.device
         covariances = wp.empty(splats.count, dtype=wp.mat33d, device=device)
         weights = wp.empty(splats.count, dtype=wp.float64, device=device)
+        log_dets = wp.empty(splats.count, dtype=wp.float64, device=device)
         launch_rows(
             kernels.runnalls_splat_terms, splats.count,
             lambda rows: [
                 splats.rotations[rows], splats.log_scales[rows], splats.opacities[rows], covariances[rows],
-                weights[rows],
+                weights[rows], log_dets[rows],
             ],
             device,
         )  # fmt: skip
@@ -100,7 +101,7 @@ class RunnallsCost:
         launch_rows(
             kernels.runnalls_costs, edges.count,
             lambda rows: [
-                edges.i[rows], edges.j[rows], splats.means, splats.log_scales, covariances, weights,
+                edges.i[rows], edges.j[rows], splats.means, covariances, weights, log_dets,
                 splats.features, self.lambda_geo, self.lambda_app, self.mass_exponent, costs[rows],
             ],
             device,
@@ -129,15 +130,17 @@ class FieldCost:
 
         device = splats.device
         covariances = wp.empty(splats.count, dtype=wp.mat33d, device=device)
+        colour_norms = wp.empty(splats.count, dtype=wp.float64, device=device)
         launch_rows(
-            field_cost.splat_covariances, splats.count,
-            lambda rows: [splats.rotations[rows], splats.log_scales[rows], covariances[rows]],
+            field_cost.splat_terms, splats.count,
+            lambda rows: [splats.rotations[rows], splats.log_scales[rows], splats.features[rows], covariances[rows],
+                          colour_norms[rows]],
             device,
         )  # fmt: skip
         costs = wp.empty(edges.count, dtype=wp.float32, device=device)
         launch_rows(
             field_cost.field_costs, edges.count,
-            lambda rows: [edges.i[rows], edges.j[rows], splats.kernel_view(), covariances, self.OPERATOR_IDS[self.operator],
+            lambda rows: [edges.i[rows], edges.j[rows], splats.kernel_view(), covariances, colour_norms, self.OPERATOR_IDS[self.operator],
                           self.growth, self.lambda_geo, self.lambda_app, costs[rows]],
             splats.device,
         )  # fmt: skip

@@ -21,10 +21,29 @@ def rotation_matrices(quat_wxyz: np.ndarray) -> np.ndarray:
     )
 
 
+# Every covariance keeps each eigenvalue at least RIDGE times its trace (kernels/splat_math.py): a
+# splat's axis variances are floored at RIDGE times their sum, a moment match adds RIDGE times its
+# between-mean dispersion to every variance.
+RIDGE = 1e-10
+
+
+def axis_variances(log_scales: np.ndarray) -> np.ndarray:
+    """max(s_k^2, RIDGE sum_j s_j^2) per row."""
+    s2 = np.exp(2.0 * np.asarray(log_scales, np.float64).reshape(-1, 3))
+    return np.maximum(s2, RIDGE * s2.sum(-1, keepdims=True))
+
+
+def matched(pi: float, mu: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Moment match of two Gaussians (rows of mu, cov) with weights pi, 1 - pi; the dispersion floor."""
+    mu_m = pi * mu[0] + (1 - pi) * mu[1]
+    d = mu - mu_m
+    cov_m = pi * (cov[0] + np.outer(d[0], d[0])) + (1 - pi) * (cov[1] + np.outer(d[1], d[1]))
+    return mu_m, cov_m + RIDGE * (pi * d[0] @ d[0] + (1 - pi) * d[1] @ d[1]) * np.eye(3)
+
+
 def covariances(quat_wxyz: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
     r = rotation_matrices(quat_wxyz)
-    s2 = np.exp(2.0 * np.asarray(log_scales, np.float64))
-    return np.einsum("nij,nj,nkj->nik", r, s2, r)
+    return np.einsum("nij,nj,nkj->nik", r, axis_variances(log_scales), r)
 
 
 def sigmoid(x):
@@ -54,9 +73,7 @@ def mpmm(s: dict, i: int, j: int) -> dict:
     pi = 1.0 / (1.0 + np.exp(lw[1] - lw[0]))
     mu = s["means"][[i, j]].astype(np.float64)
     cov = covariances(s["rotations"][[i, j]], s["log_scales"][[i, j]])
-    mu_m = pi * mu[0] + (1 - pi) * mu[1]
-    d = mu - mu_m
-    cov_m = pi * (cov[0] + np.outer(d[0], d[0])) + (1 - pi) * (cov[1] + np.outer(d[1], d[1]))
+    mu_m, cov_m = matched(pi, mu, cov)
     a = sigmoid(s["opacities"][[i, j]])
     alpha_m = min(1 - (1 - a[0]) * (1 - a[1]), MERGED_ALPHA_MAX)
     out = {
@@ -79,12 +96,11 @@ def _weighted_pair(s: dict, i: int, j: int, log_w: np.ndarray) -> dict:
     pi = 1.0 / (1.0 + np.exp(log_w[1] - log_w[0]))
     mu = s["means"][[i, j]].astype(np.float64)
     cov = covariances(s["rotations"][[i, j]], s["log_scales"][[i, j]])
-    mu_m = pi * mu[0] + (1 - pi) * mu[1]
-    d = mu - mu_m
+    mu_m, cov_m = matched(pi, mu, cov)
     out = {
         "pi": pi,
         "mean": mu_m,
-        "cov": pi * (cov[0] + np.outer(d[0], d[0])) + (1 - pi) * (cov[1] + np.outer(d[1], d[1])),
+        "cov": cov_m,
         "features": pi * s["features"][i].astype(np.float64) + (1 - pi) * s["features"][j],
     }
     if s.get("extras") is not None:
@@ -186,7 +202,7 @@ def runnalls_cost(s: dict, i: int, j: int, lambda_geo=1.0, lambda_app=1.0, mass_
     w = sigmoid(s["opacities"][rows]) * area_proxy(s["log_scales"][rows])
     m = _weighted_pair(s, i, j, np.log(w))
     pi = m["pi"]
-    log_det = 2.0 * np.asarray(s["log_scales"][rows], np.float64).sum(-1)
+    log_det = np.log(axis_variances(s["log_scales"][rows])).sum(-1)
     bound = max(0.5 * (np.linalg.slogdet(m["cov"])[1] - pi * log_det[0] - (1 - pi) * log_det[1]), 0.0)
     app = 4.0 * pi * (1 - pi) * appearance_distance(s, i, j)
     return float(w.sum() ** mass_exponent * (lambda_geo * bound + lambda_app * app))
@@ -198,7 +214,7 @@ def idivergence(s: dict, i: int, j: int, samples: np.ndarray) -> float:
     pi = m["pi"]
     mu = s["means"][[i, j]].astype(np.float64)
     r = rotation_matrices(s["rotations"][[i, j]])
-    sc = np.exp(s["log_scales"][[i, j]].astype(np.float64))
+    sc = np.sqrt(axis_variances(s["log_scales"][[i, j]]))
     cov = covariances(s["rotations"][[i, j]], s["log_scales"][[i, j]])
     total = 0.0
     for z0, z1, z2, u in np.asarray(samples, np.float64):
@@ -236,8 +252,12 @@ def greedy_pairs(edge_i, edge_j, costs, vertex_count: int, cap: int) -> list[tup
 
 
 def prune_keep(opacity_logits: np.ndarray, threshold: float, keep_at_least: int) -> np.ndarray:
-    """Rows kept by opacity pruning, ascending (Algorithm 1, lines 3-4)."""
-    alpha = (1.0 / (1.0 + np.exp(-opacity_logits.astype(np.float32)))).astype(np.float32)
+    """Rows kept by opacity pruning, ascending (Algorithm 1, lines 3-4). Alpha as the kernel computes
+    it: the float64 sigmoid of ``kernels/portable_math.py`` (the same bits on every device), rounded
+    to float32."""
+    from portable_math_reference import sigmoid64
+
+    alpha = sigmoid64(opacity_logits.astype(np.float32).astype(np.float64)).astype(np.float32)
     tau = min(threshold, float(np.median(alpha.astype(np.float64))))
     keep = np.flatnonzero(alpha.astype(np.float64) >= tau)
     if len(keep) < keep_at_least:

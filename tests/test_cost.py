@@ -130,16 +130,20 @@ def test_runnalls_kernels_write_every_output(device, rng):
     splats = SplatSet.from_numpy(**arrays, device=device)
     covariances = wp.full(50, wp.mat33d(*([np.nan] * 9)), dtype=wp.mat33d, device=device)
     weights = wp.full(50, np.nan, dtype=wp.float64, device=device)
+    log_dets = wp.full(50, np.nan, dtype=wp.float64, device=device)
     wp.launch(
         kernels.runnalls_splat_terms, 50,
-        inputs=[splats.rotations, splats.log_scales, splats.opacities], outputs=[covariances, weights], device=device,
+        inputs=[splats.rotations, splats.log_scales, splats.opacities], outputs=[covariances, weights, log_dets],
+        device=device,
     )  # fmt: skip
     assert np.all(np.isfinite(covariances.numpy())) and np.all(weights.numpy() > 0)
+    want_log_dets = np.linalg.slogdet(reference.covariances(arrays["rotations"], arrays["log_scales"]))[1]
+    np.testing.assert_allclose(log_dets.numpy(), want_log_dets, rtol=1e-12, atol=1e-9)
     costs = wp.full(len(ei), np.nan, dtype=float, device=device)
     wp.launch(
         kernels.runnalls_costs, len(ei),
-        inputs=[wp.array(ei, device=device), wp.array(ej, device=device), splats.means, splats.log_scales,
-                covariances, weights, splats.features, 1.0, 1.0, 0.25],
+        inputs=[wp.array(ei, device=device), wp.array(ej, device=device), splats.means, covariances, weights,
+                log_dets, splats.features, 1.0, 1.0, 0.25],
         outputs=[costs], device=device,
     )  # fmt: skip
     got = costs.numpy()
@@ -183,12 +187,26 @@ def test_field_cost_matches_reference(device, rng, operator):
     arrays = random_splat_arrays(24, sh_degree=2, seed=int(rng.integers(1 << 30)))
     ei, ej = near_pairs(rng, arrays, 12)
     splats = SplatSet.from_numpy(**arrays, device=device)
-    covariances = wp.array(reference.covariances(arrays["rotations"], arrays["log_scales"]), dtype=wp.mat33d, device=device)
+    want_covariances = reference.covariances(arrays["rotations"], arrays["log_scales"])
+    f = arrays["features"].astype(np.float64)
+    want_norms = ((0.5 + 0.28209479177387814 * f[:, :3]) ** 2).sum(1) + (f[:, 3:] ** 2).sum(1) / (4 * np.pi)
+    # the per-splat terms against the references, over poisoned outputs
+    covariances = wp.full(24, wp.mat33d(*([np.nan] * 9)), dtype=wp.mat33d, device=device)
+    colour_norms = wp.full(24, np.nan, dtype=wp.float64, device=device)
+    wp.launch(
+        field_cost.splat_terms, 24, inputs=[splats.rotations, splats.log_scales, splats.features],
+        outputs=[covariances, colour_norms], device=device,
+    )  # fmt: skip
+    np.testing.assert_allclose(covariances.numpy(), want_covariances, rtol=1e-6, atol=1e-12 * np.abs(want_covariances).max())
+    np.testing.assert_allclose(colour_norms.numpy(), want_norms, rtol=1e-12)
+    # the edge costs from the references' per-splat terms
+    covariances = wp.array(want_covariances, dtype=wp.mat33d, device=device)
+    colour_norms = wp.array(want_norms, dtype=wp.float64, device=device)
     costs = wp.full(len(ei), np.nan, dtype=float, device=device)  # poisoned
     wp.launch(
         field_cost.field_costs, len(ei),
         inputs=[wp.array(ei, device=device), wp.array(ej, device=device), splats.kernel_view(), covariances,
-                FieldCost.OPERATOR_IDS[operator], 0.25, 1.0, 0.5],
+                colour_norms, FieldCost.OPERATOR_IDS[operator], 0.25, 1.0, 0.5],
         outputs=[costs], device=device,
     )  # fmt: skip
     merge = reference.coverage_merge if operator == "coverage" else reference.mpmm

@@ -35,7 +35,8 @@ TESTS = {
     "knn": ["tests/test_topology.py"],
     "edges": ["tests/test_topology.py"],
     "compact": ["tests/test_compact.py", "tests/test_pipeline.py", "tests/test_prune.py"],
-    "splat_math": ["tests/test_merge.py", "tests/test_cost.py", "tests/test_operators_area.py"],
+    "splat_math": ["tests/test_merge.py", "tests/test_cost.py", "tests/test_operators_area.py", "tests/test_degenerate.py"],
+    "portable_math": ["tests/test_portable_math.py"],
 }
 
 
@@ -60,7 +61,8 @@ class Mutant:
 # order is unchanged); ``bucket_of_edges``' ``key >= threshold`` -> ``>`` (either stable split keeps
 # rank order); the sequential matching's ``partner[j] = i`` -> ``partner[j] = j`` (partner is only
 # read as "is free"); the coverage operator's ``ratio = ratio / grow`` -> ``ratio`` is one only for
-# growth <= 1, and the tests now also run growth 2.
+# growth <= 1, and the tests now also run growth 2; ``log64``'s small-|f| branch test ``< 3`` -> ``< 2``
+# (x within 2^-20 above a power of two then takes the general path, which rounds those the same).
 # Two listed mutants are expected to survive, as they change speed, not results: ``_box_distance``
 # with min for max only loosens the kNN search's pruning bound (the result stays exact), and
 # ``_classify_rows``' ``j >= i`` differs from ``j > i`` only for j == i, which a kNN row never holds.
@@ -68,8 +70,8 @@ MUTANTS = [
     # pruning
     Mutant("prune", "keep_at_least", ">= threshold", "> threshold"),
     Mutant("prune", "keep_at_least", "1, 0", "0, 1"),
-    Mutant("prune", "activated_opacity", "1.0 + wp.exp", "2.0 + wp.exp"),
-    Mutant("prune", "activated_opacity", "wp.exp(-logits[i])", "wp.exp(logits[i])"),
+    Mutant("prune", "activated_opacity", "sigmoid64(wp.float64(logits[i]))", "sigmoid64(-wp.float64(logits[i]))"),
+    Mutant("prune", "activated_opacity", "a = wp.float32(sigmoid64", "a = wp.float32(wp.float64(0.5) * sigmoid64"),
     Mutant("prune", "keep_rows", "first + wp.tid()", "first + wp.tid() - 1"),
     # pairing
     Mutant("pairing", "cost_order", "bits | SIGN_BIT", "bits"),
@@ -89,7 +91,7 @@ MUTANTS = [
     Mutant("merge", "over_opacity_logit", "log_sigmoid(-wp.float64(logit_j))", "log_sigmoid(wp.float64(logit_j))"),
     Mutant("merge", "blend_rows", "(wp.float64(1.0) - pi)", "(wp.float64(1.0) + pi)"),
     Mutant("merge", "blend_rows", "values[j, c]", "values[i, c]"),
-    Mutant("merge", "store_gaussian", "wp.float64(0.5) * wp.log", "wp.float64(0.25) * wp.log"),
+    Mutant("merge", "store_gaussian", "wp.float64(0.5) * log64", "wp.float64(0.25) * log64"),
     Mutant("merge", "logit_of_log_alpha", "log_alpha < wp.float64(0.0)", "log_alpha <= wp.float64(-1.0)"),
     Mutant("merge", "log_area", "wp.float64(log_scale[1]) + wp.float64(log_scale[2])", "wp.float64(log_scale[1]) + wp.float64(log_scale[1])"),
     Mutant("merge", "log_footprint", "wp.max(a, wp.max(b, c))", "wp.max(a, b)"),
@@ -103,8 +105,24 @@ MUTANTS = [
     Mutant("splat_math", "moment_match", "d_j = mu_j - mu_m", "d_j = mu_i - mu_m"),
     Mutant("splat_math", "first_weight", "log_w_j - log_w_i", "log_w_i - log_w_j"),
     Mutant("splat_math", "rotation_matrix", "two * (x * y - w * z)", "two * (x * y + w * z)"),
+    Mutant("splat_math", "axis_variances", "wp.max(v2, floor)", "v2"),
+    Mutant("splat_math", "axis_variances", "RIDGE * ((v0 + v1) + v2)", "RIDGE * ((v0 + v1) - v2)"),
+    Mutant("splat_math", "moment_match", "pi * wp.dot(d_i, d_i) + pj", "pi * wp.dot(d_i, d_j) + pj"),
+    Mutant("splat_math", "frame_covariance", "u1 * r[b, 1]", "u1 * r[a, 1]"),
+    # portable transcendental functions
+    Mutant("portable_math", "exp64", "hi = x - t * LN2_HI", "hi = x + t * LN2_HI"),
+    Mutant("portable_math", "exp64", "if x > EXP_OVERFLOW:", "if x > EXP_OVERFLOW - wp.float64(1.0):"),
+    Mutant("portable_math", "scale_by_power_of_two", "wp.int64(k + 1000)", "wp.int64(k + 999)"),
+    Mutant("portable_math", "log64", "k += i >> 20", "k += i >> 21"),
+    Mutant("portable_math", "log64", "x = x * TWO_54", "x = x * TWO_54 * wp.float64(2.0)"),
+    Mutant("portable_math", "_cos_kernel", "wp.abs(x) < wp.float64(0.3)", "wp.abs(x) < wp.float64(0.8)"),
+    Mutant("portable_math", "cos_two_pi", "v > wp.float64(0.125)", "v > wp.float64(0.2)"),
+    Mutant("portable_math", "normal_from_uniforms", "wp.float64(-2.0) * log64(u)", "wp.float64(-2.0) * log64(u + RANDN_OFFSET)"),
     # cost
-    Mutant("cost", "runnalls_costs", "(one - pi) * log_det_scales", "(one + pi) * log_det_scales"),
+    Mutant("cost", "runnalls_costs", "(one - pi) * log_dets[j]", "(one + pi) * log_dets[j]"),
+    Mutant("cost", "runnalls_splat_terms", "log_dets[i] = log_det_axes(variances)", "log_dets[i] = log_det_axes(variances) * wp.float64(0.5)"),
+    Mutant("cost", "log_det_positive", "- (e21 / d1) * e21", "+ (e21 / d1) * e21"),
+    Mutant("cost", "mixture_divergence", "x = mu_j + rot_j * wp.cw_mul(z, sd_j)", "x = mu_j + rot_j * wp.cw_mul(z, sd_i)"),
     Mutant("cost", "runnalls_costs", "wp.float64(4.0) * pi", "wp.float64(2.0) * pi"),
     Mutant("cost", "finite_cost", "if not wp.isfinite(out)", "if wp.isfinite(out)"),
     Mutant("cost", "mse_costs", "wp.dot(d, d) + frob", "wp.dot(d, d) - frob"),
