@@ -459,7 +459,7 @@ def main(argv=None) -> int:
 
     from nanogs_warp.device import init_warp
     from nanogs_warp.pairing import select_pairs
-    from nanogs_warp.ply import load_ply
+    from nanogs_warp.io.ply import load_ply
     from nanogs_warp.cost import FieldCost
     from nanogs_warp.timing import no_clock
     from nanogs_warp.topology import KnnTopology

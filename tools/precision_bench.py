@@ -175,7 +175,7 @@ def main(argv=None) -> int:
     from nanogs_warp.kernels import field_cost as field64
     from nanogs_warp.kernels import merge as merge64
     from nanogs_warp.pairing import select_pairs
-    from nanogs_warp.ply import load_ply
+    from nanogs_warp.io.ply import load_ply
     from nanogs_warp.timing import no_clock
     from nanogs_warp.topology import KnnTopology
 
