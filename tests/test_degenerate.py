@@ -142,8 +142,8 @@ def flat_scene(rng, n, sh_degree=1):
 
 @pytest.mark.parametrize("preset", ["default", "fast", "paper"])
 def test_scene_of_degenerate_splats_reaches_the_counts_and_renders(device, rng, preset):
-    from nanogs_warp.cameras import orbit_cameras
-    from nanogs_warp.render import render_views
+    from nanogs_warp.eval.cameras import orbit_cameras
+    from nanogs_warp.eval.render import render_views
 
     arrays = flat_scene(rng, 1500)
     splats = SplatSet.from_numpy(**arrays, device=device)

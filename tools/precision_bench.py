@@ -175,7 +175,7 @@ def main(argv=None) -> int:
     from nanogs_warp.kernels import field_cost as field64
     from nanogs_warp.kernels import merge as merge64
     from nanogs_warp.pairing import select_pairs
-    from nanogs_warp.ply import load_ply
+    from nanogs_warp.io.ply import load_ply
     from nanogs_warp.timing import no_clock
     from nanogs_warp.topology import KnnTopology
 
@@ -190,7 +190,9 @@ def main(argv=None) -> int:
     n = splats.count
     edges = KnnTopology(args.k)(splats, no_clock)
     e = edges.count
-    cap = max(1, int(0.35 * n))
+    from nanogs_warp.config import SimplifyConfig
+
+    cap = max(1, int(SimplifyConfig().pass_fraction * n))  # the default's pass
     folder = Path(tempfile.mkdtemp(prefix="nanogs_precision_"))
     builds = {"float64": None, "float32": load_variant("float32", folder), "mixed": load_variant("mixed", folder)}
 
