@@ -161,6 +161,12 @@ class Vec(list):
     def __neg__(self):
         return Vec(-a for a in self)
 
+    def __iadd__(self, o):  # a list would extend itself
+        return self + o
+
+    def __isub__(self, o):
+        return self - o
+
 
 class Mat:
     def __init__(self, rows):
@@ -418,6 +424,7 @@ def kernel_view(arrays):
         means=HostArray(arrays["means"]), rotations=HostArray(np.ascontiguousarray(q)),
         log_scales=HostArray(arrays["log_scales"]), opacities=HostArray(arrays["opacities"]),
         features=HostArray(arrays["features"]), extras=HostArray(arrays["extras"]),
+        integer_extras=HostArray(arrays.get("integer_extras", np.zeros((len(q), 0), np.int64))),
     )  # fmt: skip
 
 

@@ -190,7 +190,9 @@ def main(argv=None) -> int:
     n = splats.count
     edges = KnnTopology(args.k)(splats, no_clock)
     e = edges.count
-    cap = max(1, int(0.35 * n))
+    from nanogs_warp.config import SimplifyConfig
+
+    cap = max(1, int(SimplifyConfig().pass_fraction * n))  # the default's pass
     folder = Path(tempfile.mkdtemp(prefix="nanogs_precision_"))
     builds = {"float64": None, "float32": load_variant("float32", folder), "mixed": load_variant("mixed", folder)}
 
