@@ -82,6 +82,20 @@ def splat_terms(
     colour_norms[i] = colour_dot(features, i, i)
 
 
+@wp.func
+def squared_change(
+    a_i: wp.float64, a_j: wp.float64, a_m: wp.float64, own: wp.vec3d, cross: wp.vec3d, w_own: wp.vec3d, w_cross: wp.vec3d
+):
+    """sum_v int (a_i G_i + a_j G_j - a_m G_m)^2 dA expanded into the overlap sums (``view_overlaps``),
+    each term weighted by w (1 for the opacity field; the colour products c_x . c_y for the colour
+    field): own = (ii, jj, mm), cross = (ij, im, jm)."""
+    two = wp.float64(2.0)
+    return (
+        a_i * a_i * w_own[0] * own[0] + a_j * a_j * w_own[1] * own[1] + a_m * a_m * w_own[2] * own[2]
+        + two * (a_i * a_j * w_cross[0] * cross[0] - a_i * a_m * w_cross[1] * cross[1] - a_j * a_m * w_cross[2] * cross[2])
+    )  # fmt: skip
+
+
 @wp.kernel
 def field_costs(
     edge_i: wp.array(dtype=wp.int32),
@@ -108,12 +122,8 @@ def field_costs(
     if not (wp.isfinite(alpha_m) and wp.isfinite(values[0] * values[1] * values[2])):
         costs[e] = wp.float32(UNMERGEABLE)
         return
-    two = wp.float64(2.0)
-    # opacity: sum_v int (a_i G_i + a_j G_j - a_m G_m)^2 dA expanded into the overlap sums
-    geo = (
-        a_i * a_i * own[0] + a_j * a_j * own[1] + alpha_m * alpha_m * own[2]
-        + two * (a_i * a_j * cross[0] - a_i * alpha_m * cross[1] - a_j * alpha_m * cross[2])
-    )  # fmt: skip
+    one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
+    geo = squared_change(a_i, a_j, alpha_m, own, cross, one, one)
     # colour: the same with the direction-averaged colour products c_x . c_y (c_m = pi c_i + (1 - pi) c_j)
     pj = wp.float64(1.0) - pi
     d_ii = colour_norms[i]
@@ -122,9 +132,6 @@ def field_costs(
     d_im = pi * d_ii + pj * d_ij
     d_jm = pi * d_ij + pj * d_jj
     d_mm = pi * d_im + pj * d_jm
-    col = (
-        a_i * a_i * d_ii * own[0] + a_j * a_j * d_jj * own[1] + alpha_m * alpha_m * d_mm * own[2]
-        + two * (a_i * a_j * d_ij * cross[0] - a_i * alpha_m * d_im * cross[1] - a_j * alpha_m * d_jm * cross[2])
-    )  # fmt: skip
+    col = squared_change(a_i, a_j, alpha_m, own, cross, wp.vec3d(d_ii, d_jj, d_mm), wp.vec3d(d_ij, d_im, d_jm))
     total = wp.float64(lambda_geo) * wp.max(geo, wp.float64(0.0)) + wp.float64(lambda_app) * wp.max(col, wp.float64(0.0))
     costs[e] = finite_cost(total)
