@@ -16,6 +16,18 @@ plain edge-on):
 from the closed-form overlaps int G_a G_b dA = 2 pi sqrt(det A det B / det(A + B)) exp(-d^T (A + B)^-1 d / 2).
 It weighs a merge by the area and opacity it disturbs (in scene units squared), unlike the
 scale-free divergences.
+
+Both field terms vanish with the splats' area and opacity, so small or faint splats would merge
+colour-blind and fine texture wash out. A colour contrast term keeps a colour change costly at
+every scale:
+
+    + lambda_c E_ref |b_i - b_j|^2,
+
+b the base colour (0.5 + C0 f_dc per channel) clamped to [0, 1] as a rendered colour is (a raw
+trainer's f_dc far beyond that range changes nothing visible), and E_ref the geometric mean over
+the current splats of a^2 s_a s_b (opacity squared times the two largest scales: a splat's face-on
+field energy up to pi), so the term is in the field's units and the balance does not depend on the
+scene's units or on how far the merging has gone.
 """
 
 import warp as wp
@@ -23,7 +35,7 @@ import warp as wp
 from .cost import UNMERGEABLE, finite_cost
 from .field import pair_view_overlaps
 from .merge import coverage_merged, mpmm_merged
-from .portable_math import sigmoid64
+from .portable_math import exp64, log64, sigmoid64
 from .splat_math import Splats, covariance, symmetric_eigen, to_vec3d
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
@@ -83,6 +95,57 @@ def splat_terms(
 
 
 @wp.func
+def log_face_energy(logit: float, log_scale: wp.vec3):
+    """log(a^2 s_a s_b), s_a s_b the two largest scales: the log of a splat's face-on field energy
+    (int (a G)^2 dA = pi a^2 s_a s_b) up to log pi; opacities below 1e-300 count as 1e-300."""
+    a = wp.max(sigmoid64(wp.float64(logit)), wp.float64(1e-300))
+    smallest = wp.min(wp.min(log_scale[0], log_scale[1]), log_scale[2])
+    two_largest = wp.float64(log_scale[0]) + wp.float64(log_scale[1]) + wp.float64(log_scale[2]) - wp.float64(smallest)
+    return wp.float64(2.0) * log64(a) + two_largest
+
+
+@wp.kernel
+def log_energy_partials(
+    first: int,
+    opacities: wp.array(dtype=float),
+    log_scales: wp.array(dtype=wp.vec3),
+    chunk: int,
+    partials: wp.array(dtype=wp.float64),
+):
+    """partials[c] = the sum of ``log_face_energy`` over splats [c chunk, (c + 1) chunk), in order
+    (thread t handles chunk first + t): a fixed summation order, so every device gets the same bits."""
+    c = first + wp.tid()
+    start = c * chunk
+    stop = wp.min(start + chunk, opacities.shape[0])
+    total = wp.float64(0.0)
+    for i in range(start, stop):
+        total += log_face_energy(opacities[i], log_scales[i])
+    partials[c] = total
+
+
+@wp.kernel
+def reference_energy(partials: wp.array(dtype=wp.float64), count: int, energy: wp.array(dtype=wp.float64)):
+    """energy[0] = E_ref, the geometric mean of the splats' face-on energies: exp of the mean of the
+    partial sums' total (one thread, summed in order)."""
+    total = wp.float64(0.0)
+    for c in range(partials.shape[0]):
+        total += partials[c]
+    energy[0] = exp64(total / wp.float64(count))
+
+
+@wp.func
+def base_colour_change(features: wp.array2d(dtype=float), i: int, j: int):
+    """|b_i - b_j|^2 for the base colours b = clamp(0.5 + C0 f_dc, 0, 1), the colour a renderer shows
+    face-on without the view-dependent terms."""
+    total = wp.float64(0.0)
+    for ch in range(3):
+        b_i = wp.clamp(wp.float64(0.5) + wp.float64(SH_C0) * wp.float64(features[i, ch]), wp.float64(0.0), wp.float64(1.0))
+        b_j = wp.clamp(wp.float64(0.5) + wp.float64(SH_C0) * wp.float64(features[j, ch]), wp.float64(0.0), wp.float64(1.0))
+        total += (b_i - b_j) * (b_i - b_j)
+    return total
+
+
+@wp.func
 def squared_change(
     a_i: wp.float64, a_j: wp.float64, a_m: wp.float64, own: wp.vec3d, cross: wp.vec3d, w_own: wp.vec3d, w_cross: wp.vec3d
 ):
@@ -107,10 +170,13 @@ def field_costs(
     growth: float,
     lambda_geo: float,
     lambda_app: float,
+    lambda_contrast: float,
+    energy: wp.array(dtype=wp.float64),
     costs: wp.array(dtype=float),
 ):
     """The field cost of each edge (module docstring); the merged colour c_m = pi c_i + (1 - pi) c_j
-    is linear in the features, so every colour product follows from c_i.c_i, c_i.c_j, c_j.c_j."""
+    is linear in the features, so every colour product follows from c_i.c_i, c_i.c_j, c_j.c_j.
+    ``energy[0]``: E_ref (``reference_energy``)."""
     e = wp.tid()
     i = int(edge_i[e])
     j = int(edge_j[e])
@@ -134,4 +200,5 @@ def field_costs(
     d_mm = pi * d_im + pj * d_jm
     col = squared_change(a_i, a_j, alpha_m, own, cross, wp.vec3d(d_ii, d_jj, d_mm), wp.vec3d(d_ij, d_im, d_jm))
     total = wp.float64(lambda_geo) * wp.max(geo, wp.float64(0.0)) + wp.float64(lambda_app) * wp.max(col, wp.float64(0.0))
+    total += wp.float64(lambda_contrast) * energy[0] * base_colour_change(src.features, i, j)
     costs[e] = finite_cost(total)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from .kernels import cost as kernels
-from .parallel import launch_rows
+from .parallel import launch_rows, launch_rows_from
 from .splats import SplatSet
 from .topology import Edges
 
@@ -109,12 +109,19 @@ class RunnallsCost:
         return costs
 
 
+# The field cost's colour contrast weight lambda_c (kernels/field_cost.py): one constant for every
+# scene, as the term is in units of the scene's typical splat energy; chosen by leave-one-scene-out
+# over the shared and stress scenes (docs/quality.md).
+CONTRAST_WEIGHT = 30.0
+
+
 @dataclass(frozen=True)
 class FieldCost:
     """The squared L2 change of the projected emitted field (opacity, and colour over view
-    directions) when a pair becomes the merge operator's own merged splat (``kernels/field_cost.py``).
-    ``operator`` is the pipeline's merge operator (mpmm or coverage); ``growth`` the coverage
-    operator's."""
+    directions) when a pair becomes the merge operator's own merged splat, plus a colour contrast
+    term in units of the scene's typical splat energy (``kernels/field_cost.py``). ``operator`` is
+    the pipeline's merge operator (mpmm or coverage); ``growth`` the coverage operator's;
+    ``lambda_contrast`` the contrast term's weight (0: the field terms alone)."""
 
     lambda_geo: float = 1.0
     lambda_app: float = 1.0
@@ -122,8 +129,10 @@ class FieldCost:
     seed: int = 0
     operator: str = "coverage"
     growth: float = 0.25
+    lambda_contrast: float = CONTRAST_WEIGHT
 
     OPERATOR_IDS = {"mpmm": 0, "coverage": 1}
+    ENERGY_CHUNK = 256  # splats summed in order by one thread of log_energy_partials
 
     def __call__(self, splats: SplatSet, edges: Edges, pass_index: int) -> wp.array:
         from .kernels import field_cost
@@ -137,14 +146,30 @@ class FieldCost:
                           colour_norms[rows]],
             device,
         )  # fmt: skip
+        energy = reference_energy(splats, self.ENERGY_CHUNK)
         costs = wp.empty(edges.count, dtype=wp.float32, device=device)
         launch_rows(
             field_cost.field_costs, edges.count,
             lambda rows: [edges.i[rows], edges.j[rows], splats.kernel_view(), covariances, colour_norms, self.OPERATOR_IDS[self.operator],
-                          self.growth, self.lambda_geo, self.lambda_app, costs[rows]],
+                          self.growth, self.lambda_geo, self.lambda_app, self.lambda_contrast, energy, costs[rows]],
             splats.device,
         )  # fmt: skip
         return costs
+
+
+def reference_energy(splats: SplatSet, chunk: int = FieldCost.ENERGY_CHUNK) -> wp.array:
+    """E_ref of the field cost's colour contrast term, as a one-element float64 array on the splats'
+    device (no host round trip): the geometric mean of a^2 s_a s_b over the splats, summed in a fixed
+    order (``chunk`` splats a thread, then the partial sums in order) so every device agrees."""
+    from .kernels import field_cost
+
+    device = splats.device
+    chunks = max(1, -(-splats.count // chunk))
+    partials = wp.empty(chunks, dtype=wp.float64, device=device)
+    launch_rows_from(field_cost.log_energy_partials, chunks, [splats.opacities, splats.log_scales, chunk, partials], device, min_rows=64)
+    energy = wp.empty(1, dtype=wp.float64, device=device)
+    wp.launch(field_cost.reference_energy, 1, inputs=[partials, max(splats.count, 1)], outputs=[energy], device=device)
+    return energy
 
 
 COSTS = {"field": FieldCost, "idiv": IDivergenceCost, "mse": MeanSquaredCost, "runnalls": RunnallsCost}

@@ -266,7 +266,21 @@ def prune_keep(opacity_logits: np.ndarray, threshold: float, keep_at_least: int)
     return keep
 
 
-def field_cost(s: dict, i: int, j: int, merged: dict, lambda_geo=1.0, lambda_app=1.0) -> float:
+def reference_energy(s: dict) -> float:
+    """E_ref of the field cost's colour contrast term, float64: the geometric mean over the splats of
+    a^2 s_a s_b, s_a s_b the two largest scales."""
+    a = np.maximum(sigmoid(s["opacities"]), 1e-300)
+    log_scales = np.sort(s["log_scales"].astype(np.float64), axis=1)
+    return float(np.exp(np.mean(2 * np.log(a) + log_scales[:, 1] + log_scales[:, 2])))
+
+
+def base_colour_change(s: dict, i: int, j: int) -> float:
+    """|b_i - b_j|^2, b = clamp(0.5 + C0 f_dc, 0, 1) per channel."""
+    b = np.clip(0.5 + 0.28209479177387814 * s["features"][[i, j], :3].astype(np.float64), 0.0, 1.0)
+    return float(((b[0] - b[1]) ** 2).sum())
+
+
+def field_cost(s: dict, i: int, j: int, merged: dict, lambda_geo=1.0, lambda_app=1.0, lambda_contrast=0.0, energy=None) -> float:
     """The field cost, float64: the squared L2 change of the opacity field and of the direction-averaged
     SH colour field, seen along each of the three axes of the merged splat ``merged`` (mean, cov,
     alpha, pi), every Gaussian projected onto the plane of the other two as a peak-one 2D Gaussian,
@@ -292,7 +306,8 @@ def field_cost(s: dict, i: int, j: int, merged: dict, lambda_geo=1.0, lambda_app
                 o = sign[x] * sign[y] * a[x] * a[y] * gaussian_overlap_2d(centres[x], covs[x], centres[y], covs[y])
                 geo += o
                 col += o * dot(feats[x], feats[y])
-    return lambda_geo * max(geo, 0.0) + lambda_app * max(col, 0.0)
+    contrast = 0.0 if lambda_contrast == 0.0 else lambda_contrast * (reference_energy(s) if energy is None else energy) * base_colour_change(s, i, j)
+    return lambda_geo * max(geo, 0.0) + lambda_app * max(col, 0.0) + contrast
 
 
 def quadrature_overlap_2d(mu_a, a, mu_b, b, points: int = 801) -> float:

@@ -203,16 +203,70 @@ def test_field_cost_matches_reference(device, rng, operator):
     covariances = wp.array(want_covariances, dtype=wp.mat33d, device=device)
     colour_norms = wp.array(want_norms, dtype=wp.float64, device=device)
     costs = wp.full(len(ei), np.nan, dtype=float, device=device)  # poisoned
+    energy = reference.reference_energy(arrays)
     wp.launch(
         field_cost.field_costs, len(ei),
         inputs=[wp.array(ei, device=device), wp.array(ej, device=device), splats.kernel_view(), covariances,
-                colour_norms, FieldCost.OPERATOR_IDS[operator], 0.25, 1.0, 0.5],
+                colour_norms, FieldCost.OPERATOR_IDS[operator], 0.25, 1.0, 0.5, 7.0,
+                wp.array([energy], dtype=wp.float64, device=device)],
         outputs=[costs], device=device,
     )  # fmt: skip
     merge = reference.coverage_merge if operator == "coverage" else reference.mpmm
-    want = [reference.field_cost(arrays, i, j, merge(arrays, i, j), 1.0, 0.5) for i, j in zip(ei, ej)]
+    want = [reference.field_cost(arrays, i, j, merge(arrays, i, j), 1.0, 0.5, 7.0, energy) for i, j in zip(ei, ej)]
+    contrast = [7.0 * energy * reference.base_colour_change(arrays, i, j) for i, j in zip(ei, ej)]
+    assert max(contrast) > 1e-3 * max(want)  # the contrast term is part of what is checked
     # the cost is a difference of overlaps of similar size: float32 output, float64 cancellation
     np.testing.assert_allclose(costs.numpy(), want, rtol=1e-4, atol=1e-6 * max(want))
+
+
+@pytest.mark.parametrize("count,chunk", [(1, 256), (255, 256), (257, 256), (1000, 7)])
+def test_reference_energy_matches_reference(device, rng, count, chunk):
+    """E_ref, the geometric mean of a^2 s_a s_b, against float64 numpy: one chunk, a chunk and a bit,
+    many small chunks (the CPU launch splits them over threads); faint and saturated opacities."""
+    from nanogs_warp.cost import reference_energy
+
+    arrays = random_splat_arrays(count, sh_degree=0, seed=int(rng.integers(1 << 30)))
+    arrays["opacities"][: count // 3] = rng.uniform(-40, 40, size=count // 3).astype(np.float32)
+    got = reference_energy(SplatSet.from_numpy(**arrays, device=device), chunk).numpy()
+    assert got.shape == (1,)
+    np.testing.assert_allclose(got[0], reference.reference_energy(arrays), rtol=1e-10)
+
+
+def test_field_cost_has_no_scene_unit(device, rng):
+    """Positions and scales 10x larger: every field cost, the contrast term included, is 100x
+    larger (areas), so the order of the merges does not depend on the scene's units."""
+    from nanogs_warp.cost import FieldCost
+
+    arrays = random_splat_arrays(64, sh_degree=1, seed=int(rng.integers(1 << 30)))
+    ei, ej = near_pairs(rng, arrays, 40)
+    scaled = {k: v.copy() for k, v in arrays.items()}
+    scaled["means"] *= np.float32(10.0)
+    scaled["log_scales"] += np.float32(np.log(10.0))
+    costs = []
+    for a in (arrays, scaled):
+        splats = SplatSet.from_numpy(**a, device=device)
+        edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), len(ei))
+        costs.append(FieldCost()(splats, edges, 0).numpy().astype(np.float64))
+    np.testing.assert_allclose(costs[1], 100.0 * costs[0], rtol=1e-4, atol=1e-6 * costs[1].max())
+
+
+def test_colour_contrast_ignores_colours_beyond_display_range(device):
+    """Two splats whose base colours are both beyond 1 in every channel (raw trainer output, f_dc up
+    to 15) look alike: the contrast term adds nothing; a visible difference adds lambda_c E_ref |db|^2."""
+    from nanogs_warp.cost import FieldCost
+
+    arrays = random_splat_arrays(2, sh_degree=0, seed=5)
+    arrays["features"][0, :3] = 15.0
+    arrays["features"][1, :3] = 4.0
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    edges = Edges(wp.array(np.int32([0]), device=device), wp.array(np.int32([1]), device=device), 1)
+    with_term, without = (FieldCost(lambda_contrast=w)(splats, edges, 0).numpy()[0] for w in (30.0, 0.0))
+    assert with_term == without
+    arrays["features"][1, :3] = -1.0  # base colour 0.218: visible
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    with_term, without = (FieldCost(lambda_contrast=w)(splats, edges, 0).numpy()[0] for w in (30.0, 0.0))
+    want = 30.0 * reference.reference_energy(arrays) * reference.base_colour_change(arrays, 0, 1)
+    np.testing.assert_allclose(with_term - without, want, rtol=1e-3)
 
 
 def test_gaussian_overlap_closed_form_matches_quadrature(rng):

@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from baselines import baseline  # noqa: E402
 
+import nanogs_warp.config as config_module  # noqa: E402
 from nanogs_warp.cost import COSTS  # noqa: E402
 from nanogs_warp.device import resolve_device  # noqa: E402
 from nanogs_warp.eval.cameras import orbit_cameras  # noqa: E402
@@ -277,6 +278,7 @@ def main(argv=None) -> int:
                 base = COSTS[changes.get("cost", "idiv")]
                 cost_name = changes.get("cost", "idiv") + "(" + ",".join(f"{k}={v}" for k, v in sorted(cost_params.items())) + ")"
                 COSTS[cost_name] = functools.partial(_with_params, base, cost_params)
+                config_module.COST_NAMES += (cost_name,)  # an experimental cost name SimplifyConfig accepts
                 changes["cost"] = cost_name
             CONFIGS[name.strip()] = nanogs(**changes)
         configs = [c.strip() for c in args.configs.split(",") if c.strip()]
