@@ -11,7 +11,9 @@ same matching:
   of them, drop the edges with a matched end, repeat until no free edge is left. No sort of the
   edges: only the matched edges are sorted, to list the pairs in rank order.
 
-The greedy result capped at P pairs is the first P matched edges by rank.
+The greedy result capped at P pairs is the first P matched edges by rank. Each pair comes with its
+edge's cost; in rank order the costs do not decrease, so ``cheap_pair_count`` finds by bisection how
+many pairs cost at most a factor times the median pair's cost.
 """
 
 import warp as wp
@@ -30,6 +32,15 @@ def cost_order(cost: float) -> wp.uint32:
     if (bits & SIGN_BIT) == wp.uint32(0):
         return bits | SIGN_BIT
     return ~bits
+
+
+@wp.func
+def cost_of_order(order: wp.uint32) -> float:
+    """The inverse of ``cost_order``: the float whose bits ``order`` stands for."""
+    bits = ~order
+    if (order & SIGN_BIT) != wp.uint32(0):
+        bits = order & ~SIGN_BIT
+    return wp.cast(bits, float)
 
 
 @wp.func
@@ -87,16 +98,18 @@ def buckets_to_sort(
 @wp.kernel
 def greedy_pairs_in_rank_order(
     ends: wp.array(dtype=wp.vec2i),
+    keys: wp.array(dtype=wp.uint32),
     lower_count: int,
     upper_count: int,
     cap: int,
     partner: wp.array(dtype=wp.int32),
     pair_i: wp.array(dtype=wp.int32),
     pair_j: wp.array(dtype=wp.int32),
+    pair_cost: wp.array(dtype=float),
     pair_count: wp.array(dtype=wp.int32),
 ):
     """Sequential greedy matching, one thread: the sorted lower bucket [0, L), then the sorted upper
-    bucket [2 L, 2 L + U); takes every edge whose ends are both free."""
+    bucket [2 L, 2 L + U) (``keys``: their cost orders); takes every edge whose ends are both free."""
     taken = int(0)
     for t in range(lower_count + upper_count):
         r = t
@@ -110,6 +123,7 @@ def greedy_pairs_in_rank_order(
             partner[j] = i
             pair_i[taken] = i
             pair_j[taken] = j
+            pair_cost[taken] = cost_of_order(keys[r])
             taken += 1
             if taken >= cap:
                 break
@@ -207,11 +221,35 @@ def first_pairs_by_rank(
     matched_edges: wp.array(dtype=wp.int32),
     edge_i: wp.array(dtype=wp.int32),
     edge_j: wp.array(dtype=wp.int32),
+    costs: wp.array(dtype=float),
     pair_i: wp.array(dtype=wp.int32),
     pair_j: wp.array(dtype=wp.int32),
+    pair_cost: wp.array(dtype=float),
 ):
     """Pair p is the p-th matched edge by rank (``matched_edges`` sorted by priority)."""
     p = wp.tid()
     e = matched_edges[p]
     pair_i[p] = edge_i[e]
     pair_j[p] = edge_j[e]
+    pair_cost[p] = costs[e]
+
+
+@wp.kernel
+def cheap_pair_count(pair_cost: wp.array(dtype=float), count: int, factor: float, kept: wp.array(dtype=wp.int32)):
+    """kept[0] = how many of the ``count`` pairs (costs not decreasing) cost at most ``factor`` times
+    the median pair's cost, pair count // 2 (one thread, bisection); every pair when that cost is
+    not positive or the limit not finite. At least the pairs up to the median are kept (factor >= 1)."""
+    median = wp.float64(pair_cost[count // 2])
+    limit = wp.float64(factor) * median
+    if not (median > wp.float64(0.0) and wp.isfinite(limit)):
+        kept[0] = count
+        return
+    low = count // 2 + 1  # pairs [0, low) are within the limit
+    high = count  # pairs [high, count) are beyond it
+    while low < high:
+        mid = (low + high) // 2
+        if wp.float64(pair_cost[mid]) <= limit:
+            low = mid + 1
+        else:
+            high = mid
+    kept[0] = low

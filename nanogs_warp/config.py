@@ -25,13 +25,17 @@ class SimplifyConfig:
 
     The defaults are the configuration chosen by leave-one-scene-out over the shared scenes and
     generated stress scenes (docs/quality.md): the coverage merge operator, the field cost, at most
-    45 % of the splats merged a pass, no opacity pruning and k = None: 24 neighbours below 65,536
-    splats, 16 from there on. ``SimplifyConfig.paper()`` is
+    45 % of the splats merged a pass and no pair above 3 times the pass's median pair cost, no
+    opacity pruning and k = None: 24 neighbours below 65,536 splats, 16 from there on. ``SimplifyConfig.paper()`` is
     the NanoGS paper's configuration (``--preset paper``).
 
     ``pass_fraction``: at most this fraction of the current splats merge in one pass, the cheapest
     pairs of the matching first; 0.5 takes the whole matching as the paper does, smaller values merge
     cheap regions first over more passes.
+
+    ``median_cost_factor``: of those pairs, a pass merges none that costs more than this many times
+    the median pair's cost (at least half of them always merge): a region whose merges cost far
+    more than the rest waits for a later pass instead of being forced. 0 turns the limit off.
     """
 
     k: int | None = None
@@ -43,6 +47,7 @@ class SimplifyConfig:
     cost: str = "field"
     operator: str = "coverage"
     pass_fraction: float = 0.45
+    median_cost_factor: float = 3.0
 
     def __post_init__(self):
         self.validate()  # a bad configuration fails where it is built, not where it runs
@@ -83,6 +88,8 @@ class SimplifyConfig:
             raise InputError(f"--cost field scores the mpmm and coverage operators, not {self.operator!r}")
         if not (0.0 < self.pass_fraction <= 0.5):
             raise InputError(f"--pass-fraction must be in (0, 0.5], got {self.pass_fraction}")
+        if not (self.median_cost_factor == 0.0 or 1.0 <= self.median_cost_factor < math.inf):
+            raise InputError(f"--median-cost-factor must be 0 (no limit) or a finite number >= 1, got {self.median_cost_factor}")
         for name in ("lambda_geo", "lambda_app"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
@@ -101,8 +108,8 @@ MAX_K = 32
 # budgets, worse on meshes and flat opaque content; docs/quality.md) and the NanoGS paper's own.
 PRESETS: dict[str, dict] = {
     "default": {},
-    "fast": {"cost": "runnalls", "pass_fraction": 0.5},
-    "paper": {"k": 16, "prune_opacity": 0.1, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5},
+    "fast": {"cost": "runnalls", "pass_fraction": 0.5, "median_cost_factor": 0.0},
+    "paper": {"k": 16, "prune_opacity": 0.1, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5, "median_cost_factor": 0.0},
 }
 
 

@@ -38,11 +38,16 @@ def check_sequential_fits(edge_count: int, vertex_count: int, limit: int | None 
 
 @dataclass
 class Pairs:
-    """``count`` disjoint pairs (i[p], j[p]) in rank order."""
+    """``count`` disjoint pairs (i[p], j[p]) in rank order, with their edges' costs (not decreasing)."""
 
     i: wp.array
     j: wp.array
     count: int
+    costs: wp.array | None = None
+
+    def first(self, count: int) -> Pairs:
+        """The first ``count`` pairs."""
+        return Pairs(self.i[:count], self.j[:count], count, None if self.costs is None else self.costs[:count])
 
 
 def select_pairs(edges: Edges, costs: wp.array, vertex_count: int, cap: int, method: str = "auto") -> Pairs:
@@ -63,15 +68,26 @@ def select_pairs(edges: Edges, costs: wp.array, vertex_count: int, cap: int, met
         return Pairs(none, none, 0)
     pair_i = wp.full(cap, -1, dtype=wp.int32, device=device)
     pair_j = wp.full(cap, -1, dtype=wp.int32, device=device)
+    pair_cost = wp.full(cap, float("nan"), dtype=wp.float32, device=device)
     if method == "sequential":
         check_sequential_fits(edges.count, vertex_count)
-        count = _greedy_in_rank_order(edges, costs, vertex_count, cap, pair_i, pair_j)
+        count = _greedy_in_rank_order(edges, costs, vertex_count, cap, pair_i, pair_j, pair_cost)
     else:
-        count = _locally_dominant_pairs(edges, costs, vertex_count, cap, pair_i, pair_j)
-    return Pairs(pair_i[:count], pair_j[:count], count)
+        count = _locally_dominant_pairs(edges, costs, vertex_count, cap, pair_i, pair_j, pair_cost)
+    return Pairs(pair_i, pair_j, cap, pair_cost).first(count)
 
 
-def _greedy_in_rank_order(edges: Edges, costs, vertex_count, cap, pair_i, pair_j) -> int:
+def cheap_pairs(pairs: Pairs, factor: float) -> Pairs:
+    """The first pairs whose cost is at most ``factor`` (>= 1) times the median pair's: at least half
+    of ``pairs`` (rounded up), all of them when the median cost is 0. One integer comes to the host."""
+    if pairs.count == 0:
+        return pairs
+    kept = wp.empty(1, dtype=wp.int32, device=pairs.costs.device)
+    wp.launch(kernels.cheap_pair_count, 1, inputs=[pairs.costs, pairs.count, float(factor)], outputs=[kept], device=kept.device)
+    return pairs.first(int(kept.numpy()[0]))
+
+
+def _greedy_in_rank_order(edges: Edges, costs, vertex_count, cap, pair_i, pair_j, pair_cost) -> int:
     """Splits the edges stably at a cost near the median into a lower and an upper bucket, sorts
     each (stable radix sorts of (cost, ends); on two CPU cores at once where there are two), then
     one thread scans the lower bucket and then the upper one and takes every edge whose ends are
@@ -109,7 +125,8 @@ def _greedy_in_rank_order(edges: Edges, costs, vertex_count, cap, pair_i, pair_j
     pair_count = wp.zeros(1, dtype=wp.int32, device=device)
     wp.launch(
         kernels.greedy_pairs_in_rank_order, 1,
-        inputs=[bucket_ends, lower_count, upper_count, cap], outputs=[partner, pair_i, pair_j, pair_count], device=device,
+        inputs=[bucket_ends, bucket_keys, lower_count, upper_count, cap], outputs=[partner, pair_i, pair_j, pair_cost, pair_count],
+        device=device,
     )  # fmt: skip
     return int(pair_count.numpy()[0])
 
@@ -123,7 +140,7 @@ def _median_cost_order(costs: wp.array) -> int:
     return int(np.partition(order, len(order) // 2)[len(order) // 2])
 
 
-def _locally_dominant_pairs(edges: Edges, costs, vertex_count, cap, pair_i, pair_j) -> int:
+def _locally_dominant_pairs(edges: Edges, costs, vertex_count, cap, pair_i, pair_j, pair_cost) -> int:
     """Rounds of: free edges claim both ends by priority, mutual winners match, edges with a
     matched end leave the active list. Every round matches at least the smallest-priority active
     edge, and the active list shrinks fast, so the total work stays a small multiple of the edge
@@ -165,6 +182,6 @@ def _locally_dominant_pairs(edges: Edges, costs, vertex_count, cap, pair_i, pair
     wp.utils.radix_sort_pairs(matched_keys, matched_edges, matched)
     taken = min(matched, cap)
     wp.launch(
-        kernels.first_pairs_by_rank, taken, inputs=[matched_edges, edge_i, edge_j], outputs=[pair_i, pair_j], device=device
+        kernels.first_pairs_by_rank, taken, inputs=[matched_edges, edge_i, edge_j, costs], outputs=[pair_i, pair_j, pair_cost], device=device
     )
     return taken

@@ -18,7 +18,7 @@ from .config import K_LARGE_SCENE, K_SMALL_SCENE, PRESETS, SMALL_SCENE_SPLATS, S
 from .cost import COSTS, FieldCost
 from .errors import InputError, NanogsWarning
 from .operators import OPERATORS
-from .pairing import select_pairs
+from .pairing import cheap_pairs, select_pairs
 from .prune import prune_low_opacity
 from .splats import SplatSet
 from .timing import StageClock, no_clock
@@ -122,7 +122,9 @@ def simplify_progressively(
     pass_index = 0
     # Termination: every pass removes at least one splat (or the run stops with an error), so the
     # loops end after at most count - targets[-1] passes; pass_limit stops a run long before that.
-    most_passes = pass_limit(current.count, targets[-1], config.pass_fraction)
+    # (the median cost limit keeps at least half of a pass's pairs: at worst half the pace)
+    pace = config.pass_fraction / 2 if config.median_cost_factor > 0 else config.pass_fraction
+    most_passes = pass_limit(current.count, targets[-1], pace)
     for target in targets:
         while current.count > target:
             if pass_index >= most_passes:
@@ -140,6 +142,8 @@ def simplify_progressively(
             with stage("pairing"):
                 cap = min(n - target, max(1, math.ceil(config.pass_fraction * n)))
                 pairs = select_pairs(edges, costs, n, cap=cap)
+                if config.median_cost_factor > 0:
+                    pairs = cheap_pairs(pairs, config.median_cost_factor)
                 del edges, costs
             if pairs.count == 0:  # cannot happen with n >= 2 (a kNN graph has edges); guards the loop
                 raise RuntimeError(f"simplification stopped: pass {pass_index + 1} merged nothing at {n} splats (target {target})")

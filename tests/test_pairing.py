@@ -5,7 +5,7 @@ import pytest
 import reference
 import warp as wp
 
-from nanogs_warp.pairing import select_pairs
+from nanogs_warp.pairing import cheap_pairs, select_pairs
 from nanogs_warp.topology import Edges
 
 
@@ -32,6 +32,10 @@ def test_pairs_equal_sequential_greedy(device, rng, method, tie_levels, cap):
     pairs = select_pairs(edges, wp.array(costs, device=device), n, cap, method=method)
     got = list(zip(pairs.i.numpy().tolist(), pairs.j.numpy().tolist()))
     assert got == reference.greedy_pairs(ei, ej, costs, n, min(cap, n // 2))
+    cost_of = {(a, b): c for a, b, c in zip(ei.tolist(), ej.tolist(), costs.tolist())}
+    pair_costs = pairs.costs.numpy()  # each pair's own edge cost, bit for bit, in rank order
+    assert pair_costs.tolist() == [cost_of[(min(a, b), max(a, b))] for a, b in got]
+    assert np.all(np.diff(pair_costs) >= 0)
 
 
 @pytest.mark.parametrize("method", ["sequential", "parallel"])
@@ -61,3 +65,36 @@ def test_no_edges_no_pairs(device):
     empty = wp.zeros(0, dtype=wp.int32, device=device)
     pairs = select_pairs(Edges(empty, empty, 0), wp.zeros(0, dtype=float, device=device), 5, 2)
     assert pairs.count == 0
+
+
+def cheap_count_reference(costs: np.ndarray, factor: float) -> int:
+    """How many of the sorted ``costs`` are at most factor x the median pair's (index count // 2) cost,
+    float64; all of them when that cost is not positive."""
+    median = float(costs[len(costs) // 2])
+    if not median > 0:
+        return len(costs)
+    return int(np.searchsorted(costs.astype(np.float64), factor * median, side="right"))
+
+
+@pytest.mark.parametrize("method", ["sequential", "parallel"])
+@pytest.mark.parametrize("factor", [1.0, 3.0, 1e30])
+def test_cheap_pairs_keep_those_within_the_factor_of_the_median(device, rng, method, factor):
+    """cheap_pairs against the float64 reference, on matchings with a heavy tail of costs, with ties
+    and with zero costs; every pair up to the median is kept."""
+    n = 600
+    for trial in range(6):
+        ei, ej, _ = random_graph(rng, n, 2000)
+        costs = np.exp(rng.normal(scale=3.0, size=len(ei))).astype(np.float32)  # a heavy tail
+        if trial == 1:
+            costs = np.round(costs, 1).astype(np.float32)  # ties at the limit and zero costs
+        if trial == 2:
+            costs[:] = 0.0  # median 0: every pair
+        edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), len(ei))
+        pairs = select_pairs(edges, wp.array(costs, device=device), n, [7, 1, 2, 40, 300, 300][trial], method=method)
+        kept = cheap_pairs(pairs, factor)
+        want = cheap_count_reference(pairs.costs.numpy(), factor)
+        assert kept.count == want >= (pairs.count + 1) // 2
+        assert kept.i.numpy().tolist() == pairs.i.numpy()[:want].tolist()
+        assert kept.j.numpy().tolist() == pairs.j.numpy()[:want].tolist()
+        if trial == 4 and factor == 3.0:
+            assert want < pairs.count  # the tail is cut somewhere in these trials

@@ -212,13 +212,12 @@ def test_a_stuck_merge_stops_with_an_error(device, monkeypatch, kept):
     """A pass that merges nothing, or so little that the pass bound runs out, ends the run with an
     error that says so, never a spin (the pairing is forced to keep `kept` pairs a pass)."""
     import nanogs_warp.pipeline as pipeline
-    from nanogs_warp.pairing import Pairs
 
     real = pipeline.select_pairs
 
     def few_pairs(edges, costs, vertex_count, cap, method="auto"):
         pairs = real(edges, costs, vertex_count, cap, method)
-        return Pairs(pairs.i, pairs.j, min(pairs.count, kept))
+        return pairs.first(min(pairs.count, kept))
 
     monkeypatch.setattr(pipeline, "select_pairs", few_pairs)
     splats = SplatSet.from_numpy(**clustered_scene(200, seed=8), device=device)

@@ -96,6 +96,7 @@ def simplify(
     cost: opts.Cost = None,
     operator: opts.Operator = None,
     pass_fraction: opts.PassFraction = None,
+    median_cost_factor: opts.MedianCostFactor = None,
     drop_invalid: opts.DropInvalid = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
@@ -114,6 +115,7 @@ def simplify(
     config = opts.method_config(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
         lambda_app=lambda_app, cost=cost, operator=operator, pass_fraction=pass_fraction,
+        median_cost_factor=median_cost_factor,
     )
     refine_config = None
     if refine or refine_steps is not None:

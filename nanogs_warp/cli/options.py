@@ -1,6 +1,6 @@
 """Command-line options shared by ``simplify`` and ``batch``. Method options left unset take the
 preset's value (``--preset default``: SimplifyConfig's defaults; ``--preset paper``: the NanoGS
-paper's configuration, --operator mpmm --cost idiv --prune-opacity 0.1 --k 16 --pass-fraction 0.5)."""
+paper's configuration, --operator mpmm --cost idiv --prune-opacity 0.1 --k 16 --pass-fraction 0.5 --median-cost-factor 0)."""
 
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ LambdaApp = Annotated[Optional[float], typer.Option("--lambda-app", metavar="WEI
 Cost = Annotated[Optional[str], typer.Option("--cost", metavar="COST", show_default=False, help="Cost objective: field (change of the projected emitted field under the operator's own merge, for mpmm and coverage; default), runnalls (closed-form mixture-reduction bound), idiv (the paper's Monte Carlo I-divergence) or mse (the paper's ablation surrogate).")]
 Operator = Annotated[Optional[str], typer.Option("--operator", metavar="OPERATOR", show_default=False, help="Merge operator: coverage (keeps the pair's coverage; default), area (opacity x surface-area weights) or mpmm (the paper's mass-preserving moment matching).")]
 PassFraction = Annotated[Optional[float], typer.Option("--pass-fraction", metavar="FRACTION", show_default=False, help="At most this fraction of the splats merges in one pass, the cheapest pairs first; 0.5 takes every pair of the matching, as the paper does (fewer passes, faster) [default: 0.45].")]
+MedianCostFactor = Annotated[Optional[float], typer.Option("--median-cost-factor", metavar="FACTOR", show_default=False, help="A pass merges no pair that costs more than FACTOR times the median pair's cost (at least half of its pairs always merge); 0: no limit, as the paper [default: 3].")]
 DropInvalid = Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing (says how many and why). Opacity logits of +-Inf (alpha 1 or 0) are valid.")]
 Format = Annotated[Optional[str], typer.Option("--format", metavar="FORMAT", show_default=False, help="Output format, whatever the output's name: ply, compressed-ply, spz, sog, splat or lod [default: by the output's name, else ply].")]
 Json = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]

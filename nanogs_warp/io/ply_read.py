@@ -26,7 +26,7 @@ import numpy as np
 from ..domain import LOG_SCALE_LIMIT
 
 PIECE_BYTES = 1 << 20  # the hash's piece size: part of the hash's definition, never change it
-_UNIT_BYTES = 1 << 20  # a reader thread's unit of work when the file is hashed (whole pieces)
+_UNIT_BYTES = 8 << 20  # a reader thread's unit of work when the file is hashed (whole pieces)
 _MAX_THREADS = 8
 _THREADS_PER_BYTES = 8 << 20  # one more reader thread per this many bytes of file, up to the cores
 
