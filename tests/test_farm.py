@@ -97,10 +97,21 @@ def test_same_arrays_and_hash_on_any_thread_count(tmp_path, units, layout, threa
     np.testing.assert_array_equal(bits(raw["rotations"]), bits(want["rotations"]))
 
 
+def test_unit_size_evens_out_the_threads_within_its_bounds():
+    mib = 1 << 20
+    assert ply_read.unit_size(984_000_000, 8, 8 * mib) == 7_687_500  # 16 units a thread
+    assert ply_read.unit_size(82_000_000, 2, 8 * mib) == 2_562_500
+    assert ply_read.unit_size(4_000_000, 8, 8 * mib) == mib  # at least one piece
+    assert ply_read.unit_size(10_000_000_000, 1, 8 * mib) == 8 * mib  # at most the bound
+    assert ply_read.unit_size(10_000, 1, 476) == 476  # a bound below 1 MiB (tests) is the size
+
+
+@pytest.mark.parametrize("units_per_thread", [16, 1])  # 1: units of several pieces
 @pytest.mark.parametrize("size", [0, 1, PIECE - 1, PIECE, 3 * PIECE, 7 * PIECE + 5])
-def test_file_piece_hash(tmp_path, monkeypatch, size):
+def test_file_piece_hash(tmp_path, monkeypatch, size, units_per_thread):
     monkeypatch.setattr(ply_read, "PIECE_BYTES", PIECE)
     monkeypatch.setattr(ply_read, "_UNIT_BYTES", 2 * PIECE)
+    monkeypatch.setattr(ply_read, "_UNITS_PER_THREAD", units_per_thread)
     path = tmp_path / "f.bin"
     path.write_bytes(np.random.default_rng(size).integers(0, 256, size, dtype=np.uint8).tobytes())
     for threads in (1, 3):

@@ -47,7 +47,7 @@ from .ply_header import (
 from .ply_layout import PlyLayout
 from .ply_write import atomic_write, output_properties
 from .ply_write import write_ply_stream as _write_ply_stream  # by this name: the tests patch it here
-from .ply_read import BlockCheck, Columns, copy_run, read_threads, read_vertex_rows
+from .ply_read import BlockCheck, Columns, copy_run, read_threads, read_vertex_rows, unit_size
 
 if TYPE_CHECKING:
     from ..splats import SplatSet
@@ -356,7 +356,8 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     threads = read_threads(file_bytes, threads)
     check = None
     if direct:
-        found = read_vertex_rows(f.fileno(), file_bytes, offset, n, itemsize, columns, threads, _READ_UNIT_BYTES,
+        found = read_vertex_rows(f.fileno(), file_bytes, offset, n, itemsize, columns, threads,
+                                 unit_size(file_bytes, threads, _READ_UNIT_BYTES),
                                  prepare, file_hash, digest)  # fmt: skip
         check = found if prepare else None
     else:
@@ -388,7 +389,7 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
 
 
 _CHUNK_BYTES = 4 << 20  # rows are written by save_ply (and converted from plyfile's array) in chunks of about this size
-_READ_UNIT_BYTES = 8 << 20  # a reader thread's unit of rows (docs/performance.md: 1 MB units read at half the speed in a fresh process)
+_READ_UNIT_BYTES = 8 << 20  # the largest unit of rows of a reader thread (ply_read.unit_size)
 
 
 def _runs(fields, names) -> list[tuple[int, int, np.dtype, int]]:

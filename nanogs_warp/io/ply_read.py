@@ -26,7 +26,8 @@ import numpy as np
 from ..domain import LOG_SCALE_LIMIT
 
 PIECE_BYTES = 1 << 20  # the hash's piece size: part of the hash's definition, never change it
-_UNIT_BYTES = 8 << 20  # a reader thread's unit of work when the file is hashed (whole pieces)
+_UNIT_BYTES = 8 << 20  # the largest unit of a reader thread when the file is hashed (whole pieces)
+_UNITS_PER_THREAD = 16  # enough units for the threads to even out; fewer, larger units mean fewer GIL round trips
 _MAX_THREADS = 8
 _THREADS_PER_BYTES = 8 << 20  # one more reader thread per this many bytes of file, up to the cores
 
@@ -101,14 +102,23 @@ class PieceHash:
         return hashlib.sha256(b"".join(self.pieces)).hexdigest()  # type: ignore[arg-type]
 
 
+def unit_size(file_bytes: int, threads: int, most: int) -> int:
+    """A reader thread's unit of work: the file over 16 units a thread, between 1 MiB and ``most``.
+    Each unit costs a few dozen GIL round trips (numpy calls between the copies), which another
+    busy Python thread (Warp starting beside the read) slows down; 1 MiB units read a 984 MB file
+    at half the speed of 8 MiB units in a fresh process (docs/performance.md)."""
+    return max(min(most, PIECE_BYTES), min(most, file_bytes // (max(threads, 1) * _UNITS_PER_THREAD)))
+
+
 def file_piece_hash(path, threads: int | None = None) -> str:
     """The :class:`PieceHash` of a file, read on several threads."""
     with open(path, "rb") as f:
         size = os.fstat(f.fileno()).st_size
         hasher = PieceHash(size)
-        units = _hash_units(size, 0, 0, 1)
+        threads = read_threads(size, threads)
+        units = _hash_units(size, 0, 0, 1, unit_size(size, threads, _UNIT_BYTES))
         reader = _UnitReader(f.fileno(), _unit_bytes(units), hasher)
-        run_units(lambda u: reader.read(u), units, read_threads(size, threads))
+        run_units(lambda u: reader.read(u), units, threads)
     return hasher.hexdigest()
 
 
@@ -125,11 +135,11 @@ class Unit:
     stop_row: int
 
 
-def _hash_units(size: int, vertex_offset: int, rows: int, itemsize: int) -> list[Unit]:
+def _hash_units(size: int, vertex_offset: int, rows: int, itemsize: int, unit_bytes: int) -> list[Unit]:
     """Units covering the whole file, each whole pieces (the rows that start in a unit's pieces
     belong to it; the unit is read on to the end of its last row)."""
     units = []
-    step = max(PIECE_BYTES, _UNIT_BYTES // PIECE_BYTES * PIECE_BYTES)
+    step = max(PIECE_BYTES, unit_bytes // PIECE_BYTES * PIECE_BYTES)
     for start in range(0, max(size, 1), step):
         stop = min(size, start + step)
         first = min(rows, max(0, -(-(start - vertex_offset) // itemsize)))
@@ -215,7 +225,7 @@ def read_vertex_rows(fd: int, file_bytes: int, vertex_offset: int, rows: int, it
     if hasher is not None and hasher.file_bytes != file_bytes:
         raise ValueError("the file changed while it was read")
     if hasher is not None or digest is not None:
-        units = _hash_units(file_bytes, vertex_offset, rows, itemsize)
+        units = _hash_units(file_bytes, vertex_offset, rows, itemsize, unit_size(file_bytes, threads, _UNIT_BYTES))
     else:
         units = _row_units(vertex_offset, rows, itemsize, unit_bytes)
     if digest is not None:
