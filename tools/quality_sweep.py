@@ -45,7 +45,7 @@ from nanogs_warp.io.ply import load_ply, save_ply  # noqa: E402
 from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively, target_count  # noqa: E402
 
 RATIOS = (0.1, 0.01, 0.001)
-PAPER = {"k": 16, "prune_opacity": 0.1, "samples": 1, "seed": 0, "lambda_geo": 1.0, "lambda_app": 1.0, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5}
+PAPER = dataclasses.asdict(SimplifyConfig.paper())  # every setting, so --define can change any of them
 
 
 def nanogs(**changes) -> dict:
@@ -54,10 +54,11 @@ def nanogs(**changes) -> dict:
 
 
 # The default (docs/quality.md): coverage operator, field cost, no opacity pruning, k by scene size
-# (None: 24 below 65,536 splats, else 16), at most 45 % of the splats merged a pass.
-RECOMMENDED = {"operator": "coverage", "cost": "field", "prune_opacity": 0.0, "k": None, "pass_fraction": 0.45}
-# The previous default: the Runnalls cost and whole matchings.
-RUNNALLS_DEFAULT = {"operator": "coverage", "cost": "runnalls", "prune_opacity": 0.0, "k": None, "pass_fraction": 0.5}
+# (None: 24 below 65,536 splats, else 16), at most 45 % of the splats merged a pass, none above 3x
+# the pass's median pair cost: SimplifyConfig's defaults.
+RECOMMENDED = dataclasses.asdict(SimplifyConfig())
+# An earlier default, now --preset fast: the Runnalls cost and whole matchings.
+RUNNALLS_DEFAULT = dataclasses.asdict(SimplifyConfig.preset("fast"))
 
 # name -> definition. "paper" is the paper's configuration (SimplifyConfig's defaults when this was written).
 CONFIGS: dict[str, dict] = {
