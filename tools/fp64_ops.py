@@ -467,7 +467,7 @@ def main(argv=None) -> int:
     from nanogs_warp.device import init_warp
     from nanogs_warp.pairing import select_pairs
     from nanogs_warp.io.ply import load_ply
-    from nanogs_warp.cost import FieldCost
+    from nanogs_warp.cost import FieldCost, reference_energy
     from nanogs_warp.timing import no_clock
     from nanogs_warp.topology import KnnTopology
 
@@ -508,8 +508,14 @@ def main(argv=None) -> int:
     )
     edge_i, edge_j = HostArray(ei.astype(np.int32)), HostArray(ej.astype(np.int32))
     out = HostArray(np.zeros(len(ei), np.float32))
-    field, field_by = measure(lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, 1, 0.25, 1.0, 1.0, out), len(ei))
-    field_mpmm, _ = measure(lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, 0, 0.25, 1.0, 1.0, out), len(ei))
+    energy = HostArray(reference_energy(splats).numpy())  # E_ref of the contrast term: once a pass
+    contrast = FieldCost.lambda_contrast
+    field, field_by = measure(
+        lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, 1, 0.25, 1.0, 1.0, contrast, energy, out), len(ei)
+    )
+    field_mpmm, _ = measure(
+        lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, 0, 0.25, 1.0, 1.0, contrast, energy, out), len(ei)
+    )
     weights = MatArray({int(r): F(1.0) for r in rows})
     log_dets = MatArray({int(r): F(-10.0) for r in rows})
     runnalls, runnalls_by = measure(

@@ -170,7 +170,7 @@ def main(argv=None) -> int:
     import warp as wp
 
     from nanogs_warp.compact import remove_rows
-    from nanogs_warp.cost import FieldCost
+    from nanogs_warp.cost import FieldCost, reference_energy
     from nanogs_warp.device import init_warp, resolve_device
     from nanogs_warp.kernels import field_cost as field64
     from nanogs_warp.kernels import merge as merge64
@@ -196,11 +196,14 @@ def main(argv=None) -> int:
     folder = Path(tempfile.mkdtemp(prefix="nanogs_precision_"))
     builds = {"float64": None, "float32": load_variant("float32", folder), "mixed": load_variant("mixed", folder)}
 
+    energy64 = reference_energy(splats)  # E_ref of the contrast term: per pass, not per edge
+
     def cost_runner(module):
         kernels = field64 if module is None else module
         cov_type = wp.mat33d if module is None else wp.mat33f
         covariances = wp.empty(n, dtype=cov_type, device=device)
         norms = wp.empty(n, dtype=wp.float64 if module is None else wp.float32, device=device)
+        energy = energy64 if module is None else wp.array(energy64.numpy().astype(np.float32), device=device)
         costs = wp.empty(e, dtype=wp.float32, device=device)
 
         def run():
@@ -210,7 +213,8 @@ def main(argv=None) -> int:
             )  # fmt: skip
             wp.launch(
                 kernels.field_costs, e,
-                inputs=[edges.i, edges.j, splats.kernel_view(), covariances, norms, 1, 0.25, 1.0, 1.0], outputs=[costs],
+                inputs=[edges.i, edges.j, splats.kernel_view(), covariances, norms, 1, 0.25, 1.0, 1.0, FieldCost.lambda_contrast, energy],
+                outputs=[costs],
                 device=device,
             )  # fmt: skip
 
