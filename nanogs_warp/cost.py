@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from .kernels import cost as kernels
+from .operators import COVERAGE_GROWTH
 from .parallel import launch_rows, launch_rows_from
 from .splats import SplatSet
 from .topology import Edges
@@ -128,7 +129,7 @@ class FieldCost:
     samples: int = 1
     seed: int = 0
     operator: str = "coverage"
-    growth: float = 0.25
+    growth: float = COVERAGE_GROWTH
     lambda_contrast: float = CONTRAST_WEIGHT
 
     OPERATOR_IDS = {"mpmm": 0, "coverage": 1}

@@ -46,21 +46,28 @@ class AreaWeightedMomentMatching:
         _launch(kernels.area_weighted_moment_matching, source, pairs, out, destination)
 
 
+# The coverage operator's growth exponent, shared with the field cost that scores its merges.
+# Growth gives back the coverage a single Gaussian (alpha <= 1) loses against the flat-topped union
+# of opaque splats it replaces, but pushes merged splats past sharp edges. Chosen by
+# leave-one-scene-out over the eight shared and four generated stress scenes with the field cost
+# (docs/quality.md): 0.5 in eleven of twelve folds; against 0.25 the worst gap to the best other
+# tool (or to the paper's configuration on a stress scene) goes from -3.25 to -2.11 dB and the
+# mean gap from +1.33 to +1.21 dB, with halos along sharp edges at 1 % and below (statue
+# -0.6 / -1.2 dB) and 0.75 and 1 far worse on every converted mesh.
+COVERAGE_GROWTH = 0.5
+
+
 @dataclass(frozen=True)
 class CoverageMomentMatching:
     """Weights opacity x face-on footprint; merged opacity conserving the pair's coverage in the
     merged splat's face plane; where alpha would exceed 1, the face plane grows by
     (coverage / footprint)^growth first (0: never grow, 1: always keep all coverage).
 
-    ``growth`` is fixed at 0.25 and not a command-line option: it is a tuned constant of the
-    default operator. Growth gives back the coverage a single Gaussian (alpha <= 1) loses against
-    the flat-topped union of opaque splats it replaces, but pushes merged splats past sharp edges.
-    Over the five measured scenes growth 0 / 0.25 / 0.5 gave 32.06 / 25.26 / 20.75, 32.39 / 26.32 /
-    21.33 and 32.47 / 26.28 / 21.52 dB mean PSNR at ratios 0.1 / 0.01 / 0.001 (docs/quality.md):
-    0.5 is no better on average and costs one scene 0.8-1.8 dB (halos along its edges), so 0.25.
-    Python callers may still build ``CoverageMomentMatching(growth=...)`` to experiment."""
+    ``growth`` is ``COVERAGE_GROWTH`` and not a command-line option: it is a measured constant of
+    the default operator. Python callers may still build ``CoverageMomentMatching(growth=...)`` to
+    experiment (the field cost's ``FieldCost.growth`` must then match)."""
 
-    growth: float = 0.25
+    growth: float = COVERAGE_GROWTH
 
     def __call__(self, source: SplatSet, pairs: Pairs, out: SplatSet, destination: wp.array) -> None:
         _launch(kernels.coverage_moment_matching, source, pairs, out, destination, float(self.growth))

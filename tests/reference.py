@@ -169,7 +169,7 @@ def fitted_opacity(alpha_pair, mus, covs, mu_m, cov_m) -> float:
     return num / den
 
 
-def coverage_merge(s: dict, i: int, j: int, growth: float = 0.25) -> dict:
+def coverage_merge(s: dict, i: int, j: int, growth: float = 0.5) -> dict:
     """The coverage operator, float64: weights w = alpha s_a s_b; weighted moments, features,
     extras; with (c0, c1) the two major axes of Sigma_m, coverage C = sum_k alpha_k sqrt(det(P
     Sigma_k P^T)), P = [c0 c1]^T, and ratio r = C / (s0 s1)_m; where r > 1 the variances along c0, c1

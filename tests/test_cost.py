@@ -207,7 +207,7 @@ def test_field_cost_matches_reference(device, rng, operator):
     wp.launch(
         field_cost.field_costs, len(ei),
         inputs=[wp.array(ei, device=device), wp.array(ej, device=device), splats.kernel_view(), covariances,
-                colour_norms, FieldCost.OPERATOR_IDS[operator], 0.25, 1.0, 0.5, 7.0,
+                colour_norms, FieldCost.OPERATOR_IDS[operator], FieldCost.growth, 1.0, 0.5, 7.0,
                 wp.array([energy], dtype=wp.float64, device=device)],
         outputs=[costs], device=device,
     )  # fmt: skip
