@@ -232,6 +232,18 @@ def test_reference_energy_matches_reference(device, rng, count, chunk):
     np.testing.assert_allclose(got[0], reference.reference_energy(arrays), rtol=1e-10)
 
 
+def test_field_cost_scores_the_default_operator_growth():
+    """The field cost scores the coverage operator's own merge: both take the growth exponent from
+    one constant, and the reference's default is the same measured value."""
+    import inspect
+
+    from nanogs_warp.cost import FieldCost
+    from nanogs_warp.operators import COVERAGE_GROWTH, CoverageMomentMatching
+
+    assert FieldCost().growth == CoverageMomentMatching().growth == COVERAGE_GROWTH
+    assert inspect.signature(reference.coverage_merge).parameters["growth"].default == COVERAGE_GROWTH
+
+
 def test_field_cost_has_no_scene_unit(device, rng):
     """Positions and scales 10x larger: every field cost, the contrast term included, is 100x
     larger (areas), so the order of the merges does not depend on the scene's units."""
