@@ -511,10 +511,10 @@ def main(argv=None) -> int:
     energy = HostArray(reference_energy(splats).numpy())  # E_ref of the contrast term: once a pass
     contrast = FieldCost.lambda_contrast
     field, field_by = measure(
-        lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, 1, 0.25, 1.0, 1.0, contrast, energy, out), len(ei)
+        lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, 1, FieldCost.growth, 1.0, 1.0, contrast, energy, out), len(ei)
     )
     field_mpmm, _ = measure(
-        lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, 0, 0.25, 1.0, 1.0, contrast, energy, out), len(ei)
+        lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, 0, FieldCost.growth, 1.0, 1.0, contrast, energy, out), len(ei)
     )
     weights = MatArray({int(r): F(1.0) for r in rows})
     log_dets = MatArray({int(r): F(-10.0) for r in rows})
@@ -530,7 +530,7 @@ def main(argv=None) -> int:
     pair_i, pair_j = HostArray(pi_.astype(np.int32)), HostArray(pj_.astype(np.int32))
     destination = HostArray(np.arange(n, dtype=np.int32))
     sink = types.SimpleNamespace(**{key: HostArray(np.zeros((1, 1), np.float32)) for key in vars(src)})
-    coverage, coverage_by = measure(lambda t: k["merge"].coverage_moment_matching(pair_i, pair_j, destination, src, sink, 0.25), len(pi_))
+    coverage, coverage_by = measure(lambda t: k["merge"].coverage_moment_matching(pair_i, pair_j, destination, src, sink, FieldCost.growth), len(pi_))
     mpmm, _ = measure(lambda t: k["merge"].mass_preserving_moment_matching(pair_i, pair_j, destination, src, sink), len(pi_))
 
     report = {

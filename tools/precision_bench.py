@@ -213,7 +213,7 @@ def main(argv=None) -> int:
             )  # fmt: skip
             wp.launch(
                 kernels.field_costs, e,
-                inputs=[edges.i, edges.j, splats.kernel_view(), covariances, norms, 1, 0.25, 1.0, 1.0, FieldCost.lambda_contrast, energy],
+                inputs=[edges.i, edges.j, splats.kernel_view(), covariances, norms, 1, FieldCost.growth, 1.0, 1.0, FieldCost.lambda_contrast, energy],
                 outputs=[costs],
                 device=device,
             )  # fmt: skip
@@ -251,7 +251,7 @@ def main(argv=None) -> int:
         def merge():
             wp.launch(
                 kernels.coverage_moment_matching, reference_pairs.count,
-                inputs=[reference_pairs.i, reference_pairs.j, destination, splats.kernel_view(), out.kernel_view(), 0.25],
+                inputs=[reference_pairs.i, reference_pairs.j, destination, splats.kernel_view(), out.kernel_view(), FieldCost.growth],
                 device=device,
             )  # fmt: skip
 
