@@ -8,7 +8,6 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
 
 from .errors import InputError
 
@@ -88,36 +87,32 @@ def resolve_device(name: str):
 
 
 class WarpStart:
-    """Imports and initialises Warp and resolves ``--device`` on a background thread (after
-    ``prepare``, e.g. importing the pipeline), then loads the kernel ``modules`` there (see
-    :func:`~nanogs_warp.kernel_cache.load_kernels`), so that a command can read its input
-    meanwhile: a second or more of start-up hidden behind the read. ``device()`` waits and returns
-    the device, or raises what the thread raised; call ``wait()`` before reporting an error of
-    your own (the thread briefly redirects stderr while Warp starts). ``stages`` holds the seconds
-    of ``warp_import`` (prepare), ``warp_init`` and ``kernels`` once done."""
+    """Initialises Warp and resolves ``--device`` on a background thread, then loads the kernel
+    ``modules`` there (see :func:`~nanogs_warp.kernel_cache.load_kernels`), so that a command can
+    read its input meanwhile. Import Warp and the kernel definitions before: that is Python work,
+    which the read would slow and be slowed by; the device's start and the binaries' load run mostly
+    outside the interpreter. ``device()`` waits and returns the device, or raises what the thread
+    raised; call ``wait()`` before reporting an error of your own (the thread briefly redirects
+    stderr while Warp starts). ``stages`` holds the seconds of ``warp_init`` and ``kernels`` once
+    done."""
 
-    def __init__(self, name: str, prepare: Callable[[], None] | None = None, modules: tuple[str, ...] = (),
-                 announce: bool = True):  # fmt: skip
+    def __init__(self, name: str, modules: tuple[str, ...] = (), announce: bool = True):
         self._device = None
         self._error: BaseException | None = None
         self.stages: dict[str, float] = {}
-        self._thread = threading.Thread(target=self._run, args=(name, prepare, modules, announce), name="nanogs-warp-start",
-                                        daemon=True)  # fmt: skip
+        self._thread = threading.Thread(target=self._run, args=(name, modules, announce), name="nanogs-warp-start", daemon=True)
         self._thread.start()
 
-    def _run(self, name: str, prepare, modules, announce: bool) -> None:
+    def _run(self, name: str, modules, announce: bool) -> None:
         try:
             begun = time.perf_counter()
-            if prepare is not None:
-                prepare()
-            imported = time.perf_counter()
             device = resolve_device(name)
             ready = time.perf_counter()
             if modules:
                 from .kernel_cache import load_kernels
 
                 load_kernels(device, modules, announce=announce)
-            self.stages.update(warp_import=imported - begun, warp_init=ready - imported, kernels=time.perf_counter() - ready)
+            self.stages.update(warp_init=ready - begun, kernels=time.perf_counter() - ready)
             self._device = device
         except BaseException as e:  # noqa: BLE001 - handed to the caller by device()
             self._error = e
