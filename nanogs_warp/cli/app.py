@@ -117,6 +117,7 @@ def simplify(
         lambda_app=lambda_app, cost=cost, operator=operator, pass_fraction=pass_fraction,
         median_cost_factor=median_cost_factor,
     )
+    config.validate()  # before anything is started or read
     refine_config = None
     if refine or refine_steps is not None:
         refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size, seed=config.seed)
@@ -152,7 +153,8 @@ def simplify(
     # runs outside the interpreter, the device's start and the kernel binaries' load, then goes on
     # on another thread while the file is read.
     modules = simplify_modules(config) + (REFINE_MODULES if refine_config else ())
-    _import_pipeline(config)
+    from .. import pipeline  # noqa: F401 - Warp and the kernel definitions
+
     stages["warp_import"] = time.perf_counter() - started
     warp_start = WarpStart(device, modules=modules, announce=not quiet)
     try:
@@ -346,11 +348,6 @@ def _refine(result, reference, config: RefineConfig, show_progress: bool):
     return refined, report
 
 
-def _import_pipeline(config) -> None:
-    """Imports the pipeline (Warp and the kernel definitions with it) and checks ``config``."""
-    from .. import pipeline  # noqa: F401
-
-    config.validate()
 
 
 def _settings(config, splat_count: int, device) -> dict:
