@@ -348,8 +348,6 @@ def _refine(result, reference, config: RefineConfig, show_progress: bool):
     return refined, report
 
 
-
-
 def _settings(config, splat_count: int, device) -> dict:
     """The settings a run used, as --json echoes them: k resolved for the scene's size."""
     settings = dict(vars(config))
