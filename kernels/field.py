@@ -95,66 +95,52 @@ def plane_precision(a: wp.mat33d, u: int, v: int):
 
 
 @wp.func
-def add_gaussian(power: wp.float64, p: wp.vec3d, x: wp.float64, y: wp.float64, sums: wp.mat33d):
-    """Accumulates power x (P, P c, c^T P c) of a 2D Gaussian (precision p, centre (x, y)) into
-    ``sums`` = [[L00, L01, L11], [b0, b1, k], [0, 0, 0]] (``gaussian_product``)."""
-    px = p[0] * x + p[1] * y
-    py = p[1] * x + p[2] * y
-    return sums + wp.mat33d(
-        power * p[0], power * p[1], power * p[2],
-        power * px, power * py, power * (x * px + y * py),
-        wp.float64(0.0), wp.float64(0.0), wp.float64(0.0),
-    )  # fmt: skip
-
-
-@wp.func
-def gaussian_product(sums: wp.mat33d):
-    """int prod_k G_k^(n_k) dA for peak-one 2D Gaussians, from ``add_gaussian``'s sums:
-    L = sum n_k P_k, b = sum n_k P_k c_k, k = sum n_k c_k^T P_k c_k, and the integral
+def gaussian_product(l00: wp.float64, l01: wp.float64, l11: wp.float64, b0: wp.float64, b1: wp.float64, k: wp.float64):
+    """int prod_k G_k^(n_k) dA for peak-one 2D Gaussians with precisions P_k and centres c_k, from
+    L = sum n_k P_k, b = sum n_k P_k c_k and k = sum n_k c_k^T P_k c_k:
     2 pi / sqrt(det L) exp(-(k - b^T L^-1 b) / 2) (the exponent is never positive)."""
-    l00 = sums[0, 0]
-    l01 = sums[0, 1]
-    l11 = sums[0, 2]
-    b0 = sums[1, 0]
-    b1 = sums[1, 1]
     det_l = l00 * l11 - l01 * l01
     if det_l <= wp.float64(0.0):
         return wp.float64(0.0)
     q = (l11 * b0 * b0 - wp.float64(2.0) * l01 * b0 * b1 + l00 * b1 * b1) / det_l
-    exponent = wp.min(wp.float64(-0.5) * (sums[1, 2] - q), wp.float64(0.0))
+    exponent = wp.min(wp.float64(-0.5) * (k - q), wp.float64(0.0))
     return wp.float64(TWO_PI) / wp.sqrt(det_l) * exp64(exponent)
 
 
 @wp.func
-def composited_overlaps(d_i: wp.vec3d, d_j: wp.vec3d, m_i: wp.mat33d, m_j: wp.mat33d, m_m: wp.mat33d):
+def composited_overlaps(d_i: wp.vec3d, d_j: wp.vec3d, m_i: wp.mat33d, m_j: wp.mat33d, values: wp.vec3d):
     """The integrals the composited pair adds to ``view_overlaps``, each summed over the three views
     along the merged frame's axes: (int G_i^2 G_j, int G_i G_j^2, int G_i^2 G_j^2, int G_i G_j G_m)
-    dA; 0 in a view where one of the splats is degenerate. d_k = F^T (mu_k - mu_m), m_k = F^T Sigma_k F
-    (the merged splat is centred at 0)."""
-    one = wp.float64(1.0)
+    dA; 0 in a view where one of the splats is degenerate. d_k = F^T (mu_k - mu_m), m_k = F^T Sigma_k F;
+    the merged splat is diag(values), centred at 0."""
     two = wp.float64(2.0)
-    zero = wp.mat33d()
-    total = wp.vec4d()
+    t0 = wp.float64(0.0)
+    t1 = wp.float64(0.0)
+    t2 = wp.float64(0.0)
+    t3 = wp.float64(0.0)
     for view in range(3):
         u = wp.where(view == 2, 1, 0)
         v = wp.where(view == 0, 1, 2)
         p_i, ok_i = plane_precision(m_i, u, v)
         p_j, ok_j = plane_precision(m_j, u, v)
-        p_m, ok_m = plane_precision(m_m, u, v)
         if ok_i and ok_j:
-            x_i = d_i[u]
-            y_i = d_i[v]
-            x_j = d_j[u]
-            y_j = d_j[v]
-            ij = add_gaussian(one, p_j, x_j, y_j, add_gaussian(one, p_i, x_i, y_i, zero))
-            iij = add_gaussian(one, p_i, x_i, y_i, ij)
-            ijj = add_gaussian(one, p_j, x_j, y_j, ij)
-            iijj = add_gaussian(two, p_j, x_j, y_j, add_gaussian(two, p_i, x_i, y_i, zero))
-            ijm = wp.float64(0.0)
-            if ok_m:
-                ijm = gaussian_product(add_gaussian(one, p_m, wp.float64(0.0), wp.float64(0.0), ij))
-            total += wp.vec4d(gaussian_product(iij), gaussian_product(ijj), gaussian_product(iijj), ijm)
-    return total
+            # P c and c^T P c of each
+            bi0 = p_i[0] * d_i[u] + p_i[1] * d_i[v]
+            bi1 = p_i[1] * d_i[u] + p_i[2] * d_i[v]
+            ki = d_i[u] * bi0 + d_i[v] * bi1
+            bj0 = p_j[0] * d_j[u] + p_j[1] * d_j[v]
+            bj1 = p_j[1] * d_j[u] + p_j[2] * d_j[v]
+            kj = d_j[u] * bj0 + d_j[v] * bj1
+            t0 += gaussian_product(two * p_i[0] + p_j[0], two * p_i[1] + p_j[1], two * p_i[2] + p_j[2],
+                                   two * bi0 + bj0, two * bi1 + bj1, two * ki + kj)  # fmt: skip
+            t1 += gaussian_product(p_i[0] + two * p_j[0], p_i[1] + two * p_j[1], p_i[2] + two * p_j[2],
+                                   bi0 + two * bj0, bi1 + two * bj1, ki + two * kj)  # fmt: skip
+            t2 += gaussian_product(two * (p_i[0] + p_j[0]), two * (p_i[1] + p_j[1]), two * (p_i[2] + p_j[2]),
+                                   two * (bi0 + bj0), two * (bi1 + bj1), two * (ki + kj))  # fmt: skip
+            if values[u] > wp.float64(0.0) and values[v] > wp.float64(0.0):
+                t3 += gaussian_product(p_i[0] + p_j[0] + wp.float64(1.0) / values[u], p_i[1] + p_j[1],
+                                       p_i[2] + p_j[2] + wp.float64(1.0) / values[v], bi0 + bj0, bi1 + bj1, ki + kj)  # fmt: skip
+    return wp.vec4d(t0, t1, t2, t3)
 
 
 @wp.func
@@ -163,7 +149,7 @@ def pair_composited_overlaps(
 ):
     """``composited_overlaps`` of a pair and its merged splat diag(values) in ``frame`` centred at mu_m."""
     ft = wp.transpose(frame)
-    return composited_overlaps(ft * (mu_i - mu_m), ft * (mu_j - mu_m), in_frame(frame, cov_i), in_frame(frame, cov_j), wp.diag(values))
+    return composited_overlaps(ft * (mu_i - mu_m), ft * (mu_j - mu_m), in_frame(frame, cov_i), in_frame(frame, cov_j), values)
 
 
 @wp.func
