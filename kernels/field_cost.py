@@ -10,19 +10,12 @@ and for the colour averaged over view directions, summed over the three views al
 splat's axes (face-on and two edge-on: a strand merged into a flat patch is invisible face-on and
 plain edge-on):
 
-    C = lambda_geo  sum_v int (a_i G_i + a_j G_j - a_i a_j G_i G_j - a_m G_m)^2 dA
+    C = lambda_geo  sum_v int (a_i G_i + a_j G_j - a_m G_m)^2 dA
       + lambda_app  sum_v int mean_d |a_i c_i G_i + a_j c_j G_j - a_m c_m G_m|^2 dA,
 
-from the closed-form overlaps int G_a G_b dA = 2 pi sqrt(det A det B / det(A + B)) exp(-d^T (A + B)^-1 d / 2)
-and, for the term in G_i G_j, the same for products of three or four Gaussians
-(``gaussian_product``). It weighs a merge by the area and opacity it disturbs (in scene units
-squared), unlike the scale-free divergences.
-
-The opacity field the merged splat replaces is the pair as a renderer composites it,
-1 - (1 - a_i G_i)(1 - a_j G_j) = a_i G_i + a_j G_j - a_i a_j G_i G_j, not the sum of the two: two
-opaque splats that overlap cover their union, so merging them is cheap, where the sum would count
-their overlap twice and make such merges look dear. (The colour field keeps the sum: what a
-renderer shows of two overlapping colours depends on which is in front.)
+from the closed-form overlaps int G_a G_b dA = 2 pi sqrt(det A det B / det(A + B)) exp(-d^T (A + B)^-1 d / 2).
+It weighs a merge by the area and opacity it disturbs (in scene units squared), unlike the
+scale-free divergences.
 
 Both field terms vanish with the splats' area and opacity, so small or faint splats would merge
 colour-blind and fine texture wash out. A colour contrast term keeps a colour change costly at
@@ -40,7 +33,7 @@ scene's units or on how far the merging has gone.
 import warp as wp
 
 from .cost import UNMERGEABLE, finite_cost
-from .field import pair_composited_overlaps, pair_view_overlaps
+from .field import pair_view_overlaps
 from .merge import coverage_merged, mpmm_merged
 from .portable_math import exp64, log64, sigmoid64
 from .splat_math import Splats, covariance, symmetric_eigen, to_vec3d
@@ -166,17 +159,6 @@ def squared_change(
     )  # fmt: skip
 
 
-@wp.func
-def composited_terms(a_i: wp.float64, a_j: wp.float64, a_m: wp.float64, t: wp.vec4d):
-    """What the composited pair changes in the squared opacity change: with the pair's field
-    T = a_i G_i + a_j G_j - a_i a_j G_i G_j, int (T - a_m G_m)^2 minus the same for the sum of the
-    two, from t = (int G_i^2 G_j, int G_i G_j^2, int G_i^2 G_j^2, int G_i G_j G_m) over the views:
-    -2 a_i^2 a_j t0 - 2 a_i a_j^2 t1 + a_i^2 a_j^2 t2 + 2 a_m a_i a_j t3."""
-    two = wp.float64(2.0)
-    a_ij = a_i * a_j
-    return -two * a_ij * a_i * t[0] - two * a_ij * a_j * t[1] + a_ij * a_ij * t[2] + two * a_m * a_ij * t[3]
-
-
 @wp.kernel
 def field_costs(
     edge_i: wp.array(dtype=wp.int32),
@@ -208,7 +190,6 @@ def field_costs(
         return
     one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
     geo = squared_change(a_i, a_j, alpha_m, own, cross, one, one)
-    geo += composited_terms(a_i, a_j, alpha_m, pair_composited_overlaps(frame, values, to_vec3d(src.means[i]), to_vec3d(src.means[j]), mu_m, cov_i, cov_j))
     # colour: the same with the direction-averaged colour products c_x . c_y (c_m = pi c_i + (1 - pi) c_j)
     pj = wp.float64(1.0) - pi
     d_ii = colour_norms[i]
