@@ -10,12 +10,21 @@ and for the colour averaged over view directions, summed over the three views al
 splat's axes (face-on and two edge-on: a strand merged into a flat patch is invisible face-on and
 plain edge-on):
 
-    C = lambda_geo  sum_v int (a_i G_i + a_j G_j - a_m G_m)^2 dA
+    C = lambda_geo  sum_v int (T_v - a_m G_m)^2 dA
       + lambda_app  sum_v int mean_d |a_i c_i G_i + a_j c_j G_j - a_m c_m G_m|^2 dA,
 
-from the closed-form overlaps int G_a G_b dA = 2 pi sqrt(det A det B / det(A + B)) exp(-d^T (A + B)^-1 d / 2).
-It weighs a merge by the area and opacity it disturbs (in scene units squared), unlike the
-scale-free divergences.
+from the closed-form overlaps int G_a G_b dA = 2 pi sqrt(det A det B / det(A + B)) exp(-d^T (A + B)^-1 d / 2)
+and, for the term in G_i G_j below, the same for products of three or four Gaussians (G_i G_j is
+itself a scaled Gaussian: ``view_overlaps``). It weighs a merge by the area and opacity it disturbs
+(in scene units squared), unlike the scale-free divergences.
+
+T_v is the pair's opacity field. Face-on (the view along the merged splat's minor axis) it is the
+pair as a renderer composites it, 1 - (1 - a_i G_i)(1 - a_j G_j) = a_i G_i + a_j G_j - a_i a_j G_i G_j:
+two opaque splats that overlap side by side cover their union, so merging them is cheap, where
+the sum would count their overlap twice and make such merges look dear. In the two edge-on views
+it stays the sum a_i G_i + a_j G_j (composited there too, the twelve-scene leave-one-scene-out of
+docs/quality.md came out slightly worse in its worst scene, and the cost took longer). The colour
+field keeps the sum: what a renderer shows of two overlapping colours depends on which is in front.
 
 Both field terms vanish with the splats' area and opacity, so small or faint splats would merge
 colour-blind and fine texture wash out. A colour contrast term keeps a colour change costly at
@@ -52,14 +61,14 @@ def operator_merged(
     operator_id: int, i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, a_i: wp.float64, a_j: wp.float64, growth: float
 ):
     """The operator's merged splat as (pi, mu_m, eigenvalues, frame, alpha_m) and the overlap sums
-    (own, cross) of the pair and the merged splat over the three views along its axes; ``a_i``,
-    ``a_j``: the pair's opacities."""
+    (own, cross, comp) of the pair and the merged splat over the three views along its axes
+    (``view_overlaps``); ``a_i``, ``a_j``: the pair's opacities."""
     if operator_id == MPMM:
         pi, mu_m, cov_m, logit_m = mpmm_merged(i, j, src)
         values, frame = symmetric_eigen(cov_m)
         alpha_m = sigmoid64(wp.float64(logit_m))
-        own, cross = pair_view_overlaps(frame, values, to_vec3d(src.means[i]), to_vec3d(src.means[j]), mu_m, cov_i, cov_j)
-        return pi, mu_m, values, frame, alpha_m, own, cross
+        own, cross, comp = pair_view_overlaps(frame, values, to_vec3d(src.means[i]), to_vec3d(src.means[j]), mu_m, cov_i, cov_j)
+        return pi, mu_m, values, frame, alpha_m, own, cross, comp
     return coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, growth)
 
 
@@ -159,6 +168,17 @@ def squared_change(
     )  # fmt: skip
 
 
+@wp.func
+def composited_terms(a_i: wp.float64, a_j: wp.float64, a_m: wp.float64, t: wp.vec4d):
+    """What the composited pair changes in the squared opacity change: with the pair's field
+    T = a_i G_i + a_j G_j - a_i a_j G_i G_j, int (T - a_m G_m)^2 minus the same for the sum of the
+    two, from t = (int G_i^2 G_j, int G_i G_j^2, int G_i^2 G_j^2, int G_i G_j G_m) face-on:
+    -2 a_i^2 a_j t0 - 2 a_i a_j^2 t1 + a_i^2 a_j^2 t2 + 2 a_m a_i a_j t3."""
+    two = wp.float64(2.0)
+    a_ij = a_i * a_j
+    return -two * a_ij * a_i * t[0] - two * a_ij * a_j * t[1] + a_ij * a_ij * t[2] + two * a_m * a_ij * t[3]
+
+
 @wp.kernel
 def field_costs(
     edge_i: wp.array(dtype=wp.int32),
@@ -184,12 +204,13 @@ def field_costs(
     cov_j = covariances[j]
     a_i = sigmoid64(wp.float64(src.opacities[i]))
     a_j = sigmoid64(wp.float64(src.opacities[j]))
-    pi, mu_m, values, frame, alpha_m, own, cross = operator_merged(operator_id, i, j, src, cov_i, cov_j, a_i, a_j, growth)
+    pi, mu_m, values, frame, alpha_m, own, cross, comp = operator_merged(operator_id, i, j, src, cov_i, cov_j, a_i, a_j, growth)
     if not (wp.isfinite(alpha_m) and wp.isfinite(values[0] * values[1] * values[2])):
         costs[e] = wp.float32(UNMERGEABLE)
         return
     one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
     geo = squared_change(a_i, a_j, alpha_m, own, cross, one, one)
+    geo += composited_terms(a_i, a_j, alpha_m, comp)
     # colour: the same with the direction-averaged colour products c_x . c_y (c_m = pi c_i + (1 - pi) c_j)
     pj = wp.float64(1.0) - pi
     d_ii = colour_norms[i]

@@ -240,7 +240,7 @@ def coverage_merged(
     (C / F_m)^growth. The opacity is then the one that best keeps the pair's opacity field seen along
     each of the merged splat's three axes (``field_opacity``), at most MERGED_ALPHA_MAX.
     ``cov_i``, ``cov_j``: the pair's covariances; ``a_i``, ``a_j``: their opacities (``sigmoid64``). Returns (pi, mu_m, eigenvalues, frame, alpha_m,
-    own, cross): ``own``/``cross`` the overlap sums of ``view_overlaps``, which the field cost reuses.
+    own, cross, comp): the overlap sums of ``view_overlaps``, which the field cost reuses.
     The frame comes from the float64 Jacobi sweep, whose arithmetic (and sqrt) rounds alike on every
     device, so CPU and CUDA merges agree bit for bit."""
     pi = first_weight(log_coverage_mass(src.opacities[i], src.log_scales[i]), log_coverage_mass(src.opacities[j], src.log_scales[j]))
@@ -255,9 +255,9 @@ def coverage_merged(
     if ratio > wp.float64(1.0):
         grow = pow64(ratio, wp.float64(growth))
         values = wp.vec3d(values[0] * grow, values[1] * grow, values[2])  # the frame and the order stay
-    own, cross = pair_view_overlaps(frame, values, mu_i, mu_j, mu_m, cov_i, cov_j)
+    own, cross, comp = pair_view_overlaps(frame, values, mu_i, mu_j, mu_m, cov_i, cov_j)
     alpha = wp.min(field_opacity(a_i, a_j, own, cross), wp.float64(MERGED_ALPHA_MAX))
-    return pi, mu_m, values, frame, alpha, own, cross
+    return pi, mu_m, values, frame, alpha, own, cross, comp
 
 
 @wp.kernel
@@ -280,7 +280,7 @@ def coverage_moment_matching(
     cov_j = covariance(src.rotations[j], src.log_scales[j])
     a_i = sigmoid64(wp.float64(src.opacities[i]))
     a_j = sigmoid64(wp.float64(src.opacities[j]))
-    pi, mu_m, values, frame, alpha, own, cross = coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, growth)
+    pi, mu_m, values, frame, alpha, own, cross, comp = coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, growth)
     blend_appearance(i, j, pi, row, src, out)
     store_gaussian(row, mu_m, values, frame, out)
     out.opacities[row] = logit_of_log_alpha(log64(wp.max(alpha, wp.float64(1e-300))))

@@ -118,11 +118,12 @@ CONTRAST_WEIGHT = 30.0
 
 @dataclass(frozen=True)
 class FieldCost:
-    """The squared L2 change of the projected emitted field (opacity, and colour over view
-    directions) when a pair becomes the merge operator's own merged splat, plus a colour contrast
-    term in units of the scene's typical splat energy (``kernels/field_cost.py``). ``operator`` is
-    the pipeline's merge operator (mpmm or coverage); ``growth`` the coverage operator's;
-    ``lambda_contrast`` the contrast term's weight (0: the field terms alone)."""
+    """The squared L2 change of the projected emitted field (the pair's opacity field, face-on as a
+    renderer composites it, and its colour over view directions) when a pair becomes the merge
+    operator's own merged splat, plus a colour contrast term in units of the scene's typical splat
+    energy (``kernels/field_cost.py``). ``operator`` is the pipeline's merge operator (mpmm or
+    coverage); ``growth`` the coverage operator's; ``lambda_contrast`` the contrast term's weight
+    (0: the field terms alone)."""
 
     lambda_geo: float = 1.0
     lambda_app: float = 1.0

@@ -159,6 +159,38 @@ def gaussian_overlap_2d(mu_a, a, mu_b, b) -> float:
     return float(2 * np.pi * np.sqrt(np.linalg.det(a) * np.linalg.det(b) / np.linalg.det(s)) * np.exp(-0.5 * d @ np.linalg.solve(s, d)))
 
 
+def gaussian_product_2d(powers, mus, covs) -> float:
+    """int prod_k G_k^(n_k) dA of peak-one 2D Gaussians (closed form: their product is a Gaussian),
+    0 when a Gaussian with a nonzero power is degenerate."""
+    lam = np.zeros((2, 2))
+    b = np.zeros(2)
+    k = 0.0
+    for n, mu, c in zip(powers, mus, covs):
+        if n == 0:
+            continue
+        if np.linalg.det(c) <= 0:
+            return 0.0
+        p = np.linalg.inv(c)
+        lam += n * p
+        b += n * p @ mu
+        k += n * mu @ p @ mu
+    return float(2 * np.pi / np.sqrt(np.linalg.det(lam)) * np.exp(min(-0.5 * (k - b @ np.linalg.solve(lam, b)), 0.0)))
+
+
+def quadrature_product_2d(powers, mus, covs, points: int = 801) -> float:
+    """``gaussian_product_2d`` by brute-force quadrature on a grid (for checking the closed form)."""
+    reach = 7.0 * np.sqrt(max(np.linalg.eigvalsh(c).max() for c in covs))
+    centre = np.mean(mus, axis=0)
+    t = np.linspace(-reach, reach, points)
+    gx, gy = np.meshgrid(t + centre[0], t + centre[1], indexing="ij")
+    pts = np.stack([gx, gy], -1)
+    total = np.ones(gx.shape)
+    for n, mu, c in zip(powers, mus, covs):
+        d = pts - mu
+        total = total * np.exp(-0.5 * np.einsum("...i,ij,...j->...", d, np.linalg.inv(c), d)) ** n
+    return float(total.sum() * (t[1] - t[0]) ** 2)
+
+
 def fitted_opacity(alpha_pair, mus, covs, mu_m, cov_m) -> float:
     """The opacity a minimising sum over the three views of int (a_i G_i + a_j G_j - a G_m)^2 dA."""
     num = den = 0.0
@@ -281,11 +313,13 @@ def base_colour_change(s: dict, i: int, j: int) -> float:
 
 
 def field_cost(s: dict, i: int, j: int, merged: dict, lambda_geo=1.0, lambda_app=1.0, lambda_contrast=0.0, energy=None) -> float:
-    """The field cost, float64: the squared L2 change of the opacity field and of the direction-averaged
-    SH colour field, seen along each of the three axes of the merged splat ``merged`` (mean, cov,
-    alpha, pi), every Gaussian projected onto the plane of the other two as a peak-one 2D Gaussian,
-    summed over the three views; each integral of a product of two Gaussians in closed form
-    (``gaussian_overlap_2d``, itself checked against quadrature in the tests)."""
+    """The field cost, float64: the squared L2 change of the opacity field and of the
+    direction-averaged SH colour field, seen along each of the three axes of the merged splat
+    ``merged`` (mean, cov, alpha, pi), every Gaussian projected onto the plane of the other two as a
+    peak-one 2D Gaussian, summed over the three views; face-on, the opacity field of the pair is
+    composited, a_i G_i + a_j G_j - a_i a_j G_i G_j, in the two other views and for the colour it is
+    the sum. Each integral of a product of Gaussians in closed form (``gaussian_overlap_2d``,
+    ``gaussian_product_2d``, both checked against quadrature in the tests)."""
     cov = covariances(s["rotations"][[i, j]], s["log_scales"][[i, j]])
     mus = [s["means"][i].astype(np.float64), s["means"][j].astype(np.float64), merged["mean"]]
     a = list(sigmoid(s["opacities"][[i, j]])) + [merged["alpha"]]
@@ -298,7 +332,7 @@ def field_cost(s: dict, i: int, j: int, merged: dict, lambda_geo=1.0, lambda_app
         return ((0.5 + 0.28209479177387814 * fa[:3]) * (0.5 + 0.28209479177387814 * fb[:3])).sum() + (fa[3:] * fb[3:]).sum() / (4 * np.pi)
 
     geo = col = 0.0
-    for plane in view_planes(merged["cov"]):
+    for view, plane in enumerate(view_planes(merged["cov"])):
         covs = [plane @ c @ plane.T for c in (cov[0], cov[1], merged["cov"])]
         centres = [plane @ m for m in mus]
         for x in range(3):
@@ -306,6 +340,16 @@ def field_cost(s: dict, i: int, j: int, merged: dict, lambda_geo=1.0, lambda_app
                 o = sign[x] * sign[y] * a[x] * a[y] * gaussian_overlap_2d(centres[x], covs[x], centres[y], covs[y])
                 geo += o
                 col += o * dot(feats[x], feats[y])
+        if view > 0:
+            continue
+        # face-on, the opacity field of the pair composited, a_i G_i + a_j G_j - a_i a_j G_i G_j: the terms in G_i G_j
+        a_i, a_j, a_m = a
+
+        def product(*powers):
+            return gaussian_product_2d(powers, centres, covs)
+
+        geo += (-2 * a_i * a_i * a_j * product(2, 1, 0) - 2 * a_i * a_j * a_j * product(1, 2, 0)
+                + (a_i * a_j) ** 2 * product(2, 2, 0) + 2 * a_m * a_i * a_j * product(1, 1, 1))  # fmt: skip
     contrast = 0.0 if lambda_contrast == 0.0 else lambda_contrast * (reference_energy(s) if energy is None else energy) * base_colour_change(s, i, j)
     return lambda_geo * max(geo, 0.0) + lambda_app * max(col, 0.0) + contrast
 

@@ -291,9 +291,23 @@ def test_gaussian_overlap_closed_form_matches_quadrature(rng):
         np.testing.assert_allclose(reference.gaussian_overlap_2d(mu_a, a, mu_b, b), want, rtol=1e-6)
 
 
-def test_field_cost_is_zero_for_a_merge_that_changes_nothing(device):
-    """Two identical splats of alpha 0.45 become one of the same shape with alpha 0.9 under the
-    coverage operator: the field does not change, so the cost is 0."""
+def test_gaussian_products_closed_form_match_quadrature(rng):
+    """The integrals of three and four Gaussians that the composited pair adds."""
+    for powers in [(2, 1, 0), (1, 2, 0), (2, 2, 0), (1, 1, 1)]:
+        m = rng.normal(size=(3, 2, 2))
+        covs = [x @ x.T + 0.05 * np.eye(2) for x in m]
+        mus = rng.normal(scale=0.5, size=(3, 2))
+        want = reference.quadrature_product_2d(powers, mus, covs)
+        np.testing.assert_allclose(reference.gaussian_product_2d(powers, mus, covs), want, rtol=1e-6)
+
+
+def test_field_cost_of_a_splat_merged_with_its_copy(device):
+    """Two identical splats of alpha a = 0.45 become one of the same shape with alpha 2a = 0.9 under
+    the coverage operator (nothing to grow). Face-on, the pair composited is 2a G - a^2 G^2, so the
+    opacity field changes by a^2 G^2, and the cost is a^4 int G^4 = a^4 (pi / 2) s_a s_b, s_a and s_b
+    the two largest scales (int G^n dA = 2 pi sqrt(det) / n for a peak-one 2D Gaussian); the two
+    edge-on views compare with the sum 2a G, which the merged splat matches exactly. In closed form,
+    without the reference implementation."""
     from nanogs_warp.cost import FieldCost
 
     arrays = random_splat_arrays(2, sh_degree=0, seed=3)
@@ -301,8 +315,12 @@ def test_field_cost_is_zero_for_a_merge_that_changes_nothing(device):
     arrays["rotations"][1] = arrays["rotations"][0]
     arrays["log_scales"][1] = arrays["log_scales"][0]
     arrays["features"][1] = arrays["features"][0]
-    arrays["opacities"][:] = np.log(0.45 / 0.55)
+    a = 0.45
+    arrays["opacities"][:] = np.log(a / (1 - a))
     splats = SplatSet.from_numpy(**arrays, device=device)
     edges = Edges(wp.array(np.int32([0]), device=device), wp.array(np.int32([1]), device=device), 1)
-    got = FieldCost(operator="coverage")(splats, edges, 0).numpy()[0]
-    assert got < 1e-12 * np.exp(2 * arrays["log_scales"][0]).max()
+    got = FieldCost(operator="coverage", lambda_app=0.0, lambda_contrast=0.0)(splats, edges, 0).numpy()[0]
+    s = np.exp(arrays["log_scales"][0].astype(np.float64))
+    s = np.sort(s)
+    want = a**4 * np.pi / 2 * s[2] * s[1]
+    np.testing.assert_allclose(got, want, rtol=1e-5)

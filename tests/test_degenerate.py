@@ -159,23 +159,25 @@ def test_scene_of_degenerate_splats_reaches_the_counts_and_renders(device, rng, 
 
 
 def test_degenerate_twins_merge_first(device, rng):
-    """Pairs of identical flat disks and needles cost (almost) nothing under the field cost: the
-    first pass merges every twin pair before any other pair, where unmergeable costs used to put
-    them last. (Alpha 0.45: the coverage merge of two is the same splat at alpha 0.9, so the field
-    does not change. The Runnalls cost weighs pairs by mass, so lighter pairs may go first there:
-    its twins are checked for a bound of about 0 in ``test_every_degenerate_pair_has_a_real_cost``.)"""
+    """Pairs of identical flat disks and needles cost almost nothing under the field cost: the
+    first pass merges every twin with its twin, where unmergeable costs used to put them last.
+    (Alpha a = 0.01: the coverage merge of two is the same splat at alpha 2a, and the pair
+    composited, 2a G - a^2 G^2, differs from it by a^2 G^2: a cost of a^4 int G^4, below that of
+    any other edge of a twin. The Runnalls cost weighs pairs by mass, so lighter pairs may go first
+    there: its twins are checked for a bound of about 0 in
+    ``test_every_degenerate_pair_has_a_real_cost``.)"""
     from nanogs_warp.pairing import select_pairs
     from nanogs_warp.topology import KnnTopology
     from nanogs_warp.timing import no_clock
 
     arrays = flat_scene(rng, 400)
     twins = np.arange(0, 80, 2)
-    arrays["opacities"][twins] = np.log(0.45 / 0.55)
+    arrays["opacities"][twins] = np.log(0.01 / 0.99)
     for key in arrays:
         arrays[key][twins + 1] = arrays[key][twins]
     splats = SplatSet.from_numpy(**arrays, device=device)
     edges = KnnTopology(8)(splats, no_clock)
     costs = FieldCost()(splats, edges, 0)
-    pairs = select_pairs(edges, costs, splats.count, cap=len(twins))
-    chosen = sorted(zip(pairs.i.numpy().tolist(), pairs.j.numpy().tolist()))
-    assert chosen == [(int(t), int(t) + 1) for t in twins]
+    pairs = select_pairs(edges, costs, splats.count, cap=splats.count // 2)
+    chosen = set(zip(pairs.i.numpy().tolist(), pairs.j.numpy().tolist()))
+    assert {(int(t), int(t) + 1) for t in twins} <= chosen
