@@ -117,7 +117,7 @@ def view_overlaps(d_i: wp.vec3d, d_j: wp.vec3d, m_i: wp.mat33d, m_j: wp.mat33d, 
             det_p = det_a * det_b * inv_s
             kappa = exp64(wp.float64(-0.5) * (e0 * w0 + e1 * w1))
             s_ij = wp.float64(TWO_PI) * wp.sqrt(det_p) * kappa
-            if view == 0:  # the composited pair's terms face-on only (docs/quality.md)
+            if view == 0 and kappa > zero:  # the composited terms, face-on only (docs/quality.md); each is kappa times a finite overlap
                 # P = A S^-1 B
                 c00 = (s11 * b00 - s01 * b01) * inv_s
                 c01 = (s11 * b01 - s01 * b11) * inv_s

@@ -324,3 +324,20 @@ def test_field_cost_of_a_splat_merged_with_its_copy(device):
     s = np.sort(s)
     want = a**4 * np.pi / 2 * s[2] * s[1]
     np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+def test_field_cost_of_a_far_pair_matches_reference(device):
+    """Two splats a thousand scales apart: G_i G_j vanishes (kappa underflows to 0), so the
+    composited terms are exactly 0 and the cost is the plain field change, finite, as the float64
+    reference computes it."""
+    from nanogs_warp.cost import FieldCost
+
+    arrays = random_splat_arrays(2, sh_degree=1, seed=11)
+    arrays["log_scales"][:] = np.log(0.5)
+    arrays["means"][1] = arrays["means"][0] + np.float32([1000.0, 0.0, 0.0])
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    edges = Edges(wp.array(np.int32([0]), device=device), wp.array(np.int32([1]), device=device), 1)
+    got = FieldCost(lambda_contrast=0.0)(splats, edges, 0).numpy()[0]
+    want = reference.field_cost(arrays, 0, 1, reference.coverage_merge(arrays, 0, 1))
+    assert np.isfinite(got) and want > 0
+    np.testing.assert_allclose(got, want, rtol=1e-4)
