@@ -312,12 +312,12 @@ def _mat33d(*args):
     return Mat([list(args[0:3]), list(args[3:6]), list(args[6:9])])
 
 
-def _vec(kind):
+def _vec(kind, size=3):
     def make(*args):
         if not args:
-            return Vec([kind(0.0)] * 3)
+            return Vec([kind(0.0)] * size)
         if len(args) == 1:
-            return Vec([kind(args[0])] * 3)
+            return Vec([kind(args[0])] * size)
         return Vec(kind(a) if not isinstance(a, F) or kind is F32 else a for a in args)
 
     return make
@@ -331,6 +331,7 @@ fake.int32 = int_
 fake.uint32 = int_
 fake.uint64 = int_
 fake.vec3d = _vec(F)
+fake.vec4d = _vec(F, 4)
 fake.vec3 = _vec(F32)
 fake.vec4 = lambda *a: Vec(F32(x) for x in a)
 fake.quat = lambda *a: Vec(F32(x) for x in a)
@@ -468,6 +469,7 @@ def main(argv=None) -> int:
     from nanogs_warp.pairing import select_pairs
     from nanogs_warp.io.ply import load_ply
     from nanogs_warp.cost import FieldCost, reference_energy
+    from nanogs_warp.operators import COVERAGE_GROWTH
     from nanogs_warp.timing import no_clock
     from nanogs_warp.topology import KnnTopology
 
@@ -530,7 +532,7 @@ def main(argv=None) -> int:
     pair_i, pair_j = HostArray(pi_.astype(np.int32)), HostArray(pj_.astype(np.int32))
     destination = HostArray(np.arange(n, dtype=np.int32))
     sink = types.SimpleNamespace(**{key: HostArray(np.zeros((1, 1), np.float32)) for key in vars(src)})
-    coverage, coverage_by = measure(lambda t: k["merge"].coverage_moment_matching(pair_i, pair_j, destination, src, sink, FieldCost.growth), len(pi_))
+    coverage, coverage_by = measure(lambda t: k["merge"].coverage_moment_matching(pair_i, pair_j, destination, src, sink, COVERAGE_GROWTH), len(pi_))
     mpmm, _ = measure(lambda t: k["merge"].mass_preserving_moment_matching(pair_i, pair_j, destination, src, sink), len(pi_))
 
     report = {

@@ -171,6 +171,7 @@ def main(argv=None) -> int:
 
     from nanogs_warp.compact import remove_rows
     from nanogs_warp.cost import FieldCost, reference_energy
+    from nanogs_warp.operators import COVERAGE_GROWTH
     from nanogs_warp.device import init_warp, resolve_device
     from nanogs_warp.kernels import field_cost as field64
     from nanogs_warp.kernels import merge as merge64
@@ -251,7 +252,7 @@ def main(argv=None) -> int:
         def merge():
             wp.launch(
                 kernels.coverage_moment_matching, reference_pairs.count,
-                inputs=[reference_pairs.i, reference_pairs.j, destination, splats.kernel_view(), out.kernel_view(), FieldCost.growth],
+                inputs=[reference_pairs.i, reference_pairs.j, destination, splats.kernel_view(), out.kernel_view(), COVERAGE_GROWTH],
                 device=device,
             )  # fmt: skip
 
