@@ -122,7 +122,7 @@ def float32_source(variant: str) -> str:
             kept.append(block)
         parts.append(f"# --- from kernels/{source}.py\n" + "".join(kept))
     body = "\n".join(parts)
-    for a, b in (("wp.float64", "wp.float32"), ("wp.vec3d", "wp.vec3f"), ("wp.mat33d", "wp.mat33f")):
+    for a, b in (("wp.float64", "wp.float32"), ("wp.vec3d", "wp.vec3f"), ("wp.vec4d", "wp.vec4f"), ("wp.mat33d", "wp.mat33f")):
         body = body.replace(a, b)
     body = body.replace("1e-300", "1e-30").replace("1e-36", "1e-14")  # float32's range and resolution
     if variant == "mixed":
