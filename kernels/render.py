@@ -11,12 +11,13 @@ Conventions (shared with ``tests/reference_render.py``):
   half-FOV tangents (W/(2 fx), H/(2 fy)) inside J, plus 0.3 px^2 on the diagonal.
 - Colour: INRIA's real SH basis (C0 = 0.28209479177387814 ...) of degree 0-3 at the unit direction
   mean - camera centre, + 0.5, clamped at 0 (not at 1).
-- Culling: view-space ``z <= 0.2`` (INRIA's near plane), a non-positive 2D covariance determinant,
+- Culling: view-space ``z <= near`` (the camera's near plane: INRIA's 0.2, less for cameras around
+  a scene stored in small units, ``eval.cameras.near_plane``), a non-positive 2D covariance determinant,
   a zero quaternion, an empty tile rectangle, or opacity < 1/255 (which can reach no pixel).
 - Tile binning: 16x16 tiles; a splat covers the tiles of the square of half-side
   ``ceil(3 sqrt(lambda_max))`` px around its projected mean (INRIA's ``getRect``), less the tiles
   where its alpha is below 1/255 for certain (see ``project``): the same image, fewer entries.
-- Entries are keyed ``tile << 32 | float bits of depth`` (depth > 0.2 > 0, so the bits sort as the
+- Entries are keyed ``tile << 32 | float bits of depth`` (depth > near > 0, so the bits sort as the
   floats do) and radix-sorted stably; splats of equal depth keep their row order.
 - Compositing, per pixel in depth order: alpha = min(0.99, opacity exp(-d^T conic d / 2)); skip
   alpha < 1/255; stop before accumulating when T (1 - alpha) < 1e-4; C += rgb alpha T, T *= 1 - alpha;
@@ -29,7 +30,6 @@ wp.set_module_options({"enable_backward": False})
 
 TILE = wp.constant(16)
 TILE_PIXELS = wp.constant(256)
-NEAR_Z = wp.constant(0.2)
 LOW_PASS = wp.constant(0.3)
 ALPHA_MIN = wp.constant(1.0 / 255.0)
 ALPHA_MAX = wp.constant(0.99)
@@ -68,6 +68,7 @@ class CameraParams:
     height: int
     tiles_x: int
     tiles_y: int
+    near: float  # view-space depth at or below which a splat is culled
 
 
 @wp.func
@@ -136,7 +137,7 @@ def project(
     touched[i] = 0
     t = cam.rotation * means[i] + cam.translation
     z = t[2]
-    if z <= NEAR_Z:
+    if z <= cam.near:
         return
     q = rotations[i]
     qn = wp.length(q)

@@ -19,7 +19,6 @@ from __future__ import annotations
 import numpy as np
 
 TILE = 16
-NEAR_Z = 0.2
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 
@@ -109,8 +108,9 @@ def project(splats: dict, camera, eps: float = 1e-5) -> dict:
     z = view[:, 2]
     # float32 rounds z = R p + t to about 6e-8 (|p| + |t|); allow 16x that
     z_tolerance = 1e-6 * (1.0 + np.abs(means).sum(1) + np.abs(t).sum())
-    near_ambiguous = np.abs(z - NEAR_Z) <= z_tolerance
-    zs = np.where(z > NEAR_Z - z_tolerance, z, 1.0)  # keep the maths finite for culled splats
+    near = float(camera.near)
+    near_ambiguous = np.abs(z - near) <= z_tolerance
+    zs = np.where(z > near - z_tolerance, z, 1.0)  # keep the maths finite for culled splats
 
     rot = quat_to_matrix(splats["rotations"].astype(np.float64))
     m = rot * np.exp(splats["log_scales"].astype(np.float64))[:, None, :]
@@ -147,7 +147,7 @@ def project(splats: dict, camera, eps: float = 1e-5) -> dict:
     inner = tuple(f([r[k] for r in cands], axis=0) for k, f in zip(range(4), (np.max, np.min, np.max, np.min)))
 
     quat_ok = np.linalg.norm(splats["rotations"], axis=1) > 0
-    visible = (z > NEAR_Z) & (det > 0) & quat_ok & ((rect[1] - rect[0]) * (rect[3] - rect[2]) > 0)
+    visible = (z > near) & (det > 0) & quat_ok & ((rect[1] - rect[0]) * (rect[3] - rect[2]) > 0)
     maybe_visible = (visible | near_ambiguous) & (det > 0) & quat_ok
 
     centre = -R.T @ t

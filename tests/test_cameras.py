@@ -7,6 +7,7 @@ import pytest
 
 from nanogs_warp.errors import InputError
 from nanogs_warp.eval.cameras import Camera, load_cameras_json, orbit_cameras, parse_up, scene_frame
+from nanogs_warp.refinement.cameras import training_cameras
 from nanogs_warp.splats import SplatSet
 
 
@@ -65,6 +66,22 @@ def test_orbit_from_a_splat_set_equals_orbit_from_its_means(rng):
     for ca, cb in zip(a, b):
         np.testing.assert_array_equal(ca.rotation, cb.rotation)
         np.testing.assert_array_equal(ca.translation, cb.translation)
+
+
+def test_near_plane_is_inrias_unless_the_scene_is_small(rng):
+    """Cameras keep INRIA's near plane (0.2) around a scene in ordinary units (the orbit's radius is
+    over 2 here); in small units it shrinks with the scene, so that it never holds the scene."""
+    means = scene_means(rng)
+
+    def cameras(units):
+        return orbit_cameras(means * units, views=3) + training_cameras(means * units, 8, 32, 0)
+
+    assert all(camera.near == 0.2 for camera in cameras(1.0))
+    for small, smaller in zip(cameras(1e-3), cameras(1e-4)):
+        assert small.near == pytest.approx(10.0 * smaller.near, rel=1e-6)
+        assert 0 < small.near < 0.2
+    for camera in cameras(1e-3)[:3]:  # the orbit: a tenth of its radius
+        assert camera.near == pytest.approx(0.1 * np.linalg.norm(camera.centre - np.median(means * 1e-3, 0)), rel=1e-6)
 
 
 def test_orbit_rejects_bad_requests():

@@ -11,7 +11,7 @@ import pytest
 import reference_render as ref
 import warp as wp
 
-from nanogs_warp.eval.cameras import Camera
+from nanogs_warp.eval.cameras import Camera, orbit_cameras
 from nanogs_warp.eval.render import _Rasteriser, render, render_views
 from nanogs_warp.splats import SplatSet
 
@@ -84,6 +84,31 @@ def test_dense_scene_stops_at_transmittance_limit(device, rng):
     splats = SplatSet.from_numpy(**scene, device=device)
     stats = compare(splats, camera, (0.2, 0.5, 1.0), render(splats, camera, (0.2, 0.5, 1.0)).numpy())
     assert stats["terminated"] > 1000
+
+
+def test_near_plane_is_the_cameras(device, rng):
+    """A camera's own near plane culls: splats around the camera, some nearer than it, match the reference."""
+    camera = random_camera(rng)
+    camera.near = 1.5
+    scene = random_scene(rng, 250, 1, camera.centre, behind=0.4)
+    splats = SplatSet.from_numpy(**scene, device=device)
+    compare(splats, camera, (0.0, 0.0, 0.0), render(splats, camera).numpy())
+    depth = (np.asarray(scene["means"]) @ camera.rotation.T + camera.translation)[:, 2]
+    assert ((depth > 0.2) & (depth < 1.5)).sum() > 10  # splats that only this near plane culls
+
+
+@pytest.mark.parametrize("units", [1e-3, 1e3])
+def test_orbit_views_do_not_depend_on_the_scene_units(device, rng, units):
+    """The same scene stored in other units (centres and scales times ``units``) looks the same from its
+    orbit: the near plane follows the orbit when INRIA's 0.2 would cull a small scene whole."""
+    scene = random_scene(rng, 300, 2, log_scale=(np.log(0.3), 0.4))
+    scaled = dict(scene, means=scene["means"] * units, log_scales=scene["log_scales"] + np.log(units))
+    images = [
+        render_views(s, orbit_cameras(s, views=4, size=48))
+        for s in (SplatSet.from_numpy(**scene, device=device), SplatSet.from_numpy(**scaled, device=device))
+    ]
+    assert images[0].max() > 0.2  # the scene is in view
+    np.testing.assert_allclose(images[1], images[0], atol=2e-3)
 
 
 def test_splat_straddling_tiles(device):

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from nanogs_warp.device import init_warp, resolve_device
-from nanogs_warp.eval.cameras import Camera, orbit_cameras, parse_up
+from nanogs_warp.eval.cameras import Camera, near_plane, orbit_cameras, parse_up
 from nanogs_warp.eval.evaluate import evaluate
 from nanogs_warp.io.ply import load_ply
 from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively
@@ -38,11 +38,12 @@ def closeup_cameras(means: np.ndarray, views: int, size: int, up: str = "-y") ->
     rng = np.random.default_rng(CLOSEUP_SEED)
     focal = 0.5 * size / math.tan(math.radians(CLOSEUP_FOV_DEG) / 2.0)
     up_vector = parse_up(up)
+    near = near_plane(CLOSEUP_DISTANCE * p90)
     cameras = []
     for k in range(views):
         d = rng.normal(size=3)
         d /= np.linalg.norm(d)
-        cameras.append(Camera.look_at(centre + CLOSEUP_DISTANCE * p90 * d, centre, up_vector, focal, focal, size, size, f"closeup_{k:03d}"))
+        cameras.append(Camera.look_at(centre + CLOSEUP_DISTANCE * p90 * d, centre, up_vector, focal, focal, size, size, f"closeup_{k:03d}", near))
     return cameras
 
 

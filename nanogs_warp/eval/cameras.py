@@ -17,6 +17,9 @@ import numpy as np
 from ..errors import InputError
 from ..splats import SplatSet
 
+NEAR = 0.2  # INRIA's near plane, in world units
+NEAR_FRACTION = 0.1  # of the distance cameras keep from a scene's centre (``near_plane``)
+
 UP_AXES = {
     "+x": (1.0, 0.0, 0.0),
     "-x": (-1.0, 0.0, 0.0),
@@ -30,7 +33,8 @@ UP_AXES = {
 @dataclass
 class Camera:
     """A pinhole camera: world-to-camera ``rotation`` (3x3) and ``translation`` (3,), focal lengths and
-    principal point in pixels, image size, and a name for the images written of its view."""
+    principal point in pixels, image size, a name for the images written of its view and the near
+    plane: splats at a view-space depth of ``near`` or less are culled (INRIA's 0.2 by default)."""
 
     rotation: np.ndarray
     translation: np.ndarray
@@ -41,6 +45,7 @@ class Camera:
     width: int
     height: int
     name: str = ""
+    near: float = NEAR
 
     @property
     def centre(self) -> np.ndarray:
@@ -48,8 +53,9 @@ class Camera:
         return -np.asarray(self.rotation, np.float64).T @ np.asarray(self.translation, np.float64)
 
     @staticmethod
-    def look_at(position, target, up, fx, fy, width, height, name="") -> Camera:
-        """A camera at ``position`` looking at ``target`` whose image up is as close to ``up`` as can be."""
+    def look_at(position, target, up, fx, fy, width, height, name="", near=None) -> Camera:
+        """A camera at ``position`` looking at ``target`` whose image up is as close to ``up`` as can be
+        (``near``: the near plane, INRIA's 0.2 when None)."""
         position = np.asarray(position, np.float64)
         forward = np.asarray(target, np.float64) - position
         norm = np.linalg.norm(forward)
@@ -64,7 +70,16 @@ class Camera:
         right /= np.linalg.norm(right)
         down = np.cross(forward, right)
         rotation = np.stack([right, down, forward])
-        return Camera(rotation, -rotation @ position, fx, fy, width / 2.0, height / 2.0, width, height, name)
+        near = NEAR if near is None else near
+        return Camera(rotation, -rotation @ position, fx, fy, width / 2.0, height / 2.0, width, height, name, near)
+
+
+def near_plane(distance: float) -> float:
+    """The near plane of cameras ``distance`` from a scene's centre: INRIA's 0.2, or a tenth of the
+    distance where that is less. A scene stored in small units (a 5 cm object in metres) would
+    otherwise lie inside the near plane and be culled whole; with it, its views do not depend on its
+    units."""
+    return min(NEAR, NEAR_FRACTION * float(distance))
 
 
 def parse_up(up: str) -> np.ndarray:
@@ -111,6 +126,8 @@ def orbit_cameras(
     at 2.2 x the 90th-percentile centre distance, looking at the centre with ``fov_y_deg`` vertical field
     of view and world ``up`` (default -y, as INRIA/COLMAP scenes are y-down) at the top of the image.
 
+    The near plane is ``near_plane(radius)``: INRIA's 0.2, less around scenes stored in small units.
+
     ``splats`` is a SplatSet or an (N, 3) array of centres. Derive the cameras from the reference scene
     only, so that every scene compared is seen by identical cameras.
     """
@@ -125,8 +142,9 @@ def orbit_cameras(
     centre, radius = scene_frame(means)
     focal = 0.5 * size / math.tan(math.radians(fov_y_deg) / 2.0)
     directions = fibonacci_directions(views, up_vector)
+    near = near_plane(radius)
     return [
-        Camera.look_at(centre + radius * d, centre, up_vector, focal, focal, size, size, f"view_{k:03d}")
+        Camera.look_at(centre + radius * d, centre, up_vector, focal, focal, size, size, f"view_{k:03d}", near)
         for k, d in enumerate(directions)
     ]
 

@@ -42,6 +42,7 @@ def camera_params(camera: Camera) -> kernels.CameraParams:
     p.width, p.height = int(camera.width), int(camera.height)
     p.tiles_x = (p.width + TILE - 1) // TILE
     p.tiles_y = (p.height + TILE - 1) // TILE
+    p.near = float(camera.near)
     return p
 
 

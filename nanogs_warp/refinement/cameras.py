@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from ..errors import InputError
-from ..eval.cameras import Camera
+from ..eval.cameras import Camera, near_plane
 
 DISTANCE = (1.2, 3.0)  # x the 90th-percentile distance of the centres from the scene's centre
 FOV_Y_DEG = (40.0, 75.0)
@@ -50,13 +50,15 @@ VALIDATION_STREAM = 0x7A11D  # another stream: held-out cameras drawn the same w
 def training_cameras(means: np.ndarray, count: int, size: int, seed: int, stream: int = TRAINING_STREAM) -> list[Camera]:
     """``count`` cameras from a generator seeded with ``seed``: most at 1.2-3x the 90th-percentile
     radius looking at the scene's centre (a target jittered by a fifth of that radius), random
-    roll, vertical field of view 40-75 degrees, sizes from ``image_sizes(size)``; in a large scene
+    roll, vertical field of view 40-75 degrees, sizes from ``image_sizes(size)``, the near plane
+    ``near_plane`` of the nearest of those distances; in a large scene
     (99th-percentile radius above 3x the 90th) one in eight from inside, looking outwards. ``stream``
     picks an independent set for the same seed (``VALIDATION_STREAM``: the held-out views)."""
     centre, p90, p99 = scene_spread(means)
     rng = np.random.default_rng([seed, stream])
     sizes = image_sizes(size)
     large = p99 > LARGE_SCENE * p90
+    near = near_plane(DISTANCE[0] * p90)  # INRIA's 0.2 unless the scene is stored in small units
     cameras = []
     for k in range(count):
         width, height = sizes[k % len(sizes)]
@@ -69,5 +71,5 @@ def training_cameras(means: np.ndarray, count: int, size: int, seed: int, stream
         else:
             position = centre + _unit(rng) * rng.uniform(*DISTANCE) * p90
             target = centre + rng.normal(0.0, 0.2 * p90, 3)
-        cameras.append(Camera.look_at(position, target, up, focal, focal, width, height, f"train_{k:04d}"))
+        cameras.append(Camera.look_at(position, target, up, focal, focal, width, height, f"train_{k:04d}", near))
     return cameras
