@@ -35,6 +35,14 @@ def in_frame(frame: wp.mat33d, cov: wp.mat33d):
 
 
 @wp.func
+def self_overlap(det_a: wp.float64):
+    """int G_a^2 dA = pi sqrt(det A) for a peak-one 2D Gaussian of covariance determinant det_a; 0
+    if degenerate (selected, not branched: ``view_overlaps`` runs as a GPU loop)."""
+    zero = wp.float64(0.0)
+    return wp.where(det_a > zero, wp.float64(PI) * wp.sqrt(wp.max(det_a, zero)), zero)
+
+
+@wp.func
 def plane_overlap(
     a00: wp.float64, a01: wp.float64, a11: wp.float64, det_a: wp.float64,
     b00: wp.float64, b01: wp.float64, b11: wp.float64, det_b: wp.float64, x: wp.float64, y: wp.float64,
@@ -96,11 +104,7 @@ def view_overlaps(d_i: wp.vec3d, d_j: wp.vec3d, m_i: wp.mat33d, m_j: wp.mat33d, 
         det_a = a00 * a11 - a01 * a01
         det_b = b00 * b11 - b01 * b01
         det_m = m0 * m1
-        own += wp.vec3d(
-            wp.where(det_a > zero, wp.float64(PI) * wp.sqrt(wp.max(det_a, zero)), zero),
-            wp.where(det_b > zero, wp.float64(PI) * wp.sqrt(wp.max(det_b, zero)), zero),
-            wp.where(det_m > zero, wp.float64(PI) * wp.sqrt(wp.max(det_m, zero)), zero),
-        )
+        own += wp.vec3d(self_overlap(det_a), self_overlap(det_b), self_overlap(det_m))
         s_im = plane_overlap(a00, a01, a11, det_a, m0, zero, m1, det_m, xi, yi)
         s_jm = plane_overlap(b00, b01, b11, det_b, m0, zero, m1, det_m, xj, yj)
         s00 = a00 + b00

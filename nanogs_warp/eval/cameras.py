@@ -53,9 +53,9 @@ class Camera:
         return -np.asarray(self.rotation, np.float64).T @ np.asarray(self.translation, np.float64)
 
     @staticmethod
-    def look_at(position, target, up, fx, fy, width, height, name="", near=None) -> Camera:
-        """A camera at ``position`` looking at ``target`` whose image up is as close to ``up`` as can be
-        (``near``: the near plane, INRIA's 0.2 when None)."""
+    def look_at(position, target, up, fx, fy, width, height, name="", near=NEAR) -> Camera:
+        """A camera at ``position`` looking at ``target`` whose image up is as close to ``up`` as can be,
+        culling at ``near``."""
         position = np.asarray(position, np.float64)
         forward = np.asarray(target, np.float64) - position
         norm = np.linalg.norm(forward)
@@ -70,7 +70,6 @@ class Camera:
         right /= np.linalg.norm(right)
         down = np.cross(forward, right)
         rotation = np.stack([right, down, forward])
-        near = NEAR if near is None else near
         return Camera(rotation, -rotation @ position, fx, fy, width / 2.0, height / 2.0, width, height, name, near)
 
 
