@@ -95,19 +95,6 @@ def cholesky(a: wp.mat33d):
 
 
 @wp.func
-def log_normal_cholesky(x: wp.vec3d, mu: wp.vec3d, l: wp.mat33d):
-    """log N(x; mu, L L^T) with L lower triangular."""
-    d = x - mu
-    y0 = d[0] / l[0, 0]
-    y1 = (d[1] - l[1, 0] * y0) / l[1, 1]
-    y2 = (d[2] - l[2, 0] * y0 - l[2, 1] * y1) / l[2, 2]
-    log_det_half = log64(l[0, 0]) + log64(l[1, 1]) + log64(l[2, 2])
-    return (
-        wp.float64(-0.5) * (y0 * y0 + y1 * y1 + y2 * y2) - log_det_half - wp.float64(1.5) * wp.float64(LOG_2PI)
-    )
-
-
-@wp.func
 def log_add(a: wp.float64, b: wp.float64):
     """log(exp(a) + exp(b))."""
     m = wp.max(a, b)
@@ -123,6 +110,13 @@ def finite_cost(c: wp.float64):
 
 
 @wp.func
+def entropy_cholesky(l: wp.mat33d):
+    """-E_q[log q] = (3 log 2 pi + log det(L L^T) + 3) / 2, the entropy of N(mu, L L^T)."""
+    log_det_half = log64(l[0, 0]) + log64(l[1, 1]) + log64(l[2, 2])
+    return wp.float64(1.5) * (wp.float64(LOG_2PI) + wp.float64(1.0)) + log_det_half
+
+
+@wp.func
 def mixture_divergence(
     pi: wp.float64,
     i: int,
@@ -130,13 +124,19 @@ def mixture_divergence(
     means: wp.array(dtype=wp.vec3),
     rotations: wp.array(dtype=wp.quat),
     log_scales: wp.array(dtype=wp.vec3),
-    samples: wp.array(dtype=wp.vec4),
+    samples: wp.array(dtype=wp.vec3),
 ):
     """Monte Carlo KL(p~ || q_m) of the normalised mixture p~ = pi N_i + (1 - pi) N_j against its
     moment-matched Gaussian q_m (NanoGS eq. 5 and Appendix A, eq. 12), and whether q_m is valid.
-    Each sample (z, u) is shared by every edge (common random numbers): x = mu_i + R_i (sd_i * z)
-    if u < pi, else from splat j. Every Gaussian is the regularised one (``axis_variances``,
-    ``moment_match``), as the merge operators see it."""
+
+    KL = E_p~[log p~] - E_p~[log q_m]. q_m has p~'s mean and covariance, so E_p~[-log q_m] is q_m's
+    entropy, in closed form. E_p~[log p~] is sampled from both components with the same common
+    normals z (shared by every edge): x_i = mu_i + R_i (sd_i * z) weighted pi and x_j likewise
+    weighted 1 - pi, the draw of the component averaged out exactly; in each component's own
+    density at its own point, -|z|^2 / 2, |z|^2 is replaced by its mean 3 (a control variate that
+    is the same for every edge, so the ranking does not change, and a pair of identical splats costs
+    exactly 0). Every Gaussian is the regularised one (``axis_variances``, ``moment_match``), as the
+    merge operators see it."""
     log_pi = log64(pi)
     log_pj = log64(wp.float64(1.0) - pi)
     mu_i = to_vec3d(means[i])
@@ -154,23 +154,23 @@ def mixture_divergence(
     log_det_j = log_det_axes(var_j)
     mu_m, cov_m = moment_match(pi, mu_i, frame_covariance(rot_i, var_i), mu_j, frame_covariance(rot_j, var_j))
     l_m, ok = cholesky(cov_m)
-    divergence = wp.float64(0.0)
     if not ok:
-        return divergence, ok
+        return wp.float64(0.0), ok
+    log_mixture = wp.float64(0.0)
     for s in range(samples.shape[0]):
-        zu = samples[s]
-        z = wp.vec3d(wp.float64(zu[0]), wp.float64(zu[1]), wp.float64(zu[2]))
-        x = wp.vec3d()
-        if wp.float64(zu[3]) < pi:
-            x = mu_i + rot_i * wp.cw_mul(z, sd_i)
-        else:
-            x = mu_j + rot_j * wp.cw_mul(z, sd_j)
-        log_mixture = log_add(
-            log_pi + log_normal_axes(x, mu_i, rot_i, inv_sd_i, log_det_i),
-            log_pj + log_normal_axes(x, mu_j, rot_j, inv_sd_j, log_det_j),
+        z = to_vec3d(samples[s])
+        x_i = mu_i + rot_i * wp.cw_mul(z, sd_i)
+        x_j = mu_j + rot_j * wp.cw_mul(z, sd_j)
+        at_i = log_add(
+            log_pi + log_normal_axes(x_i, mu_i, rot_i, inv_sd_i, log_det_i),
+            log_pj + log_normal_axes(x_i, mu_j, rot_j, inv_sd_j, log_det_j),
         )
-        divergence += log_mixture - log_normal_cholesky(x, mu_m, l_m)
-    return divergence / wp.float64(samples.shape[0]), ok
+        at_j = log_add(
+            log_pi + log_normal_axes(x_j, mu_i, rot_i, inv_sd_i, log_det_i),
+            log_pj + log_normal_axes(x_j, mu_j, rot_j, inv_sd_j, log_det_j),
+        )
+        log_mixture += pi * at_i + (one - pi) * at_j + wp.float64(0.5) * (wp.dot(z, z) - wp.float64(3.0))
+    return log_mixture / wp.float64(samples.shape[0]) + entropy_cholesky(l_m), ok
 
 
 @wp.kernel
@@ -182,7 +182,7 @@ def idivergence_costs(
     log_scales: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
     features: wp.array2d(dtype=float),
-    samples: wp.array(dtype=wp.vec4),
+    samples: wp.array(dtype=wp.vec3),
     lambda_geo: float,
     lambda_app: float,
     costs: wp.array(dtype=float),
@@ -322,10 +322,10 @@ def mse_costs(
 
 
 @wp.kernel
-def draw_common_samples(seed: int, pass_index: int, samples: wp.array(dtype=wp.vec4)):
-    """Common random numbers of one pass: z ~ N(0, I_3) and u ~ U[0, 1) per sample. Warp's randn
-    uses float32 log and cos, which differ between the CPU and CUDA math libraries (and draws its
-    two uniforms within one expression, in an order C++ leaves open): the normals here come from
+def draw_common_samples(seed: int, pass_index: int, samples: wp.array(dtype=wp.vec3)):
+    """Common random numbers of one pass: z ~ N(0, I_3) per sample. Warp's randn uses float32 log
+    and cos, which differ between the CPU and CUDA math libraries (and draws its two uniforms within
+    one expression, in an order C++ leaves open): the normals here come from
     ``normal_from_uniforms`` (portable float64 Box-Muller), their uniforms drawn one statement at a
     time."""
     s = wp.tid()
@@ -335,5 +335,4 @@ def draw_common_samples(seed: int, pass_index: int, samples: wp.array(dtype=wp.v
         u1 = wp.randf(state)
         u2 = wp.randf(state)
         z[c] = wp.float32(normal_from_uniforms(u1, u2))
-    u = wp.randf(state)
-    samples[s] = wp.vec4(z[0], z[1], z[2], u)
+    samples[s] = z

@@ -29,7 +29,7 @@ class IDivergenceCost:
 
     def __call__(self, splats: SplatSet, edges: Edges, pass_index: int) -> wp.array:
         device = splats.device
-        common = wp.empty(self.samples, dtype=wp.vec4, device=device)
+        common = wp.empty(self.samples, dtype=wp.vec3, device=device)
         wp.launch(kernels.draw_common_samples, self.samples, inputs=[self.seed, pass_index], outputs=[common], device=device)
         costs = wp.empty(edges.count, dtype=wp.float32, device=device)
         launch_rows(

@@ -241,20 +241,26 @@ def runnalls_cost(s: dict, i: int, j: int, lambda_geo=1.0, lambda_app=1.0, mass_
 
 
 def idivergence(s: dict, i: int, j: int, samples: np.ndarray) -> float:
-    """Monte Carlo I(p~_ij || q_m) with the given common samples (z0, z1, z2, u) (Appendix A, eq. 12)."""
+    """Monte Carlo I(p~_ij || q_m) with the given common normals z (rows (z0, z1, z2); Appendix A,
+    eq. 12): E_p~[log p~] from both components at the same z, weighted pi and 1 - pi, and
+    E_p~[-log q_m] as q_m's entropy (q_m has p~'s mean and covariance); |z|^2 in each component's
+    own density at its own point replaced by its mean 3 (the control variate ``+ (|z|^2 - 3) / 2``)."""
     m = mpmm(s, i, j)
     pi = m["pi"]
     mu = s["means"][[i, j]].astype(np.float64)
     r = rotation_matrices(s["rotations"][[i, j]])
     sc = np.sqrt(axis_variances(s["log_scales"][[i, j]]))
     cov = covariances(s["rotations"][[i, j]], s["log_scales"][[i, j]])
+    weights = (pi, 1.0 - pi)
     total = 0.0
-    for z0, z1, z2, u in np.asarray(samples, np.float64):
-        k = 0 if u < pi else 1
-        x = mu[k] + r[k] @ (sc[k] * np.array([z0, z1, z2]))
-        mix = np.logaddexp(np.log(pi) + log_normal(x, mu[0], cov[0]), np.log1p(-pi) + log_normal(x, mu[1], cov[1]))
-        total += mix - log_normal(x, m["mean"], m["cov"])
-    return total / len(samples)
+    for z in np.asarray(samples, np.float64)[:, :3]:
+        for k in (0, 1):
+            x = mu[k] + r[k] @ (sc[k] * z)
+            mix = np.logaddexp(np.log(pi) + log_normal(x, mu[0], cov[0]), np.log1p(-pi) + log_normal(x, mu[1], cov[1]))
+            total += weights[k] * mix
+        total += 0.5 * (z @ z - 3.0)
+    entropy = 0.5 * (3 * np.log(2 * np.pi) + np.linalg.slogdet(m["cov"])[1] + 3)
+    return total / len(samples) + entropy
 
 
 def appearance_distance(s: dict, i: int, j: int) -> float:

@@ -84,13 +84,13 @@ def test_runnalls_costs_of_degenerate_pairs_match_reference(device, rng):
 
 def test_idiv_costs_of_degenerate_pairs_match_reference(device, rng):
     arrays, ei, ej = degenerate_pairs(rng, 60)
-    samples = np.array([[0.3, -1.1, 0.7, 0.2], [-0.5, 0.4, 1.9, 0.8], [1.2, 0.1, -0.6, 0.5]], np.float32)
+    samples = np.array([[0.3, -1.1, 0.7], [-0.5, 0.4, 1.9], [1.2, 0.1, -0.6]], np.float32)
     splats = SplatSet.from_numpy(**arrays, device=device)
     costs = wp.full(len(ei), np.nan, dtype=float, device=device)  # poisoned
     wp.launch(
         cost_kernels.idivergence_costs, len(ei),
         inputs=[wp.array(ei, device=device), wp.array(ej, device=device), splats.means, splats.rotations,
-                splats.log_scales, splats.opacities, splats.features, wp.array(samples, dtype=wp.vec4, device=device),
+                splats.log_scales, splats.opacities, splats.features, wp.array(samples, dtype=wp.vec3, device=device),
                 1.0, 0.0],
         outputs=[costs], device=device,
     )  # fmt: skip

@@ -118,7 +118,7 @@ def test_one_pass_matches_numpy(device):
     # reference: kNN graph -> edges -> costs with the same common samples -> greedy -> MPMM -> compaction
     from nanogs_warp.kernels import cost as cost_kernels
 
-    samples = wp.empty(1, dtype=wp.vec4, device=device)
+    samples = wp.empty(1, dtype=wp.vec3, device=device)
     wp.launch(cost_kernels.draw_common_samples, 1, inputs=[3, 0], outputs=[samples], device=device)
     means = arrays["means"].astype(np.float64)
     d2 = ((means[:, None] - means[None]) ** 2).sum(-1)

@@ -524,7 +524,7 @@ def main(argv=None) -> int:
         lambda t: k["cost"].runnalls_costs(edge_i, edge_j, src.means, mats, weights, log_dets, src.features, 1.0, 1.0, 0.25, out),
         len(ei),
     )
-    samples = HostArray(np.array([[0.3, -1.1, 0.7, 0.5]], np.float32))
+    samples = HostArray(np.array([[0.3, -1.1, 0.7]], np.float32))
     idiv, idiv_by = measure(
         lambda t: k["cost"].idivergence_costs(edge_i, edge_j, src.means, rot, ls, op, src.features, samples, 1.0, 1.0, out),
         len(ei),
