@@ -2,7 +2,7 @@
 
 The merge operators fit a merged splat to its pair, pass after pass, so a splat of the final output
 is a fit of fits. This probe fits each output splat once more, directly to the input's splats, and
-writes the result next to the output for `nanogs-warp eval`. It is a float64 NumPy experiment, not
+writes the result next to the output for `nanogs-warp eval`. It is a float64 NumPy experiment (the splats' covariances from the kernels' references in tests/reference.py), not
 part of the product (docs/quality.md has what it measured). Needs scipy (the `test` extra).
 
 The pipeline does not record which originals became which output splat, so each original is given
@@ -27,6 +27,8 @@ kernels/field.py):
 from __future__ import annotations
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -34,33 +36,25 @@ from scipy.spatial import cKDTree
 from nanogs_warp.io.ply import load_ply, save_ply
 from nanogs_warp.splats import SplatSet
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from reference import axis_variances, rotation_matrices, sigmoid  # noqa: E402 - the kernels' float64 references
+
 VIEWS = ((0, 1), (0, 2), (1, 2))  # the plane of each view, in the output splat's axes
 SCALES = np.array([0.5, 0.6, 0.7, 0.8, 0.9, 1.0, 1.12, 1.25, 1.4, 1.6, 1.8, 2.0])
 ALPHA_MAX = 254.0 / 255.0
 NEAREST = 16
 
 
-def rotation_matrices(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices of w-first quaternions (normalised here)."""
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], 1)  # fmt: skip
-
-
 def float64_arrays(splats: SplatSet) -> dict[str, np.ndarray]:
     d = splats.to_numpy()
-    rotation = rotation_matrices(d["rotations"].astype(np.float64))
-    variances = np.exp(2 * d["log_scales"].astype(np.float64))
+    rotation = rotation_matrices(d["rotations"])
+    variances = axis_variances(d["log_scales"])
     return d | {
         "mu": d["means"].astype(np.float64),
         "frame": rotation,
         "variances": variances,
         "cov": np.einsum("nij,nj,nkj->nik", rotation, variances, rotation),
-        "alpha": 1 / (1 + np.exp(-d["opacities"].astype(np.float64))),
+        "alpha": sigmoid(d["opacities"]),
     }
 
 
