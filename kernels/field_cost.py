@@ -44,7 +44,7 @@ import warp as wp
 from .cost import UNMERGEABLE, finite_cost
 from .field import pair_view_overlaps
 from .merge import coverage_merged, mpmm_merged
-from .portable_math import exp64, log64, sigmoid64
+from .portable_math import SMALLEST_NORMAL, exp64, log64, scale_by_power_of_two, sigmoid64
 from .splat_math import Splats, covariance, symmetric_eigen, to_vec3d
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
@@ -132,14 +132,27 @@ def log_energy_partials(
     partials[c] = total
 
 
+@wp.func
+def cost_unit(energy: wp.float64):
+    """2^-e for the binary exponent e of ``energy`` (energy in [2^e, 2^(e+1))); 1 for an energy that
+    is 0, subnormal or not finite. The field costs are reported in this unit: near 1 in a scene of
+    any units, so that their float32 values neither vanish (a scene in tiny units) nor overflow (in
+    huge ones), and scaled by a power of two, exactly, so that they order as the float64 costs do."""
+    if not (energy >= SMALLEST_NORMAL and energy < wp.float64(wp.inf)):
+        return wp.float64(1.0)
+    e = wp.int32((wp.cast(energy, wp.int64) >> wp.int64(52)) & wp.int64(0x7FF)) - 1023
+    return scale_by_power_of_two(wp.float64(1.0), -e)
+
+
 @wp.kernel
 def reference_energy(partials: wp.array(dtype=wp.float64), count: int, energy: wp.array(dtype=wp.float64)):
     """energy[0] = E_ref, the geometric mean of the splats' face-on energies: exp of the mean of the
-    partial sums' total (one thread, summed in order)."""
+    partial sums' total (one thread, summed in order); energy[1] = its ``cost_unit``."""
     total = wp.float64(0.0)
     for c in range(partials.shape[0]):
         total += partials[c]
     energy[0] = exp64(total / wp.float64(count))
+    energy[1] = cost_unit(energy[0])
 
 
 @wp.func
@@ -194,9 +207,9 @@ def field_costs(
     energy: wp.array(dtype=wp.float64),
     costs: wp.array(dtype=float),
 ):
-    """The field cost of each edge (module docstring); the merged colour c_m = pi c_i + (1 - pi) c_j
-    is linear in the features, so every colour product follows from c_i.c_i, c_i.c_j, c_j.c_j.
-    ``energy[0]``: E_ref (``reference_energy``)."""
+    """The field cost of each edge (module docstring) in the unit ``energy[1]`` (``cost_unit`` of
+    E_ref = ``energy[0]``, from ``reference_energy``); the merged colour c_m = pi c_i + (1 - pi) c_j
+    is linear in the features, so every colour product follows from c_i.c_i, c_i.c_j, c_j.c_j."""
     e = wp.tid()
     i = int(edge_i[e])
     j = int(edge_j[e])
@@ -222,4 +235,4 @@ def field_costs(
     col = squared_change(a_i, a_j, alpha_m, own, cross, wp.vec3d(d_ii, d_jj, d_mm), wp.vec3d(d_ij, d_im, d_jm))
     total = wp.float64(lambda_geo) * wp.max(geo, wp.float64(0.0)) + wp.float64(lambda_app) * wp.max(col, wp.float64(0.0))
     total += wp.float64(lambda_contrast) * energy[0] * base_colour_change(src.features, i, j)
-    costs[e] = finite_cost(total)
+    costs[e] = finite_cost(total * energy[1])

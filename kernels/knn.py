@@ -27,6 +27,9 @@ order in which threads or cells run.
 Termination: every loop is bounded by its inputs (noted beside it). Squared distances of finite
 points may overflow float32 to +inf (coordinates beyond ~1e19 apart); they then rank by the tie
 alone, and a query that can prune nothing scans each point once per level it visits (at most two).
+The host therefore measures a scene whose extent is far from 1 in a copy of its points scaled by a
+power of two (``scaled_points``, ``nanogs_warp.topology.measured_points``): then only far outliers
+can overflow, and a query scans everything only for them.
 """
 
 import warp as wp
@@ -238,6 +241,28 @@ def bounding_box(points: wp.array(dtype=wp.vec3), threads: int, box: wp.array(dt
     wp.atomic_max(box, 1, hi)
     if bad > 0.0:
         wp.atomic_add(box, 2, wp.vec3(bad, 0.0, 0.0))
+
+
+FLOAT32_MAX = wp.constant(wp.float64(3.4028234663852886e38))
+FLOAT32_SMALLEST_NORMAL = wp.constant(wp.float64(1.1754943508222875e-38))
+
+
+@wp.func
+def _scaled_coordinate(x: float, scale: wp.float64) -> float:
+    """x times scale (a power of two) in float64, exact, then clamped to float32's finite range and
+    set to zero below its smallest normal: the same bits on every device, flushing or not."""
+    v = wp.clamp(wp.float64(x) * scale, -FLOAT32_MAX, FLOAT32_MAX)
+    if wp.abs(v) < FLOAT32_SMALLEST_NORMAL:
+        v = wp.float64(0.0)
+    return wp.float32(v)
+
+
+@wp.kernel
+def scaled_points(points: wp.array(dtype=wp.vec3), scale: wp.float64, out: wp.array(dtype=wp.vec3)):
+    # the points times a power of two (``_scaled_coordinate``): distances scale exactly, so their order is kept
+    i = wp.tid()
+    p = points[i]
+    out[i] = wp.vec3(_scaled_coordinate(p[0], scale), _scaled_coordinate(p[1], scale), _scaled_coordinate(p[2], scale))
 
 
 @wp.kernel

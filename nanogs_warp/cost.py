@@ -121,9 +121,10 @@ class FieldCost:
     """The squared L2 change of the projected emitted field (the pair's opacity field, face-on as a
     renderer composites it, and its colour over view directions) when a pair becomes the merge
     operator's own merged splat, plus a colour contrast term in units of the scene's typical splat
-    energy (``kernels/field_cost.py``). ``operator`` is the pipeline's merge operator (mpmm or
-    coverage); ``growth`` the coverage operator's; ``lambda_contrast`` the contrast term's weight
-    (0: the field terms alone)."""
+    energy (``kernels/field_cost.py``), reported in a power of two near that energy (so a scene's
+    units change no merge). ``operator`` is the pipeline's merge operator (mpmm or coverage);
+    ``growth`` the coverage operator's; ``lambda_contrast`` the contrast term's weight (0: the field
+    terms alone)."""
 
     lambda_geo: float = 1.0
     lambda_app: float = 1.0
@@ -160,16 +161,17 @@ class FieldCost:
 
 
 def reference_energy(splats: SplatSet, chunk: int = FieldCost.ENERGY_CHUNK) -> wp.array:
-    """E_ref of the field cost's colour contrast term, as a one-element float64 array on the splats'
-    device (no host round trip): the geometric mean of a^2 s_a s_b over the splats, summed in a fixed
-    order (``chunk`` splats a thread, then the partial sums in order) so every device agrees."""
+    """E_ref of the field cost's colour contrast term and the unit of its costs, as a two-element
+    float64 array on the splats' device (no host round trip): E_ref, the geometric mean of
+    a^2 s_a s_b over the splats, summed in a fixed order (``chunk`` splats a thread, then the partial
+    sums in order) so every device agrees; then the power of two 2^-e with E_ref in [2^e, 2^(e+1))."""
     from .kernels import field_cost
 
     device = splats.device
     chunks = max(1, -(-splats.count // chunk))
     partials = wp.empty(chunks, dtype=wp.float64, device=device)
     launch_rows_from(field_cost.log_energy_partials, chunks, [splats.opacities, splats.log_scales, chunk, partials], device, min_rows=64)
-    energy = wp.empty(1, dtype=wp.float64, device=device)
+    energy = wp.empty(2, dtype=wp.float64, device=device)
     wp.launch(field_cost.reference_energy, 1, inputs=[partials, max(splats.count, 1)], outputs=[energy], device=device)
     return energy
 

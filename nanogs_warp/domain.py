@@ -2,10 +2,12 @@
 
 Worked out from the arithmetic the stages do:
 
-- Positions: any finite float32. The kNN ranks by float32 squared distances, which may overflow to
-  +inf for points ~1e19 apart; such candidates then rank by index, and every query still ends
-  (``nanogs_warp.kernels.knn``). Costs and merges work in float64, where squares and products of
-  float32 coordinates (up to ~1e77) stay finite.
+- Positions: any finite float32. The kNN ranks by float32 squared distances, measured in the
+  scene's points scaled by a power of two when its extent is far from 1 (exact, so the neighbours
+  stay the same; ``nanogs_warp.topology.measured_points``); only far outliers' distances may then
+  overflow to +inf, and such candidates rank by index (``nanogs_warp.kernels.knn``). Costs and
+  merges work in float64, where squares and products of float32 coordinates (up to ~1e77) stay
+  finite, and merged splats may be as small as the input's log-scales allow.
 - Log-scales: within [-LOG_SCALE_LIMIT, LOG_SCALE_LIMIT]. Variances are exp(2 log-scale) in float64
   and the costs take determinants (products of three variances, plus the spread of the means):
   e^(6 x 100) ~ 1e260 and e^(-600) ~ 1e-261 stay within float64's range, while exp(2 x 355)

@@ -7,6 +7,7 @@ histogram of the levels where neighbours part, 22 flags of the levels searched a
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
@@ -26,6 +27,9 @@ _QUANTILE_SAMPLES = 16384  # points sampled per axis for the quantisation cube
 _QUANTILE_TAIL = 0.001  # fraction of the sample left out at each end
 _QUARTILE_REACH = 1000.0  # interquartile ranges (a normal distribution's 99.8% spans 4.6)
 _LARGEST_SIDE = 2.0**120  # of the quantisation cube (float32 holds up to 2^128)
+# Cube sides whose points are measured as they are (``measured_points``): squared distances across
+# such a cube stay far inside float32's normal range (2^-126 to 2^128), down to a millionth of its side.
+MEASURED_SIDE = (2.0**-40, 2.0**40)
 
 
 @dataclass
@@ -40,13 +44,17 @@ class Edges:
     count: int
 
 
-def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None, reach: wp.array | None = None) -> wp.array:
+def knn_graph(
+    means: wp.array, k: int, candidates: wp.array | None = None, reach: wp.array | None = None, cube: tuple | None = None
+) -> wp.array:
     """(N, k) int32 array on means.device: for each point its k nearest OTHER points (self excluded),
     sorted by (squared distance, index) ascending. Requires 1 <= k <= min(KMAX, N-1).
 
     ``candidates``, if given (int32, length N), receives the number of points each query examined;
     ``reach``, if given (int64, length N), each point's k-th neighbour as one key, its squared
-    distance's float32 bits << 32 | its index (``candidate_edges`` uses it).
+    distance's float32 bits << 32 | its index (``candidate_edges`` uses it). The distances are those
+    of ``measured_points(means)``: ``means`` themselves unless their extent is far from 1. ``cube``:
+    that function's cube, when ``means`` are its points already.
     """
     n = means.shape[0]
     if not 1 <= k <= min(KMAX, n - 1):
@@ -61,7 +69,9 @@ def knn_graph(means: wp.array, k: int, candidates: wp.array | None = None, reach
     elif reach.shape[0] != n:
         raise ValueError(f"reach must have length {n}, got {reach.shape[0]}")
 
-    lo, quantum, margin = _quantisation_cube(means)
+    if cube is None:
+        means, cube = measured_points(means)
+    lo, quantum, margin = cube
     codes, order, points = _morton_sort(means, lo, quantum)
     nodes = _tree_nodes(points, order)
     search_level, tables = _cell_tables(codes, k)
@@ -138,10 +148,11 @@ class KnnTopology:
 
     def __call__(self, splats, stage: Callable[[str], AbstractContextManager] = lambda name: nullcontext()) -> Edges:
         with stage("knn"):
+            points, cube = measured_points(splats.means)
             reach = wp.empty(splats.count, dtype=wp.int64, device=splats.means.device)
-            neighbours = knn_graph(splats.means, min(self.k, splats.count - 1), reach=reach)
+            neighbours = knn_graph(points, min(self.k, splats.count - 1), reach=reach, cube=cube)
         with stage("edges"):
-            return candidate_edges(neighbours, splats.means, reach)
+            return candidate_edges(neighbours, points, reach)
 
 
 def _level_groups(used: np.ndarray, work: np.ndarray, workers: int) -> list[tuple[int, int]]:
@@ -153,6 +164,27 @@ def _level_groups(used: np.ndarray, work: np.ndarray, workers: int) -> list[tupl
     cut = int(np.searchsorted(weight, weight[-1] / 2))
     cut = min(max(cut, 0), len(used) - 2)
     return [(int(used[0]), int(used[cut])), (int(used[cut + 1]), int(used[-1]))]
+
+
+def measured_points(means: wp.array) -> tuple[wp.array, tuple[wp.vec3, float, float]]:
+    """The points whose float32 distances the kNN search compares, and their quantisation cube
+    (corner, quantum, margin: ``_quantisation_cube``). These are ``means`` themselves when the cube's
+    side lies within MEASURED_SIDE; otherwise ``means`` times the power of two that brings the side
+    to [1/2, 1). Scaling by a power of two is exact, so the neighbours stay those of ``means``;
+    without it, a scene whose extent is ~1e19 or more would overflow its squared distances to inf
+    (every query would then scan every point) and a tiny one would compute with subnormals (slow on
+    CPUs, flushed to zero on some devices). Coordinates that the scaling would take past float32's
+    range are clamped to it (far outliers stay far), below its smallest normal set to 0."""
+    cube = _quantisation_cube(means)
+    lo, quantum, margin = cube
+    side = quantum * _GRID_CELLS
+    if MEASURED_SIDE[0] <= side <= MEASURED_SIDE[1]:
+        return means, cube
+    scale = math.ldexp(1.0, -math.frexp(side)[1])
+    points = wp.empty_like(means)
+    wp.launch(knn_kernels.scaled_points, means.shape[0], inputs=[means, scale], outputs=[points], device=means.device)
+    corner = wp.vec3(*(float(c) * scale for c in lo))  # float32 corner times a power of two: exact
+    return points, (corner, quantum * scale, margin * scale)
 
 
 def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:

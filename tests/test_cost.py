@@ -12,6 +12,11 @@ from nanogs_warp.splats import SplatSet
 from nanogs_warp.topology import Edges
 
 
+def cost_unit(arrays):
+    """The unit the field costs come in: the power of two 2^-e with E_ref in [2^e, 2^(e+1))."""
+    return 2.0 ** -np.floor(np.log2(reference.reference_energy(arrays)))
+
+
 def near_pairs(rng, arrays, n_edges):
     """Edges between splats, with j's centre moved near i's so that the costs are moderate."""
     n = len(arrays["means"])
@@ -210,16 +215,17 @@ def test_field_cost_matches_reference(device, rng, operator):
     colour_norms = wp.array(want_norms, dtype=wp.float64, device=device)
     costs = wp.full(len(ei), np.nan, dtype=float, device=device)  # poisoned
     energy = reference.reference_energy(arrays)
+    unit = cost_unit(arrays)
     wp.launch(
         field_cost.field_costs, len(ei),
         inputs=[wp.array(ei, device=device), wp.array(ej, device=device), splats.kernel_view(), covariances,
                 colour_norms, FieldCost.OPERATOR_IDS[operator], FieldCost.growth, 1.0, 0.5, 7.0,
-                wp.array([energy], dtype=wp.float64, device=device)],
+                wp.array([energy, unit], dtype=wp.float64, device=device)],
         outputs=[costs], device=device,
     )  # fmt: skip
     merge = reference.coverage_merge if operator == "coverage" else reference.mpmm
-    want = [reference.field_cost(arrays, i, j, merge(arrays, i, j), 1.0, 0.5, 7.0, energy) for i, j in zip(ei, ej)]
-    contrast = [7.0 * energy * reference.base_colour_change(arrays, i, j) for i, j in zip(ei, ej)]
+    want = [unit * reference.field_cost(arrays, i, j, merge(arrays, i, j), 1.0, 0.5, 7.0, energy) for i, j in zip(ei, ej)]
+    contrast = [unit * 7.0 * energy * reference.base_colour_change(arrays, i, j) for i, j in zip(ei, ej)]
     assert max(contrast) > 1e-3 * max(want)  # the contrast term is part of what is checked
     # the cost is a difference of overlaps of similar size: float32 output, float64 cancellation
     np.testing.assert_allclose(costs.numpy(), want, rtol=1e-4, atol=1e-6 * max(want))
@@ -234,8 +240,9 @@ def test_reference_energy_matches_reference(device, rng, count, chunk):
     arrays = random_splat_arrays(count, sh_degree=0, seed=int(rng.integers(1 << 30)))
     arrays["opacities"][: count // 3] = rng.uniform(-40, 40, size=count // 3).astype(np.float32)
     got = reference_energy(SplatSet.from_numpy(**arrays, device=device), chunk).numpy()
-    assert got.shape == (1,)
+    assert got.shape == (2,)
     np.testing.assert_allclose(got[0], reference.reference_energy(arrays), rtol=1e-10)
+    assert got[1] == cost_unit(arrays) and 1.0 <= got[0] * got[1] < 2.0
 
 
 def test_field_cost_scores_the_default_operator_growth():
@@ -252,7 +259,9 @@ def test_field_cost_scores_the_default_operator_growth():
 
 def test_field_cost_has_no_scene_unit(device, rng):
     """Positions and scales 10x larger: every field cost, the contrast term included, is 100x
-    larger (areas), so the order of the merges does not depend on the scene's units."""
+    larger (areas) in the same unit, so the order of the merges does not depend on the scene's
+    units. The costs come in a power of two near E_ref (which grows 100x too): both as the scaled
+    scene's unit gives them."""
     from nanogs_warp.cost import FieldCost
 
     arrays = random_splat_arrays(64, sh_degree=1, seed=int(rng.integers(1 << 30)))
@@ -264,8 +273,30 @@ def test_field_cost_has_no_scene_unit(device, rng):
     for a in (arrays, scaled):
         splats = SplatSet.from_numpy(**a, device=device)
         edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), len(ei))
-        costs.append(FieldCost()(splats, edges, 0).numpy().astype(np.float64))
+        costs.append(FieldCost()(splats, edges, 0).numpy().astype(np.float64) / cost_unit(a))
     np.testing.assert_allclose(costs[1], 100.0 * costs[0], rtol=1e-4, atol=1e-6 * costs[1].max())
+
+
+@pytest.mark.parametrize("exponent", [-70, 70])
+def test_field_costs_of_a_scene_in_tiny_or_huge_units(device, rng, exponent):
+    """The same splats 2^70 times smaller or larger: the same float32 costs, bit for bit (the unit
+    follows E_ref by whole powers of two, and scaling by a power of two is exact), where unscaled
+    they would fall below float32's normals or overflow it."""
+    from nanogs_warp.cost import FieldCost
+
+    arrays = random_splat_arrays(64, sh_degree=1, seed=int(rng.integers(1 << 30)))
+    ei, ej = near_pairs(rng, arrays, 40)
+    scaled = {k: v.copy() for k, v in arrays.items()}
+    scaled["means"] = (arrays["means"].astype(np.float64) * 2.0**exponent).astype(np.float32)
+    scaled["log_scales"] = (arrays["log_scales"].astype(np.float64) + exponent * np.log(2.0)).astype(np.float32)
+    costs = []
+    for a in (arrays, scaled):
+        splats = SplatSet.from_numpy(**a, device=device)
+        edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), len(ei))
+        costs.append(FieldCost()(splats, edges, 0).numpy())
+    assert np.all(costs[0] > 0) and np.all(costs[0] < 1e30)
+    # log-scales + 70 ln 2 round in float32: the costs agree to float32's resolution of the scales
+    np.testing.assert_allclose(costs[1], costs[0], rtol=1e-4, atol=1e-6 * costs[0].max())
 
 
 def test_colour_contrast_ignores_colours_beyond_display_range(device):
@@ -283,7 +314,7 @@ def test_colour_contrast_ignores_colours_beyond_display_range(device):
     arrays["features"][1, :3] = -1.0  # base colour 0.218: visible
     splats = SplatSet.from_numpy(**arrays, device=device)
     with_term, without = (FieldCost(lambda_contrast=w)(splats, edges, 0).numpy()[0] for w in (30.0, 0.0))
-    want = 30.0 * reference.reference_energy(arrays) * reference.base_colour_change(arrays, 0, 1)
+    want = 30.0 * reference.reference_energy(arrays) * reference.base_colour_change(arrays, 0, 1) * cost_unit(arrays)
     np.testing.assert_allclose(with_term - without, want, rtol=1e-3)
 
 
@@ -327,7 +358,7 @@ def test_field_cost_of_a_splat_merged_with_its_copy(device):
     edges = Edges(wp.array(np.int32([0]), device=device), wp.array(np.int32([1]), device=device), 1)
     got = FieldCost(operator="coverage", lambda_app=0.0, lambda_contrast=0.0)(splats, edges, 0).numpy()[0]
     s = np.sort(np.exp(arrays["log_scales"][0].astype(np.float64)))
-    want = a**4 * np.pi / 2 * s[2] * s[1]
+    want = a**4 * np.pi / 2 * s[2] * s[1] * cost_unit(arrays)
     np.testing.assert_allclose(got, want, rtol=1e-5)
 
 
@@ -343,6 +374,6 @@ def test_field_cost_of_a_far_pair_matches_reference(device):
     splats = SplatSet.from_numpy(**arrays, device=device)
     edges = Edges(wp.array(np.int32([0]), device=device), wp.array(np.int32([1]), device=device), 1)
     got = FieldCost(lambda_contrast=0.0)(splats, edges, 0).numpy()[0]
-    want = reference.field_cost(arrays, 0, 1, reference.coverage_merge(arrays, 0, 1))
+    want = reference.field_cost(arrays, 0, 1, reference.coverage_merge(arrays, 0, 1)) * cost_unit(arrays)
     assert np.isfinite(got) and want > 0
     np.testing.assert_allclose(got, want, rtol=1e-4)

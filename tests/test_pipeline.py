@@ -224,3 +224,24 @@ def test_a_stuck_merge_stops_with_an_error(device, monkeypatch, kept):
     expected = "merged nothing" if kept == 0 else "passes without reaching"
     with pytest.raises(RuntimeError, match=expected):
         simplify(splats, count=20)
+
+
+@pytest.mark.parametrize("exponent", [-64, 64])
+def test_a_scene_in_tiny_or_huge_units_simplifies_as_at_unit_size(device, exponent):
+    """The same scene in units 2^64 times smaller or larger simplifies like the unscaled one, at its
+    scale: the kNN measures a copy scaled back exactly (at 2^64 float32 squared distances overflow,
+    at 2^-64 they vanish), and merged splats are not held above a fixed size. The merges' float64
+    logs round differently at another scale, so pairs may differ where costs nearly tie: compared
+    are the sizes and places of the merged splats, not their bytes."""
+    arrays = clustered_scene(3000, seed=5)
+    scaled = dict(arrays)
+    scaled["means"] = (arrays["means"].astype(np.float64) * 2.0**exponent).astype(np.float32)
+    scaled["log_scales"] = (arrays["log_scales"].astype(np.float64) + exponent * math.log(2.0)).astype(np.float32)
+    base = simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.01).to_numpy()
+    got = simplify(SplatSet.from_numpy(**scaled, device=device), ratio=0.01).to_numpy()
+    assert got["means"].shape == base["means"].shape
+    assert_valid(got, scaled["means"])
+    sizes = np.sort(got["log_scales"].astype(np.float64).max(1) - exponent * math.log(2.0))
+    np.testing.assert_allclose(np.median(sizes), np.median(np.sort(base["log_scales"].max(1))), atol=0.05)
+    np.testing.assert_allclose(np.sort(got["means"].astype(np.float64) * 2.0**-exponent, axis=0),
+                               np.sort(base["means"].astype(np.float64), axis=0), atol=0.02)  # fmt: skip

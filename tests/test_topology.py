@@ -15,7 +15,7 @@ from reference_topology import edges_reference, knn_reference
 
 from nanogs_warp.kernels import edges as edge_kernels
 from nanogs_warp.parallel import launch_rows_from
-from nanogs_warp.topology import KMAX, Edges, KnnTopology, candidate_edges, knn_graph
+from nanogs_warp.topology import KMAX, MEASURED_SIDE, Edges, KnnTopology, candidate_edges, knn_graph, measured_points
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -190,6 +190,50 @@ def test_knn_extreme_coordinates(knn_device):
     # a far point's neighbours: the ordinary points nearest it where float32 distances are finite,
     # else (all at inf) the lowest indices
     np.testing.assert_array_equal(neighbours[6], [t for t in range(17) if t != 6])
+
+
+@pytest.mark.parametrize("exponent", [-120, -64, 64, 100])
+def test_knn_of_scenes_far_from_unit_size(knn_device, exponent):
+    """A scene scaled by 2^exponent has the neighbours of the unscaled scene, and each query examines
+    about as few points: at 2^64 and beyond squared distances overflow float32 (every query used to
+    scan every point), at 2^-64 and below they fall to subnormals and zero."""
+    points = off_lattice_points(20000, seed=23)
+    scaled = (points.astype(np.float64) * 2.0**exponent).astype(np.float32)
+    assert np.array_equal(scaled.astype(np.float64) * 2.0**-exponent, points)  # the scaling itself is exact
+    work = wp.zeros(len(points), dtype=wp.int32, device=knn_device)
+    np.testing.assert_array_equal(run_knn(scaled, 16, knn_device, candidates=work), run_knn(points, 16, knn_device))
+    assert np.median(work.numpy()) < 400
+
+
+def test_knn_of_a_scene_in_huge_units_matches_float64_reference(knn_device):
+    """Coordinates near 1e20 (not a power of two apart from the unscaled scene): exact neighbours."""
+    points = (clustered_points(6000, seed=24, outliers=0).astype(np.float64) * 3.3e20).astype(np.float32)
+    check_against_reference(points, run_knn(points, 16, knn_device), 16)
+
+
+def test_measured_points(knn_device):
+    """Scenes inside MEASURED_SIDE are measured as they are; others in a copy scaled by a power of
+    two to a side in [1/2, 1), clamped to float32's range and without subnormals; a far outlier
+    does not set the scale (the quantisation cube leaves it out)."""
+    ordinary = wp.array(uniform_points(1000, seed=25) * np.float32(100.0), dtype=wp.vec3, device=knn_device)
+    points, (_, quantum, _) = measured_points(ordinary)
+    assert points.ptr == ordinary.ptr and MEASURED_SIDE[0] <= quantum * 2**21 <= MEASURED_SIDE[1]
+    f32 = np.finfo(np.float32)
+    far = uniform_points(5000, seed=26).astype(np.float64) * 2.0**80
+    far[0] = [3.4e38, -3.4e38, 1e-30]  # an outlier, and a coordinate the scaling takes below float32's normals
+    tiny = uniform_points(5000, seed=27).astype(np.float64) * 2.0**-80
+    tiny[0] = [3.0e38, 1.0, -2.0]  # the scaling takes the outlier past float32's largest
+    for scene in (far, tiny):
+        scene = scene.astype(np.float32).astype(np.float64)
+        points, (_, quantum, margin) = measured_points(wp.array(scene.astype(np.float32), dtype=wp.vec3, device=knn_device))
+        assert 0.5 <= quantum * 2**21 < 1.0 and margin == 2 * quantum
+        got = points.numpy().astype(np.float64)
+        scale = got[1, 0] / scene[1, 0]
+        assert np.frexp(scale)[0] == 0.5  # a power of two
+        expected = np.clip(scene * scale, -f32.max, f32.max)
+        expected[np.abs(expected) < f32.tiny] = 0.0
+        np.testing.assert_array_equal(got, expected)
+        assert expected[0, 2] == 0.0 or expected[0, 0] == f32.max  # the flush and the clamp were exercised
 
 
 def test_knn_flat_and_far(knn_device):
