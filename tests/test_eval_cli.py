@@ -102,3 +102,32 @@ def test_contact_sheet_text_matches_the_metrics():
     cell = sheet[-11:, 300 + 4 : 600 + 4]
     assert np.array_equal(np.all(cell < 64, axis=2), np.all(expected < 64, axis=2))
     assert text_width(labels[0]) < 300
+
+
+@pytest.mark.parametrize("exponent", [-70, 70])
+def test_a_scene_in_tiny_or_huge_units_evaluates_as_at_unit_size(exponent):
+    """The renderer works in float32, where squared coordinates of ~1e21 overflow and of ~1e-21
+    vanish: ``evaluate`` renders such scenes rescaled by a power of two, so the same scenes in units
+    2^70 times larger or smaller compare as they do unscaled (to the rounding of the log-scales)."""
+    from scene_factory import random_splat_arrays
+
+    from nanogs_warp.eval.cameras import orbit_cameras
+    from nanogs_warp.eval.evaluate import evaluate
+    from nanogs_warp.splats import SplatSet
+
+    reference = random_splat_arrays(300, seed=7)
+    test = {k: v[:150].copy() for k, v in reference.items()}
+
+    def in_units(arrays, e):
+        scaled = dict(arrays)
+        scaled["means"] = (arrays["means"].astype(np.float64) * 2.0**e).astype(np.float32)
+        scaled["log_scales"] = (arrays["log_scales"].astype(np.float64) + e * np.log(2.0)).astype(np.float32)
+        return SplatSet.from_numpy(**scaled, device="cpu")
+
+    results = []
+    for e in (0, exponent):
+        ref, tst = in_units(reference, e), in_units(test, e)
+        results.append(evaluate(ref, [tst], orbit_cameras(ref, views=4, size=32), device="cpu")["tests"][0])
+    assert 5.0 < results[0]["psnr"]["mean"] < 60.0
+    for metric in ("psnr", "ssim", "fg_psnr"):
+        assert results[1][metric]["mean"] == pytest.approx(results[0][metric]["mean"], abs=0.02)

@@ -140,3 +140,23 @@ def test_refinement_returns_its_best_held_out_checkpoint():
     assert report.kept_step in (0, 2, 4, 6, 8)
     assert report.validation_after <= report.validation_before
     assert report.kept_step > 0, "a sane run should improve on views it never trained on"
+
+
+@pytest.mark.parametrize("exponent", [-70, 70])
+def test_a_scene_in_tiny_or_huge_units_refines_as_at_unit_size(exponent):
+    """The rasteriser works in float32 (squares of ~1e21 overflow, of ~1e-21 vanish): a scene in
+    units 2^70 times larger or smaller is refined rescaled by a power of two and handed back in its
+    own units, with the losses and the result of the unscaled scene (to the rounding of log-scales)."""
+    from nanogs_warp.eval.units import rescaled
+
+    reference = SplatSet.from_numpy(**_toy_scene(5, "cpu"), device="cpu")
+    small = simplify(reference, count=20)
+    config = RefineConfig(steps=8, size=40, reference_views=6)
+    plain, plain_report = refine_with_report(small, reference, config)
+    scale = 2.0**exponent
+    out, report = refine_with_report(rescaled(small, scale), rescaled(reference, scale), config)
+    assert report.kept_step == plain_report.kept_step > 0
+    assert report.loss_after == pytest.approx(plain_report.loss_after, rel=1e-3)
+    got, want = out.to_numpy(), plain.to_numpy()
+    np.testing.assert_allclose(got["means"].astype(np.float64) / scale, want["means"], rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(got["log_scales"] - exponent * np.log(2.0), want["log_scales"], atol=1e-3)

@@ -23,10 +23,9 @@ from . import metrics
 from .cameras import Camera
 from .glyphs import GLYPH_HEIGHT, draw_text, text_width
 from .render import render_views
+from .units import render_units, rescaled, rescaled_camera
 
 DIFF_GAIN = 4.0
-
-
 def render_all(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0.0, 0.0)) -> list[np.ndarray]:
     """One float32 (H, W, 3) image per camera, clamped to [0, 1]; cameras of one size render together."""
     groups: dict[tuple[int, int], list[int]] = {}
@@ -115,6 +114,10 @@ def evaluate(
     if names is None:
         names = [f"test_{k}" for k in range(len(tests))]
     started = time.perf_counter()
+    scale = render_units(reference)
+    if scale != 1.0:
+        reference, tests = rescaled(reference, scale), [rescaled(t, scale) for t in tests]
+        cameras = [rescaled_camera(c, scale) for c in cameras]
     if progress is not None:
         progress(f"rendering the reference, {len(cameras)} views")
     reference_images = render_all(reference.to(device), cameras, background)
