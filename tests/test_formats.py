@@ -4,6 +4,7 @@ generated scenes of SH degree 0-3 and the shipped sample; detection by content; 
 from __future__ import annotations
 
 import json
+import re
 import zipfile
 from importlib import resources
 from pathlib import Path
@@ -234,3 +235,43 @@ def test_sog_palette_for_large_scenes(tmp_path, monkeypatch):
     ref = a["features"][morton_order(a["means"])]
     assert len(np.unique(out["features"][:, 3:], axis=0)) <= 64
     assert np.sqrt(np.mean((out["features"][:, 3:] - ref[:, 3:]) ** 2)) < np.sqrt(np.mean(ref[:, 3:] ** 2))
+
+
+def in_units(arrays, exponent):
+    """The same scene in units 2^exponent times larger (log-scales shifted by exponent ln 2)."""
+    scaled = dict(arrays)
+    scaled["means"] = (arrays["means"].astype(np.float64) * 2.0**exponent).astype(np.float32)
+    scaled["log_scales"] = (arrays["log_scales"].astype(np.float64) + exponent * np.log(2.0)).astype(np.float32)
+    return scaled
+
+
+def test_compressed_ply_keeps_the_positions_of_a_scene_in_tiny_units(tmp_path):
+    """Each chunk stores its positions relative to its bounds: a scene 2^-60 times smaller keeps them
+    as the unscaled one does (chunks narrower than 1e-5 units used to collapse to their corner)."""
+    a = scene(700, 0, seed=31)
+    errors = []
+    for exponent in (0, -60):
+        b = in_units(a, exponent)
+        out = round_trip(tmp_path, b, f"s{exponent}.compressed.ply")
+        ref = b["means"][morton_order(b["means"])].astype(np.float64)
+        errors.append(np.abs(out["means"] - ref).max() / np.ptp(ref, axis=0).max())
+    assert errors[1] == pytest.approx(errors[0], rel=1e-3) and errors[0] < 1e-3
+
+
+@pytest.mark.parametrize("name", ["s.spz", "s.compressed.ply"])
+def test_quantised_formats_say_what_they_clamp_visibly(tmp_path, name):
+    """SPZ holds log-scales in [-10, 5.94] and positions to 1/4096 units, compressed PLY log-scales
+    in [-20, 20]: a scene in such units writes without a note, one 2^70 times larger or 2^-60 times
+    smaller with one line naming what changed by more than a thousandth of its extent."""
+    a = scene(300, 0, seed=32)
+    a["log_scales"] = np.clip(a["log_scales"], -10, 5.9)
+    for exponent, expected in ((0, None), (70, "sizes outside"), (-60, "sizes outside")):
+        notes = []
+        save_splats(SplatSet.from_numpy(**in_units(a, exponent)), tmp_path / name, on_loss=notes.append)
+        if expected is None:
+            assert notes == []
+        else:
+            assert len(notes) == 1 and expected in notes[0], notes
+            assert int(re.search(r"([\d,]+) splats clamped", notes[0]).group(1).replace(",", "")) > 250
+    if name == "s.spz":
+        assert "positions finer than 1/4096 units: rounded" in notes[0]

@@ -6,6 +6,8 @@ from __future__ import annotations
 import zlib
 from pathlib import Path
 
+import math
+
 import numpy as np
 
 from ..errors import InputError
@@ -157,6 +159,27 @@ def host_arrays(means, rotations, log_scales, opacities, features) -> dict[str, 
         "extras": np.zeros((n, 0), np.float32),
         "integer_extras": np.zeros((n, 0), np.int64),
     }
+
+
+# A format's clamp worth a warning: one that moves a splat's centre or changes its size by more
+# than this fraction of the scene's extent (less is below a pixel of a view of the whole scene).
+VISIBLE_FRACTION = 1e-3
+
+
+def clamped_scales_note(log_scales: np.ndarray, means: np.ndarray, lowest: float, highest: float) -> list[str]:
+    """A note when the format's log-scale range [lowest, highest] changes some splat's size by more
+    than VISIBLE_FRACTION of the scene's extent (a scene stored in other units than the format
+    expects); none otherwise."""
+    if log_scales.size == 0:
+        return []
+    extent = float(np.ptp(means.astype(np.float64), axis=0).max())
+    ls = log_scales.astype(np.float64)
+    change = np.abs(np.exp(ls) - np.exp(np.clip(ls, lowest, highest)))
+    count = int(np.count_nonzero((change > VISIBLE_FRACTION * extent).any(axis=1)))
+    if not count:
+        return []
+    return [f"sizes outside {math.exp(lowest):.3g} to {math.exp(highest):.3g} units: {count:,} splats clamped, "
+            f"by more than {VISIBLE_FRACTION:g} of the scene's extent ({extent:.3g})"]
 
 
 def dropped_parts(host: dict[str, np.ndarray], layout: PlyLayout | None, max_sh_degree: int) -> list[str]:

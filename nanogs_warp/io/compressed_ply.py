@@ -20,6 +20,7 @@ from .common import (
     SH_C0,
     SQRT1_2,
     byte_to_opacity_logit,
+    clamped_scales_note,
     from_smallest_three,
     host_arrays,
     largest_positive,
@@ -108,6 +109,11 @@ def read_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
     return host_arrays(means, rotations, log_scales, opacities, features)
 
 
+def notes(host: dict[str, np.ndarray]) -> list[str]:
+    """What ``encode`` cannot hold visibly: sizes beyond the format's log-scale bounds (e^+-20)."""
+    return clamped_scales_note(host["log_scales"], host["means"], -SCALE_LIMIT, SCALE_LIMIT)
+
+
 def encode(host: dict[str, np.ndarray], comment: str) -> bytes:
     """The compressed.ply bytes of host arrays, rows in Morton order (SH kept up to degree 3)."""
     order = morton_order(host["means"])
@@ -124,7 +130,7 @@ def encode(host: dict[str, np.ndarray], comment: str) -> bytes:
     c_lo, c_hi = colour.min(axis=1), colour.max(axis=1)
 
     packed = np.zeros((chunks * CHUNK, 4), np.uint32)
-    packed[:, 0] = _pack_11_10_11(_normalise(means, p_lo, p_hi))
+    packed[:, 0] = _pack_11_10_11(_normalise(means, p_lo, p_hi, smallest_span=0.0))  # positions: any units
     packed[:, 2] = _pack_11_10_11(_normalise(log_scales, s_lo, s_hi))
     c = _unorm(_normalise(colour, c_lo, c_hi), 8).reshape(-1, 3)
     alpha = opacity_to_byte(host["opacities"][padded]).astype(np.uint32)
@@ -162,12 +168,15 @@ def _expect(name, element, required: dict[str, str], optional: tuple[str, ...], 
         raise InputError(f"{name}: compressed PLY properties {', '.join(wrong)} must be {np.dtype(dtype).name}")
 
 
-def _normalise(x, lo, hi):
-    """(x - lo) / (hi - lo) per chunk and axis, in [0, 1]; 0 where the chunk's range is below 1e-5."""
+def _normalise(x, lo, hi, smallest_span=1e-5):
+    """(x - lo) / (hi - lo) per chunk and axis, in [0, 1]; 0 where the chunk's range is not above
+    ``smallest_span`` (for log-scales and colours PlayCanvas's 1e-5; positions pass 0, so that a
+    scene in tiny units keeps them)."""
     lo, hi = lo[:, None, :], hi[:, None, :]
     span = hi - lo
+    flat = span <= smallest_span if smallest_span == 0.0 else span < smallest_span
     with np.errstate(invalid="ignore", divide="ignore"):
-        t = np.where(span < 1e-5, 0.0, (x - lo) / np.where(span < 1e-5, 1.0, span))
+        t = np.where(flat, 0.0, (x - lo) / np.where(flat, 1.0, span))
     return np.clip(np.nan_to_num(t), 0.0, 1.0)
 
 

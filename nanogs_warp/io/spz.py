@@ -22,8 +22,10 @@ import numpy as np
 
 from ..errors import InputError
 from .common import (
+    VISIBLE_FRACTION,
     byte_to_opacity_logit,
     channel_major_to_interleaved,
+    clamped_scales_note,
     from_smallest_three,
     gunzip_bounded,
     host_arrays,
@@ -37,6 +39,7 @@ MAGIC = 0x5053474E
 HEADER = struct.Struct("<IIIBBBB")
 MAX_SH_DEGREE = 3
 COLOUR_SCALE = 0.15
+LOG_SCALE_RANGE = (-10.0, 255 / 16 - 10.0)  # one byte, (log-scale + 10) x 16
 MAX_FRACTIONAL_BITS = 12  # Niantic's writer uses 12 (1/4096 units); fewer when positions need it
 _REST = {0: 0, 1: 3, 2: 8, 3: 15}
 # RDF <-> RUB is a half turn about x: (x, y, z) -> (x, -y, -z). Signs of the real SH basis functions
@@ -113,14 +116,18 @@ def encode(host: dict[str, np.ndarray], version: int = 3) -> tuple[bytes, list[s
         frac -= 1
     fixed = np.rint(means * (1 << frac))
     if np.any(np.abs(fixed) > (1 << 23) - 1):
-        notes.append(f"positions beyond +-{(1 << 23) - 1} clipped")
+        notes.append(f"positions beyond +-{((1 << 23) - 1) / (1 << frac):.4g} units: clipped")
+    extent = float(np.ptp(means, axis=0).max()) if n else 0.0
+    if n and 0.5 / (1 << frac) > VISIBLE_FRACTION * extent:
+        notes.append(f"positions finer than 1/{1 << frac} units: rounded, by more than {VISIBLE_FRACTION:g} of the scene's extent ({extent:.3g})")
+    notes += clamped_scales_note(host["log_scales"], host["means"], LOG_SCALE_RANGE[0], LOG_SCALE_RANGE[1])
     fixed = np.clip(fixed, -(1 << 23) + 1, (1 << 23) - 1).astype(np.int32)
     pos = np.stack([fixed & 255, (fixed >> 8) & 255, (fixed >> 16) & 255], axis=-1).astype(np.uint8)
 
     feats = host["features"].astype(np.float64)
     degree = {3: 0, 12: 1, 27: 2, 48: 3}[feats.shape[1]]
     colour = _to_u8(feats[:, :3] * (COLOUR_SCALE * 255.0) + 127.5)
-    scales = _to_u8((host["log_scales"].astype(np.float64) + 10.0) * 16.0)
+    scales = _to_u8((host["log_scales"].astype(np.float64) - LOG_SCALE_RANGE[0]) * 16.0)
     xyzw = unit_quaternions(host["rotations"])[:, [1, 2, 3, 0]]
     xyzw[:, :3] *= AXIS_SIGNS
     rot = _pack_v3(xyzw) if version == 3 else _pack_v2(xyzw)
