@@ -26,6 +26,8 @@ from .render import render_views
 from .units import render_units, rescaled, rescaled_camera
 
 DIFF_GAIN = 4.0
+
+
 def render_all(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0.0, 0.0)) -> list[np.ndarray]:
     """One float32 (H, W, 3) image per camera, clamped to [0, 1]; cameras of one size render together."""
     groups: dict[tuple[int, int], list[int]] = {}

@@ -3,10 +3,9 @@ bounded reads and the plain INRIA layout of scenes that come from a non-PLY file
 
 from __future__ import annotations
 
+import math
 import zlib
 from pathlib import Path
-
-import math
 
 import numpy as np
 

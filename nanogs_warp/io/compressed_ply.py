@@ -130,7 +130,7 @@ def encode(host: dict[str, np.ndarray], comment: str) -> bytes:
     c_lo, c_hi = colour.min(axis=1), colour.max(axis=1)
 
     packed = np.zeros((chunks * CHUNK, 4), np.uint32)
-    packed[:, 0] = _pack_11_10_11(_normalise(means, p_lo, p_hi, smallest_span=0.0))  # positions: any units
+    packed[:, 0] = _pack_11_10_11(_normalise(means, p_lo, p_hi, smallest_span=np.finfo(np.float64).tiny))  # any units
     packed[:, 2] = _pack_11_10_11(_normalise(log_scales, s_lo, s_hi))
     c = _unorm(_normalise(colour, c_lo, c_hi), 8).reshape(-1, 3)
     alpha = opacity_to_byte(host["opacities"][padded]).astype(np.uint32)
@@ -169,12 +169,12 @@ def _expect(name, element, required: dict[str, str], optional: tuple[str, ...], 
 
 
 def _normalise(x, lo, hi, smallest_span=1e-5):
-    """(x - lo) / (hi - lo) per chunk and axis, in [0, 1]; 0 where the chunk's range is not above
-    ``smallest_span`` (for log-scales and colours PlayCanvas's 1e-5; positions pass 0, so that a
-    scene in tiny units keeps them)."""
+    """(x - lo) / (hi - lo) per chunk and axis, in [0, 1]; 0 where the chunk's range is below
+    ``smallest_span`` (PlayCanvas's 1e-5 for log-scales and colours; positions pass the smallest
+    float64, so that a scene in tiny units keeps them)."""
     lo, hi = lo[:, None, :], hi[:, None, :]
     span = hi - lo
-    flat = span <= smallest_span if smallest_span == 0.0 else span < smallest_span
+    flat = span < smallest_span
     with np.errstate(invalid="ignore", divide="ignore"):
         t = np.where(flat, 0.0, (x - lo) / np.where(flat, 1.0, span))
     return np.clip(np.nan_to_num(t), 0.0, 1.0)
