@@ -31,11 +31,13 @@ wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same 
 LOGIT_LIMIT = wp.constant(16.1)
 MERGED_LOGIT_MAX = wp.constant(5.537334267018537)  # log(254) = logit(254 / 255)
 MERGED_ALPHA_MAX = wp.constant(254.0 / 255.0)
-# Floor of a merged splat's stored log-scales: the input domain's (nanogs_warp/domain.py), so every
+# Bounds of a merged splat's stored log-scales: the input domain's (nanogs_warp/domain.py), so every
 # output is a valid input. Merged covariances are regularised relative to their trace (RIDGE in
-# splat_math.py), so the floor only bites in scenes whose splats are below ~1e-40 in size; a fixed
-# floor nearer to 1 would make a scene in tiny units come out in splats larger than itself.
+# splat_math.py), so the floor only bites in scenes whose splats are below ~1e-40 in size (a fixed
+# floor nearer to 1 would make a scene in tiny units come out in splats larger than itself), and the
+# ceiling only where splats near e^100 merge into a larger one.
 LOG_SCALE_MIN = wp.constant(-100.0)
+LOG_SCALE_MAX = wp.constant(100.0)
 
 
 @wp.func
@@ -61,7 +63,7 @@ def store_gaussian(
     out.rotations[row] = quaternion_from_frame(frame)
     ls = wp.vec3()
     for k in range(3):
-        ls[k] = wp.max(wp.float32(wp.float64(0.5) * log64(wp.max(values[k], wp.float64(1e-300)))), LOG_SCALE_MIN)
+        ls[k] = wp.clamp(wp.float32(wp.float64(0.5) * log64(wp.max(values[k], wp.float64(1e-300)))), LOG_SCALE_MIN, LOG_SCALE_MAX)
     out.log_scales[row] = ls
     return ls
 

@@ -245,3 +245,17 @@ def test_a_scene_in_tiny_or_huge_units_simplifies_as_at_unit_size(device, expone
     np.testing.assert_allclose(np.median(sizes), np.median(np.sort(base["log_scales"].max(1))), atol=0.05)
     np.testing.assert_allclose(np.sort(got["means"].astype(np.float64) * 2.0**-exponent, axis=0),
                                np.sort(base["means"].astype(np.float64), axis=0), atol=0.02)  # fmt: skip
+
+
+def test_outputs_stay_in_the_input_domain(device):
+    """Splats at the domain's log-scale bounds (e^+-100) merge into splats within them: every output
+    is a valid input again (a merge of two e^100 splats used to store e^101, which a load refuses)."""
+    from nanogs_warp.domain import LOG_SCALE_LIMIT
+
+    arrays = random_splat_arrays(2000, seed=9)
+    rng = np.random.default_rng(9)
+    arrays["log_scales"] = rng.choice([-LOG_SCALE_LIMIT, -99.9, 0.0, 99.9, LOG_SCALE_LIMIT], size=(2000, 3)).astype(np.float32)
+    out = simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.01).to_numpy()
+    assert_valid(out, arrays["means"])
+    assert np.abs(out["log_scales"]).max() <= LOG_SCALE_LIMIT
+    assert np.abs(out["log_scales"]).max() == LOG_SCALE_LIMIT  # the bound was reached, and held
