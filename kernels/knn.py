@@ -26,7 +26,9 @@ order in which threads or cells run.
 
 Termination: every loop is bounded by its inputs (noted beside it). Squared distances of finite
 points may overflow float32 to +inf (coordinates beyond ~1e19 apart); they then rank by the tie
-alone, and a query that can prune nothing scans each point once per level it visits (at most two).
+alone (the index), and a node of the tree whose box is that far is skipped when its smallest index
+ranks after the query's current k-th; a query still scans each point once per level it visits
+(at most two) at worst.
 The host therefore measures a scene whose extent is far from 1 in a copy of its points scaled by a
 power of two (``scaled_points``, ``nanogs_warp.topology.measured_points``): then only far outliers
 can overflow, and a query scans everything only for them.
@@ -284,6 +286,52 @@ def morton_codes(
     i = wp.tid()
     codes[i] = morton_code(grid_coords(points[i], lo, inv_quantum))
     order[i] = i
+
+
+@wp.func
+def _ordered_bits(x: float) -> int:
+    """The top 21 of x's 32 bits, read as an order: negative floats reversed below the positive
+    ones, so the result grows with x at every magnitude alike (a float's bits are its log-scale)."""
+    i = wp.int64(wp.cast(x, wp.int32))
+    m = i + wp.int64(2147483648)
+    if i < wp.int64(0):
+        m = wp.int64(-1) - i
+    return int(m >> wp.int64(11))
+
+
+@wp.kernel
+def float_morton_codes(points: wp.array(dtype=wp.vec3), codes: wp.array(dtype=wp.int64), order: wp.array(dtype=wp.int32)):
+    # Morton code of each point's coordinates' float bits (``_ordered_bits``): an order that keeps
+    # near points near at every scale, where the grid's cells are too coarse to tell them apart
+    i = wp.tid()
+    p = points[i]
+    codes[i] = morton_code(wp.vec3i(_ordered_bits(p[0]), _ordered_bits(p[1]), _ordered_bits(p[2])))
+    order[i] = i
+
+
+@wp.kernel
+def morton_codes_in_order(
+    points: wp.array(dtype=wp.vec3),
+    given: wp.array(dtype=wp.int32),
+    lo: wp.vec3,
+    inv_quantum: float,
+    codes: wp.array(dtype=wp.int64),
+    order: wp.array(dtype=wp.int32),
+):
+    # ``morton_codes`` of the points taken in the order ``given``, for a stable sort that keeps it within each cell
+    t = wp.tid()
+    i = given[t]
+    codes[t] = morton_code(grid_coords(points[i], lo, inv_quantum))
+    order[t] = i
+
+
+@wp.kernel
+def crowded_windows(codes: wp.array(dtype=wp.int64), k: int, count: wp.array(dtype=wp.int32)):
+    # count of windows of k + 1 consecutive sorted points inside one level-0 cell
+    a = wp.tid()
+    if a + k < codes.shape[0]:
+        if codes[a] == codes[a + k]:
+            wp.atomic_add(count, 0, 1)
 
 
 @wp.kernel
@@ -631,6 +679,8 @@ def _knn_query(
                             elif worst_d == 0.0:  # ties at distance 0 rank by index from the query
                                 bound = tie_lower_bound(row, node_first[nd], node_last[nd], n)
                                 skip = wp.int64(bound) > (worst & LOW_32)
+                            elif box_d == wp.inf:  # so is every distance in it (worst_d too): they rank by index
+                                skip = wp.int64(node_first[nd]) > (worst & LOW_32)
                         if skip or level_s == 1:
                             if not skip:
                                 j = wp.max(begin, node_start)

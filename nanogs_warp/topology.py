@@ -72,7 +72,7 @@ def knn_graph(
     if cube is None:
         means, cube = measured_points(means)
     lo, quantum, margin = cube
-    codes, order, points = _morton_sort(means, lo, quantum)
+    codes, order, points = _morton_sort(means, lo, quantum, k)
     nodes = _tree_nodes(points, order)
     search_level, tables = _cell_tables(codes, k)
 
@@ -236,14 +236,31 @@ def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     return wp.vec3(*lo), quantum, 2.0 * quantum
 
 
-def _morton_sort(means: wp.array, lo: wp.vec3, quantum: float) -> tuple[wp.array, wp.array, wp.array]:
+def _morton_sort(means: wp.array, lo: wp.vec3, quantum: float, k: int) -> tuple[wp.array, wp.array, wp.array]:
     """Sorted Morton codes, the sorting permutation and the points in that order. One sort serves
-    every level: a level's cells are contiguous ranges of the sorted points."""
+    every level: a level's cells are contiguous ranges of the sorted points.
+
+    Within a level-0 cell the points come in index order, unless k + 1 of them share one: then they
+    come in the Morton order of their coordinates' float bits (a second sort; the radix sort is
+    stable), so that the tree over the sorted points (``_tree_nodes``) stays tight there. A scene
+    whose coordinates span dozens of orders of magnitude crowds its level-0 cells and the cube's
+    boundary cells (which hold the far points), and every query there scanned them whole. The
+    neighbours found are the same either way; only the work differs. The host reads one count."""
     n, device = means.shape[0], means.device
     codes = wp.empty(2 * n, dtype=wp.int64, device=device)
     order = wp.empty(2 * n, dtype=wp.int32, device=device)
     wp.launch(knn_kernels.morton_codes, n, inputs=[means, lo, 1.0 / quantum], outputs=[codes, order], device=device)
     wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
+    crowded = wp.zeros(1, dtype=wp.int32, device=device)
+    wp.launch(knn_kernels.crowded_windows, n, inputs=[codes[:n], k], outputs=[crowded], device=device)
+    if int(crowded.numpy()[0]) > 0:
+        fine = wp.empty(2 * n, dtype=wp.int64, device=device)
+        fine_order = wp.empty(2 * n, dtype=wp.int32, device=device)
+        wp.launch(knn_kernels.float_morton_codes, n, inputs=[means], outputs=[fine, fine_order], device=device)
+        wp.utils.radix_sort_pairs(fine, fine_order, n, end_bit=3 * knn_kernels.GRID_BITS)
+        inputs = [means, fine_order, lo, 1.0 / quantum]
+        wp.launch(knn_kernels.morton_codes_in_order, n, inputs=inputs, outputs=[codes, order], device=device)
+        wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
     codes, order = codes[:n], order[:n]
     points = wp.empty(n, dtype=wp.vec3, device=device)
     wp.launch(knn_kernels._gather_points, n, inputs=[means, order], outputs=[points], device=device)

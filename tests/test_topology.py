@@ -211,6 +211,28 @@ def test_knn_of_a_scene_in_huge_units_matches_float64_reference(knn_device):
     check_against_reference(points, run_knn(points, 16, knn_device), 16)
 
 
+def test_knn_of_coordinates_over_every_magnitude(knn_device, monkeypatch):
+    """Coordinates of every magnitude float32 holds (+-10^U(-37, 38)): most points lie outside the
+    quantisation cube, crowd its cells, and their squared distances overflow. The points within a
+    crowded cell are then sorted by their float bits, which leaves the neighbours as they are and
+    takes a fraction of the work; nodes whose every distance is infinite are skipped by index."""
+    import nanogs_warp.topology as topology
+
+    rng = np.random.default_rng(28)
+    points = (np.sign(rng.normal(size=(4000, 3))) * 10.0 ** rng.uniform(-37, 38, (4000, 3))).astype(np.float32)
+    runs = []
+    for crowded_order in (True, False):
+        if not crowded_order:  # the crowding test never fires when a window would hold every point
+            plain = topology._morton_sort
+            monkeypatch.setattr(topology, "_morton_sort", lambda means, lo, quantum, k: plain(means, lo, quantum, means.shape[0]))
+        work = wp.zeros(len(points), dtype=wp.int32, device=knn_device)
+        runs.append((run_knn(points, 16, knn_device, candidates=work), int(work.numpy().sum())))
+    (table, work), (plain_table, plain_work) = runs
+    check_valid(table)
+    np.testing.assert_array_equal(table, plain_table)
+    assert work <= plain_work and work < 0.25 * len(points) ** 2  # every query scanned everything before
+
+
 def test_measured_points(knn_device):
     """Scenes inside MEASURED_SIDE are measured as they are; others in a copy scaled by a power of
     two to a side in [1/2, 1), clamped to float32's range and without subnormals; a far outlier
