@@ -277,15 +277,20 @@ def _sample_axis(points: wp.array(dtype=wp.vec3), stride: int, axis: int, out: w
 @wp.kernel
 def morton_codes(
     points: wp.array(dtype=wp.vec3),
+    given: wp.array(dtype=wp.int32),
     lo: wp.vec3,
     inv_quantum: float,
     codes: wp.array(dtype=wp.int64),
     order: wp.array(dtype=wp.int32),
 ):
-    # Morton code of each point's level-0 cell, paired with the point's index for sorting
-    i = wp.tid()
-    codes[i] = morton_code(grid_coords(points[i], lo, inv_quantum))
-    order[i] = i
+    # Morton code of each point's level-0 cell, paired with the point's index for sorting; the
+    # points taken in the order ``given`` (empty: their own), which a stable sort keeps within a cell
+    t = wp.tid()
+    i = t
+    if given.shape[0] > 0:
+        i = given[t]
+    codes[t] = morton_code(grid_coords(points[i], lo, inv_quantum))
+    order[t] = i
 
 
 @wp.func
@@ -307,22 +312,6 @@ def float_morton_codes(points: wp.array(dtype=wp.vec3), codes: wp.array(dtype=wp
     p = points[i]
     codes[i] = morton_code(wp.vec3i(_ordered_bits(p[0]), _ordered_bits(p[1]), _ordered_bits(p[2])))
     order[i] = i
-
-
-@wp.kernel
-def morton_codes_in_order(
-    points: wp.array(dtype=wp.vec3),
-    given: wp.array(dtype=wp.int32),
-    lo: wp.vec3,
-    inv_quantum: float,
-    codes: wp.array(dtype=wp.int64),
-    order: wp.array(dtype=wp.int32),
-):
-    # ``morton_codes`` of the points taken in the order ``given``, for a stable sort that keeps it within each cell
-    t = wp.tid()
-    i = given[t]
-    codes[t] = morton_code(grid_coords(points[i], lo, inv_quantum))
-    order[t] = i
 
 
 @wp.kernel

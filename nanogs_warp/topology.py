@@ -249,7 +249,8 @@ def _morton_sort(means: wp.array, lo: wp.vec3, quantum: float, k: int) -> tuple[
     n, device = means.shape[0], means.device
     codes = wp.empty(2 * n, dtype=wp.int64, device=device)
     order = wp.empty(2 * n, dtype=wp.int32, device=device)
-    wp.launch(knn_kernels.morton_codes, n, inputs=[means, lo, 1.0 / quantum], outputs=[codes, order], device=device)
+    own_order = wp.empty(0, dtype=wp.int32, device=device)
+    wp.launch(knn_kernels.morton_codes, n, inputs=[means, own_order, lo, 1.0 / quantum], outputs=[codes, order], device=device)
     wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
     crowded = wp.zeros(1, dtype=wp.int32, device=device)
     wp.launch(knn_kernels.crowded_windows, n, inputs=[codes[:n], k], outputs=[crowded], device=device)
@@ -258,8 +259,8 @@ def _morton_sort(means: wp.array, lo: wp.vec3, quantum: float, k: int) -> tuple[
         fine_order = wp.empty(2 * n, dtype=wp.int32, device=device)
         wp.launch(knn_kernels.float_morton_codes, n, inputs=[means], outputs=[fine, fine_order], device=device)
         wp.utils.radix_sort_pairs(fine, fine_order, n, end_bit=3 * knn_kernels.GRID_BITS)
-        inputs = [means, fine_order, lo, 1.0 / quantum]
-        wp.launch(knn_kernels.morton_codes_in_order, n, inputs=inputs, outputs=[codes, order], device=device)
+        inputs = [means, fine_order[:n], lo, 1.0 / quantum]
+        wp.launch(knn_kernels.morton_codes, n, inputs=inputs, outputs=[codes, order], device=device)
         wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
     codes, order = codes[:n], order[:n]
     points = wp.empty(n, dtype=wp.vec3, device=device)
