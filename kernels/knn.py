@@ -315,15 +315,6 @@ def float_morton_codes(points: wp.array(dtype=wp.vec3), codes: wp.array(dtype=wp
 
 
 @wp.kernel
-def crowded_windows(codes: wp.array(dtype=wp.int64), k: int, count: wp.array(dtype=wp.int32)):
-    # count of windows of k + 1 consecutive sorted points inside one level-0 cell
-    a = wp.tid()
-    if a + k < codes.shape[0]:
-        if codes[a] == codes[a + k]:
-            wp.atomic_add(count, 0, 1)
-
-
-@wp.kernel
 def _gather_points(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.vec3)):
     # points in Morton order
     i = wp.tid()

@@ -72,9 +72,13 @@ def knn_graph(
     if cube is None:
         means, cube = measured_points(means)
     lo, quantum, margin = cube
-    codes, order, points = _morton_sort(means, lo, quantum, k)
+    codes, order = _morton_order(means, lo, quantum)
+    search_level, tables, crowded = _cell_tables(codes, k)
+    if crowded:  # k + 1 points share a level-0 cell: order each cell's points by their float bits
+        order = _morton_order(means, lo, quantum, given=_float_bit_order(means))[1]
+    points = wp.empty(n, dtype=wp.vec3, device=device)
+    wp.launch(knn_kernels._gather_points, n, inputs=[means, order], outputs=[points], device=device)
     nodes = _tree_nodes(points, order)
-    search_level, tables = _cell_tables(codes, k)
 
     neighbours = wp.full((n, k), -1, dtype=wp.int32, device=device)
     launch_rows_from(
@@ -236,36 +240,32 @@ def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     return wp.vec3(*lo), quantum, 2.0 * quantum
 
 
-def _morton_sort(means: wp.array, lo: wp.vec3, quantum: float, k: int) -> tuple[wp.array, wp.array, wp.array]:
-    """Sorted Morton codes, the sorting permutation and the points in that order. One sort serves
-    every level: a level's cells are contiguous ranges of the sorted points.
-
-    Within a level-0 cell the points come in index order, unless k + 1 of them share one: then they
-    come in the Morton order of their coordinates' float bits (a second sort; the radix sort is
-    stable), so that the tree over the sorted points (``_tree_nodes``) stays tight there. A scene
-    whose coordinates span dozens of orders of magnitude crowds its level-0 cells and the cube's
-    boundary cells (which hold the far points), and every query there scanned them whole. The
-    neighbours found are the same either way; only the work differs. The host reads one count."""
+def _morton_order(means: wp.array, lo: wp.vec3, quantum: float, given: wp.array | None = None) -> tuple[wp.array, wp.array]:
+    """Sorted Morton codes and the sorting permutation. One sort serves every level: a level's cells
+    are contiguous ranges of the sorted points. Within a level-0 cell the points keep the order
+    ``given`` (the radix sort is stable; default: index order)."""
     n, device = means.shape[0], means.device
     codes = wp.empty(2 * n, dtype=wp.int64, device=device)
     order = wp.empty(2 * n, dtype=wp.int32, device=device)
-    own_order = wp.empty(0, dtype=wp.int32, device=device)
-    wp.launch(knn_kernels.morton_codes, n, inputs=[means, own_order, lo, 1.0 / quantum], outputs=[codes, order], device=device)
+    given = wp.empty(0, dtype=wp.int32, device=device) if given is None else given
+    wp.launch(knn_kernels.morton_codes, n, inputs=[means, given, lo, 1.0 / quantum], outputs=[codes, order], device=device)
     wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
-    crowded = wp.zeros(1, dtype=wp.int32, device=device)
-    wp.launch(knn_kernels.crowded_windows, n, inputs=[codes[:n], k], outputs=[crowded], device=device)
-    if int(crowded.numpy()[0]) > 0:
-        fine = wp.empty(2 * n, dtype=wp.int64, device=device)
-        fine_order = wp.empty(2 * n, dtype=wp.int32, device=device)
-        wp.launch(knn_kernels.float_morton_codes, n, inputs=[means], outputs=[fine, fine_order], device=device)
-        wp.utils.radix_sort_pairs(fine, fine_order, n, end_bit=3 * knn_kernels.GRID_BITS)
-        inputs = [means, fine_order[:n], lo, 1.0 / quantum]
-        wp.launch(knn_kernels.morton_codes, n, inputs=inputs, outputs=[codes, order], device=device)
-        wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
-    codes, order = codes[:n], order[:n]
-    points = wp.empty(n, dtype=wp.vec3, device=device)
-    wp.launch(knn_kernels._gather_points, n, inputs=[means, order], outputs=[points], device=device)
-    return codes, order, points
+    return codes[:n], order[:n]
+
+
+def _float_bit_order(means: wp.array) -> wp.array:
+    """The points in the Morton order of their coordinates' float bits: near points stay near at
+    every scale. Given to ``_morton_order`` where k + 1 points crowd a level-0 cell, as in a scene
+    whose coordinates span dozens of orders of magnitude (its level-0 cells and the cube's boundary
+    cells, which hold the far points, fill up): the tree over the sorted points (``_tree_nodes``)
+    then stays tight there, where every query used to scan the cell whole. The neighbours found are
+    the same in any order within a cell; only the work differs."""
+    n, device = means.shape[0], means.device
+    codes = wp.empty(2 * n, dtype=wp.int64, device=device)
+    order = wp.empty(2 * n, dtype=wp.int32, device=device)
+    wp.launch(knn_kernels.float_morton_codes, n, inputs=[means], outputs=[codes, order], device=device)
+    wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
+    return order[:n]
 
 
 def _tree_nodes(points: wp.array, order: wp.array) -> list[wp.array]:
@@ -289,9 +289,11 @@ def _tree_nodes(points: wp.array, order: wp.array) -> list[wp.array]:
     return [wp.array(base, dtype=wp.int32, device=device), *arrays]
 
 
-def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list]:
-    """Each sorted point's search level, and hash tables cell -> sorted range for the levels searched
-    (at most half full): [level_base, level_mask, keys, starts, ends]."""
+def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list, bool]:
+    """Each sorted point's search level, hash tables cell -> sorted range for the levels searched
+    (at most half full): [level_base, level_mask, keys, starts, ends], and whether level 0 is
+    searched (some k + 1 points share a level-0 cell). None depends on the order of the points
+    within a level-0 cell."""
     n, device = codes.shape[0], codes.device
     window_level = wp.empty(n - k, dtype=wp.int32, device=device)
     split_histogram = wp.zeros(_LEVELS, dtype=wp.int32, device=device)
@@ -328,4 +330,4 @@ def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list]:
         insert(groups[0])
     levels = [codes, int(used[0]), int(used[-1]), *tables]
     launch_rows_from(knn_kernels._close_cells, n, [*levels, keys, ends], device)
-    return search_level, [level_base, level_mask, keys, starts, ends]
+    return search_level, [level_base, level_mask, keys, starts, ends], bool(used[0] == 0)

@@ -30,6 +30,15 @@ def random_splat_arrays(n: int, sh_degree: int = 0, seed: int = 0) -> dict[str, 
     }
 
 
+def in_units(arrays: dict[str, np.ndarray], exponent: int) -> dict[str, np.ndarray]:
+    """The same scene in units 2^exponent times smaller: centres times 2^exponent (exact in float32),
+    log-scales plus exponent ln 2."""
+    scaled = dict(arrays)
+    scaled["means"] = (arrays["means"].astype(np.float64) * 2.0**exponent).astype(np.float32)
+    scaled["log_scales"] = (arrays["log_scales"].astype(np.float64) + exponent * np.log(2.0)).astype(np.float32)
+    return scaled
+
+
 def random_splats_ply(
     path,
     n: int,

@@ -109,7 +109,7 @@ def test_a_scene_in_tiny_or_huge_units_evaluates_as_at_unit_size(exponent):
     """The renderer works in float32, where squared coordinates of ~1e21 overflow and of ~1e-21
     vanish: ``evaluate`` renders such scenes rescaled by a power of two, so the same scenes in units
     2^70 times larger or smaller compare as they do unscaled (to the rounding of the log-scales)."""
-    from scene_factory import random_splat_arrays
+    from scene_factory import in_units, random_splat_arrays
 
     from nanogs_warp.eval.cameras import orbit_cameras
     from nanogs_warp.eval.evaluate import evaluate
@@ -118,15 +118,9 @@ def test_a_scene_in_tiny_or_huge_units_evaluates_as_at_unit_size(exponent):
     reference = random_splat_arrays(300, seed=7)
     test = {k: v[:150].copy() for k, v in reference.items()}
 
-    def in_units(arrays, e):
-        scaled = dict(arrays)
-        scaled["means"] = (arrays["means"].astype(np.float64) * 2.0**e).astype(np.float32)
-        scaled["log_scales"] = (arrays["log_scales"].astype(np.float64) + e * np.log(2.0)).astype(np.float32)
-        return SplatSet.from_numpy(**scaled, device="cpu")
-
     results = []
     for e in (0, exponent):
-        ref, tst = in_units(reference, e), in_units(test, e)
+        ref, tst = (SplatSet.from_numpy(**in_units(a, e), device="cpu") for a in (reference, test))
         results.append(evaluate(ref, [tst], orbit_cameras(ref, views=4, size=32), device="cpu")["tests"][0])
     assert 5.0 < results[0]["psnr"]["mean"] < 60.0
     for metric in ("psnr", "ssim", "fg_psnr"):

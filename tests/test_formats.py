@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scene_factory import random_splat_arrays
+from scene_factory import in_units, random_splat_arrays
 
 from nanogs_warp import SplatSet
 from nanogs_warp.io import detect_format, format_for_path, load_splats, save_splats
@@ -235,14 +235,6 @@ def test_sog_palette_for_large_scenes(tmp_path, monkeypatch):
     ref = a["features"][morton_order(a["means"])]
     assert len(np.unique(out["features"][:, 3:], axis=0)) <= 64
     assert np.sqrt(np.mean((out["features"][:, 3:] - ref[:, 3:]) ** 2)) < np.sqrt(np.mean(ref[:, 3:] ** 2))
-
-
-def in_units(arrays, exponent):
-    """The same scene in units 2^exponent times larger (log-scales shifted by exponent ln 2)."""
-    scaled = dict(arrays)
-    scaled["means"] = (arrays["means"].astype(np.float64) * 2.0**exponent).astype(np.float32)
-    scaled["log_scales"] = (arrays["log_scales"].astype(np.float64) + exponent * np.log(2.0)).astype(np.float32)
-    return scaled
 
 
 def test_compressed_ply_keeps_the_positions_of_a_scene_in_tiny_units(tmp_path):

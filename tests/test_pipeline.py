@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import reference
 import warp as wp
-from scene_factory import random_splat_arrays
+from scene_factory import in_units, random_splat_arrays
 
 from nanogs_warp.errors import InputError
 from nanogs_warp.pipeline import SimplifyConfig, simplify, simplify_progressively
@@ -234,9 +234,7 @@ def test_a_scene_in_tiny_or_huge_units_simplifies_as_at_unit_size(device, expone
     logs round differently at another scale, so pairs may differ where costs nearly tie: compared
     are the sizes and places of the merged splats, not their bytes."""
     arrays = clustered_scene(3000, seed=5)
-    scaled = dict(arrays)
-    scaled["means"] = (arrays["means"].astype(np.float64) * 2.0**exponent).astype(np.float32)
-    scaled["log_scales"] = (arrays["log_scales"].astype(np.float64) + exponent * math.log(2.0)).astype(np.float32)
+    scaled = in_units(arrays, exponent)
     base = simplify(SplatSet.from_numpy(**arrays, device=device), ratio=0.01).to_numpy()
     got = simplify(SplatSet.from_numpy(**scaled, device=device), ratio=0.01).to_numpy()
     assert got["means"].shape == base["means"].shape
