@@ -23,7 +23,13 @@ class Budget:
 
     @property
     def label(self) -> str:
-        return f"{self.ratio:g}" if self.ratio is not None else str(self.count)
+        """The budget in output names: the ratio in at most six digits (0.1, 1e-05, 1) where that is
+        the ratio itself, else in as many as it needs (0.1000001): different ratios never share a
+        file name. Or the count."""
+        if self.ratio is None:
+            return str(self.count)
+        short = f"{self.ratio:g}"
+        return short if float(short) == self.ratio else repr(self.ratio)
 
     def target(self, input_count: int) -> int:
         """max(1, ceil(ratio * N0)), or the count itself; checked against the input's size."""
@@ -40,7 +46,7 @@ def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
         raise InputError("give exactly one of --ratio or --count")
     text = ratio if ratio is not None else count
     tokens = [t.strip() for t in text.split(",")]
-    if not tokens or any(not t for t in tokens):
+    if not tokens or any(not t or not t.isascii() for t in tokens):
         raise InputError(f"cannot read budgets from {text!r}: expected comma-separated numbers")
     budgets = []
     for token in tokens:

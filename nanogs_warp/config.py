@@ -124,7 +124,8 @@ def exact_ratio(ratio: float | str | Decimal | Fraction) -> Fraction:
             decimal = Decimal(text)
         except (InvalidOperation, ValueError):
             raise InputError(f"ratio {ratio!r} is not a number") from None
-        if not decimal.is_finite():
+        # refused before Fraction(), which would build 10^exponent for a huge exponent ("1e999999999")
+        if not decimal.is_finite() or decimal < 0 or decimal.adjusted() > 0:
             raise InputError(f"ratio must be in (0, 1], got {ratio}")
         # beyond 1e-60 every scene below 1e60 splats keeps one splat: spare Fraction a huge denominator
         if decimal > 0 and decimal.adjusted() < -60:

@@ -377,3 +377,12 @@ def test_ray_task_past_its_time_limit_is_cancelled(scenes_and_a_spinner, tmp_pat
     summary = run_json(root, "-o", out, "--ratio", "0.1,0.01", "--scene-timeout", "20", "--ray", "local", code=1)
     check_spinner_timed_out(summary, clean, out, 20, "its Ray task was cancelled")
 
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this platform")
+def test_a_pipe_among_the_scenes_fails_alone_at_once(scenes, tmp_path):
+    """A FIFO named like a scene would block its worker until the scene's time limit: it fails at once."""
+    os.mkfifo(scenes / "pipe.ply")
+    summary = run_json(scenes, "-o", tmp_path / "out", "--ratio", "0.1", code=1)
+    assert summary["pipe.ply"]["status"] == "failed" and "not a regular file" in summary["pipe.ply"]["error"]
+    assert all(summary[rel]["status"] == "done" for rel in SCENES)

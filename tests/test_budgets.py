@@ -83,3 +83,34 @@ def test_tiny_typed_ratio_keeps_one_splat():
     (budget,) = parse_budgets("1e-300", None)
     assert budget.target(10**9) == 1
     assert target_count(10**9, "1e-999999999") == 1  # no giant denominator
+
+
+@pytest.mark.parametrize("huge", ["1e999999999", "9.9e999999999", "-1e999999999", "1e1", "10"])
+def test_ratios_far_above_one_are_refused_before_any_arithmetic(huge):
+    """A huge exponent is refused as it is read: Fraction() of it would build the integer 10^exponent
+    (minutes for 1e999999999)."""
+    with pytest.raises(InputError, match=r"must be a number in \(0, 1\]"):
+        parse_budgets(huge, None)
+    with pytest.raises(InputError):
+        exact_ratio(huge)
+
+
+@pytest.mark.parametrize("text", ["\u0661", "0.\u0665", "\uff11"])  # Arabic-Indic and full-width digits
+def test_budgets_are_ascii_numbers(text):
+    with pytest.raises(InputError, match="comma-separated numbers"):
+        parse_budgets(text, None)
+    with pytest.raises(InputError, match="comma-separated numbers"):
+        parse_budgets(None, text)
+
+
+def test_different_ratios_never_share_an_output_name():
+    from pathlib import Path
+
+    from nanogs_warp.budgets import output_paths
+
+    budgets = parse_budgets("1,0.1,0.1000001,1e-05,0.000123456789", None)
+    assert [b.label for b in budgets] == ["1", "0.1", "0.1000001", "1e-05", "0.000123456789"]
+    paths = output_paths(Path("out.ply"), budgets)
+    assert len(set(paths.values())) == len(budgets)
+    assert paths[budgets[2]] == Path("out_0.1000001.ply")
+    assert [b.label for b in parse_budgets(None, "500,50")] == ["500", "50"]

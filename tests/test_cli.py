@@ -206,3 +206,21 @@ def test_unknown_preset_and_field_cost_with_area_are_input_errors(scene, tmp_pat
         result = run("simplify", scene, "-o", tmp_path / "x.ply", "--ratio", "0.1", "--device", "cpu", *extra)
         assert result.exit_code == 2, result.output
         assert not (tmp_path / "x.ply").exists()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this platform")
+def test_a_pipe_named_like_a_scene_is_refused_at_once(scene, tmp_path):
+    """A FIFO (or a device) would block the open or the read for ever: every command refuses it."""
+    fifo = tmp_path / "pipe.ply"
+    os.mkfifo(fifo)
+    cameras = tmp_path / "cameras.json"
+    os.mkfifo(cameras)
+    for args in (("info", fifo), ("simplify", fifo, "-o", tmp_path / "o.ply", "--ratio", "0.5", "--device", "cpu"),
+                 ("eval", fifo, scene, "--device", "cpu"), ("eval", scene, scene, "--cameras", cameras, "--device", "cpu")):  # fmt: skip
+        result = run(*args)
+        assert result.exit_code == 2, (args, result.output)
+        assert "not a regular file" in result.output and "Traceback" not in result.output
+    assert not (tmp_path / "o.ply").exists()
+    if os.path.exists("/dev/zero"):
+        result = run("info", "/dev/zero")
+        assert result.exit_code == 2 and "zero: not a regular file" in result.output

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.common import read_file_bytes
 from ..splats import SplatSet
 
 NEAR = 0.2  # INRIA's near plane, in world units
@@ -154,9 +155,9 @@ def load_cameras_json(path: Path | str, size: int | None = None) -> list[Camera]
     centre. With ``size``, each camera is rescaled so that its longer side is ``size`` pixels."""
     path = Path(path)
     try:
-        entries = json.loads(path.read_text())
-    except OSError as e:
-        raise InputError(f"cannot read cameras {path}: {e.strerror or e}") from None
+        entries = json.loads(read_file_bytes(path).decode("utf-8"))
+    except InputError as e:
+        raise InputError(f"cannot read cameras {path}: {str(e).split(': ', 1)[-1]}") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(f"cameras {path} is not JSON: {e}") from None
     if not isinstance(entries, list) or not entries:

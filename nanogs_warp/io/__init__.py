@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import InputError
 from . import compressed_ply, lod, sog, spz, splat
 from .common import dropped_parts, plain_layout, read_file_bytes
+from .open_file import open_regular
 from .ply import PlyArrays, checked_rows, normalize_quaternions, read_ply_arrays, read_splats, save_ply, splats_from_host
 from .ply_layout import PlyLayout
 from .ply_write import atomic_write
@@ -60,13 +61,9 @@ def detect_format(path) -> str:
                 return fmt
         raise InputError(f"{name}: is a directory without meta.json or lod-meta.json")
     try:
-        with open(path, "rb") as f:
+        with open_regular(path) as f:
             head = f.read(1 << 16)
             size = f.seek(0, 2)
-    except FileNotFoundError:
-        raise InputError(f"{name}: no such file") from None
-    except PermissionError:
-        raise InputError(f"{name}: permission denied") from None
     except OSError as e:
         raise InputError(f"{name}: cannot read the file: {e.strerror or e}") from e
     if size == 0:

@@ -4,12 +4,14 @@ bounded reads and the plain INRIA layout of scenes that come from a non-PLY file
 from __future__ import annotations
 
 import math
+import os
 import zlib
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from .open_file import open_regular
 from .ply_layout import PlyLayout
 from .ply_write import output_properties
 
@@ -114,19 +116,14 @@ def interleaved_to_channel_major(rest: np.ndarray) -> np.ndarray:
 def read_file_bytes(path: Path, limit: int | None = None) -> bytes:
     """The whole file, with open/read errors as InputError (and a size limit, when given)."""
     name = path.name
-    try:
-        if path.is_dir():
-            raise InputError(f"{name}: is a directory")
-        size = path.stat().st_size
-        if limit is not None and size > limit:
-            raise InputError(f"{name}: {size} bytes is more than the {limit} this format allows")
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(f"{name}: no such file") from None
-    except PermissionError:
-        raise InputError(f"{name}: permission denied") from None
-    except OSError as e:
-        raise InputError(f"{name}: cannot read the file: {e.strerror or e}") from e
+    with open_regular(path) as f:
+        try:
+            size = os.fstat(f.fileno()).st_size
+            if limit is not None and size > limit:
+                raise InputError(f"{name}: {size} bytes is more than the {limit} this format allows")
+            return f.read()
+        except OSError as e:
+            raise InputError(f"{name}: cannot read the file: {e.strerror or e}") from e
 
 
 def gunzip_bounded(data: bytes, limit: int, name: str) -> bytes:

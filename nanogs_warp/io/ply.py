@@ -47,6 +47,7 @@ from .ply_header import (
 from .ply_layout import PlyLayout
 from .ply_write import atomic_write, output_properties
 from .ply_write import write_ply_stream as _write_ply_stream  # by this name: the tests patch it here
+from .open_file import open_regular
 from .ply_read import BlockCheck, Columns, copy_run, read_threads, read_vertex_rows, unit_size
 
 if TYPE_CHECKING:
@@ -245,7 +246,7 @@ def _read(path, digest, file_hash, threads, prepare: bool) -> PlyArrays:
     name = path.name
     header = None
     try:
-        with _open_for_reading(path) as f:
+        with open_regular(path) as f:
             file_bytes = os.fstat(f.fileno()).st_size
             if file_bytes == 0:
                 raise InputError(f"{name}: the file is empty")
@@ -448,16 +449,6 @@ def _describe_invalid(check: ValueCheck) -> str:
     return "; ".join(parts)
 
 
-def _open_for_reading(path: Path):
-    name = path.name
-    try:
-        if path.is_dir():
-            raise InputError(f"{name}: is a directory, not a PLY file")
-        return open(path, "rb")
-    except FileNotFoundError:
-        raise InputError(f"{name}: no such file") from None
-    except PermissionError:
-        raise InputError(f"{name}: permission denied") from None
 
 
 # ----------------------------------------------------------------------------------------------

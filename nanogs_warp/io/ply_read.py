@@ -20,10 +20,12 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from ..domain import LOG_SCALE_LIMIT
+from .open_file import open_regular
 
 PIECE_BYTES = 1 << 20  # the hash's piece size: part of the hash's definition, never change it
 _UNIT_BYTES = 8 << 20  # the largest unit of a reader thread when the file is hashed (whole pieces)
@@ -112,7 +114,7 @@ def unit_size(file_bytes: int, threads: int, most: int) -> int:
 
 def file_piece_hash(path, threads: int | None = None) -> str:
     """The :class:`PieceHash` of a file, read on several threads."""
-    with open(path, "rb") as f:
+    with open_regular(Path(path)) as f:
         size = os.fstat(f.fileno()).st_size
         hasher = PieceHash(size)
         threads = read_threads(size, threads)
