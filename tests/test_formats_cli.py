@@ -133,3 +133,43 @@ def test_batch_reports_dropped_rows_and_losses(tmp_path):
     notes = json.loads(result.stdout)["scenes"][0]["notes"]
     assert notes[0] == "b.ply: dropped 1 of 100 splats (1 with NaN/Inf values in x)"
     assert len(notes) == 2 and "SH degree 1 -> 0" in notes[1]
+
+
+def _contents(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_an_unbundled_sog_never_replaces_the_inputs_images_or_existing_files(scene, tmp_path):
+    """An unbundled SOG writes images beside its meta.json, and a LOD set a folder per level: the
+    overwrite check covers every one of them, and none may be one of the input's own files."""
+    sog = tmp_path / "sog"
+    sog.mkdir()
+    assert run("simplify", scene, "-o", sog / "meta.json", "--ratio", "0.5", "--device", "cpu", "-q").exit_code == 0
+    before = _contents(sog)
+    for extra in ((), ("-w",)):  # the input's images, with or without --overwrite
+        result = run("simplify", sog / "meta.json", "-o", sog / "small.json", "--count", "10", "--device", "cpu", *extra)
+        assert result.exit_code == 2 and "means_l.webp is one of the input's files" in result.output
+    assert _contents(sog) == before
+
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "sh0.webp").write_bytes(b"not ours")
+    result = run("simplify", scene, "-o", other / "meta.json", "--count", "10", "--device", "cpu")
+    assert result.exit_code == 2 and "sh0.webp already exists; pass --overwrite" in result.output
+    assert _contents(other) == {"sh0.webp": b"not ours"}
+    assert run("simplify", scene, "-o", other / "meta.json", "--count", "10", "--device", "cpu", "-w", "-q").exit_code == 0
+    assert load_splats(other / "meta.json").count == 10
+
+
+def test_a_lod_set_never_replaces_the_inputs_level_or_existing_levels(scene, tmp_path):
+    lods = tmp_path / "set"
+    lods.mkdir()
+    assert run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5,0.1", "--device", "cpu", "-q").exit_code == 0
+    (lods / "lod-meta.json").unlink()
+    before = _contents(lods)
+    for extra in ((), ("-w",)):  # reading level 0 and writing a set over it
+        result = run("simplify", lods / "0_0" / "meta.json", "-o", lods / "lod-meta.json", "--ratio", "0.5,0.1", "--device", "cpu", *extra)
+        assert result.exit_code == 2 and "0_0/meta.json is one of the input's files" in result.output.replace("\\", "/")
+    result = run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5,0.1", "--device", "cpu")
+    assert result.exit_code == 2 and "meta.json already exists; pass --overwrite" in result.output
+    assert _contents(lods) == before

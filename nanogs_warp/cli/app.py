@@ -109,7 +109,7 @@ def simplify(
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
     from ..device import WarpStart, keep_freed_host_memory, process_age
-    from ..io import format_for_path, read_any_splats, save_levels
+    from ..io import format_for_path, output_files, read_any_splats, save_levels
     from ..io.ply import splats_from_host
 
     config = opts.method_config(
@@ -137,7 +137,8 @@ def simplify(
         paths, folder = {b: Path(output) for b in budgets}, None
     else:
         paths, folder = _output_paths(output, input, budgets, output_format)
-    _check_outputs(input, list(paths.values()), overwrite, folder)
+    written = [f for p in dict.fromkeys(paths.values()) for f in output_files(p, fmt, len(budgets) if lod_set else 1)]
+    _check_outputs(input, list(paths.values()), overwrite, folder, written)
     keep_freed_host_memory()
     notes = _Notes(quiet or json_output)
 
@@ -384,11 +385,17 @@ def _output_paths(output: str, input: Path, budgets: list[Budget], output_format
     return output_paths(Path(output), budgets), None
 
 
-def _check_outputs(input: Path, outputs: list[Path], overwrite: bool = False, folder: Path | None = None) -> None:
+def _check_outputs(input: Path, outputs: list[Path], overwrite: bool = False, folder: Path | None = None,
+                   written: list[Path] | None = None) -> None:  # fmt: skip
     """Refuses outputs that would overwrite the input, replace an existing file without
     ``overwrite``, or cannot be written, before any work. ``folder`` (from -o DIR/) may be created:
-    its parent must exist."""
+    its parent must exist. ``written``: every file the outputs consist of, when more than
+    ``outputs`` (an unbundled SOG's images, a level-of-detail set's levels): none may be one of
+    the input's files, nor exist without ``overwrite``."""
+    from ..io import input_files
+
     input_resolved = input.resolve()
+    inputs = {p.resolve() for p in input_files(input)}
     if folder is not None and not folder.is_dir():
         if folder.exists():
             raise InputError(f"output {folder} is not a folder")
@@ -406,6 +413,11 @@ def _check_outputs(input: Path, outputs: list[Path], overwrite: bool = False, fo
             raise InputError(f"output directory {parent} is not writable")
         if path.is_dir():
             raise InputError(f"output {path} is a directory")
+        if path.exists() and not overwrite:
+            raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it")
+    for path in written or ():
+        if path.resolve() in inputs:
+            raise InputError(f"output {path} is one of the input's files; choose another output path")
         if path.exists() and not overwrite:
             raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it")
 

@@ -193,14 +193,49 @@ def _write_levels(hosts, levels, path: Path, fmt: str, on_loss) -> None:
         on_loss(f"{path.name}: {_TITLE[fmt]} cannot hold all values exactly: {'; '.join(changed)}")
 
 
+def output_files(path, format: str | None = None, levels: int = 1) -> list[Path]:
+    """Every file that saving ``levels`` levels to ``path`` in ``format`` (by default: by the name)
+    may write: the file itself, or an unbundled SOG's meta.json and images, or a level-of-detail
+    set's lod-meta.json and each level's SOG."""
+    path = Path(path)
+    fmt = format_for_path(path, format)
+    if fmt == "sog" and path.suffix.lower() == ".json":
+        return [path, *(path.with_name(name) for name in sog.IMAGE_FILES)]
+    if fmt == "lod":
+        folder = path.parent if path.name.lower() == "lod-meta.json" else path
+        members = ("meta.json", *sog.IMAGE_FILES)
+        return [folder / "lod-meta.json", *(folder / f"{i}_0" / name for i in range(levels) for name in members)]
+    return [path]
+
+
+def input_files(path) -> list[Path]:
+    """The files a scene at ``path`` is read from, as far as they can be told before reading it: the
+    file itself, or an unbundled SOG's meta.json and images, or a level-of-detail set's lod-meta.json
+    and its finest level's SOG."""
+    path = Path(path)
+    try:
+        fmt = detect_format(path)
+    except InputError:
+        return [path]
+    if fmt == "sog" and (path.is_dir() or not sog.looks_bundled(_head(path))):
+        return sog.member_files(path)
+    if fmt == "lod":
+        meta_path = path / "lod-meta.json" if path.is_dir() else path
+        try:
+            return [meta_path, *sog.member_files(lod.finest_level_meta(meta_path, read_file_bytes(meta_path, lod.META_LIMIT)))]
+        except InputError:
+            return [meta_path]
+    return [path]
+
+
 def _write(path: Path, data: bytes) -> None:
     atomic_write(path, lambda stream: stream.write(data))
 
 
 def _head(path: Path) -> bytes:
-    with open(path, "rb") as f:
+    with open_regular(path) as f:
         return f.read(4)
 
 
-__all__ = ["FORMATS", "detect_format", "format_for_path", "load_splats", "read_splat_arrays", "save_levels",
-           "save_splats"]  # fmt: skip
+__all__ = ["FORMATS", "detect_format", "format_for_path", "input_files", "load_splats", "output_files",
+           "read_splat_arrays", "save_levels", "save_splats"]  # fmt: skip

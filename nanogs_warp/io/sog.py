@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .open_file import open_regular
 from .codebook import kmeans_1d, kmeans_rows
 from .common import (
     SQRT1_2,
@@ -38,7 +39,8 @@ MAX_SH_DEGREE = 3
 PALETTE_LIMIT = 65536
 META_LIMIT = 64 << 20  # bytes of meta.json read at most
 _REST = {0: 0, 1: 3, 2: 8, 3: 15}
-_FILES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp")
+# The images ``encode`` writes beside meta.json (the last two only for SH bands beyond the DC term).
+IMAGE_FILES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp", "shN_centroids.webp", "shN_labels.webp")
 
 
 def looks_bundled(head: bytes) -> bool:
@@ -192,6 +194,24 @@ def read_unbundled(meta_path: Path) -> dict[str, np.ndarray]:
         return read_file_bytes(folder / member)
 
     return _decode(meta_path.name, read_file_bytes(meta_path, META_LIMIT), load)
+
+
+def member_files(meta_path: Path) -> list[Path]:
+    """The files an unbundled SOG is made of: ``meta.json`` and the images it names (as far as it can
+    be read; the decoder says what is wrong with it)."""
+    if meta_path.is_dir():
+        meta_path = meta_path / "meta.json"
+    names = []
+    try:
+        with open_regular(meta_path) as f:
+            meta = json.loads(f.read(META_LIMIT).decode("utf-8"))
+        for sec in meta.values() if isinstance(meta, dict) else ():
+            listed = sec.get("files") if isinstance(sec, dict) else None
+            if isinstance(listed, list):
+                names += [n for n in listed if isinstance(n, str) and n and "/" not in n and "\\" not in n]
+    except (InputError, OSError, ValueError, RecursionError):
+        pass
+    return [meta_path, *(meta_path.parent / n for n in names)]
 
 
 def _decode(name: str, meta_bytes: bytes, load) -> dict[str, np.ndarray]:
