@@ -212,6 +212,13 @@ def test_bad_arguments_exit_2(scenes, tmp_path, args, message):
     assert len(result.stderr.strip().splitlines()) == 1
 
 
+def test_an_empty_output_is_refused(scenes, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    result = run(scenes, "-o", "", "--ratio", "0.1", "--devices", "cpu")
+    assert result.exit_code == 2 and "give an output directory with -o/--output" in result.stderr
+    assert list(tmp_path.iterdir()) == [scenes]
+
+
 def test_bad_inputs_exit_2(scenes, tmp_path):
     cases = [
         ((tmp_path / "missing", "-o", tmp_path / "o", "--ratio", "0.1"), "no such file, directory or glob"),

@@ -224,3 +224,11 @@ def test_a_pipe_named_like_a_scene_is_refused_at_once(scene, tmp_path):
     if os.path.exists("/dev/zero"):
         result = run("info", "/dev/zero")
         assert result.exit_code == 2 and "zero: not a regular file" in result.output
+
+
+def test_an_empty_output_is_refused(scene, tmp_path, monkeypatch):
+    """-o "" used to write <input stem>_<budget>.ply into the current directory."""
+    monkeypatch.chdir(tmp_path)
+    result = run("simplify", scene, "-o", "", "--ratio", "0.5,0.1", "--device", "cpu")
+    assert result.exit_code == 2 and "give an output path with -o/--output" in result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]

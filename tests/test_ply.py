@@ -334,6 +334,23 @@ def test_truncated_header(good):
     expect_error(good, "truncated PLY header")
 
 
+def test_end_header_not_alone_on_its_line(good):
+    data = good.read_bytes()
+    good.write_bytes(data.replace(b"end_header\n", b"end_header \n", 1))
+    expect_error(good, "'end_header' must be alone on its line")
+
+
+def test_binary_header_lines_ending_unlike_end_header(good):
+    """LF lines, then 'end_header' CR LF: plyfile takes the data for header lines. (CR LF throughout is
+    read as it should be.)"""
+    data = good.read_bytes()
+    good.write_bytes(data.replace(b"end_header\n", b"end_header\r\n", 1))
+    expect_error(good, "its lines end unlike its 'end_header' line")
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    good.write_bytes(data[:end].replace(b"\n", b"\r\n") + data[end:])
+    assert load_ply(good).count > 0
+
+
 def test_truncated_ascii(tmp_path):
     path = tmp_path / "a.ply"
     random_splats_ply(path, 10, text=True)

@@ -124,7 +124,7 @@ def simplify(
         refine_config.validate()
     budgets = parse_budgets(ratio, count)
     input = _input_path(input, sample)
-    if output is None:
+    if output is None or not output.strip():
         raise InputError("give an output path with -o/--output (a file, or a folder ending in /)")
     fmt = format_for_path(output, output_format)
     lod_set = fmt == "lod"

@@ -23,7 +23,7 @@ from . import options as opts
 
 def batch_command(
     input: Annotated[str, typer.Argument(help="A directory (every .ply, .spz, .sog and .splat below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
-    output: Annotated[Path, typer.Option("-o", "--output", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.<ext of --format>, and <stem>.nanogs.json records for resuming.", show_default=False)],
+    output: Annotated[str, typer.Option("-o", "--output", metavar="DIRECTORY", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.<ext of --format>, and <stem>.nanogs.json records for resuming.", show_default=False)],
     ratio: opts.Ratio = None,
     count: opts.Count = None,
     devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, all,cpu (every GPU and the CPU), or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.")] = "auto",
@@ -74,6 +74,9 @@ def batch_command(
         raise InputError(f"--workers must be at least 1, got {workers}")
     if readers is not None and readers < 1:
         raise InputError(f"--readers must be at least 1, got {readers}")
+    if not output.strip():
+        raise InputError("give an output directory with -o/--output")
+    output = Path(output)
     if output.exists() and not output.is_dir():
         raise InputError(f"--output {output} is not a directory")
 

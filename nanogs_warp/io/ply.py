@@ -263,6 +263,8 @@ def _read(path, digest, file_hash, threads, prepare: bool) -> PlyArrays:
         raise InputError(f"{name}: cannot read the file: {e.strerror or e}") from e
     except Exception as e:  # any plyfile/numpy parse failure on malformed bytes
         if isinstance(e, UnicodeDecodeError):
+            if header is not None and header.format != "ascii":  # plyfile read the data as header lines
+                raise InputError(f"{name}: malformed PLY header (its lines end unlike its 'end_header' line)") from e
             raise InputError(f"{name}: malformed PLY file: non-ASCII bytes in ASCII data") from e
         if isinstance(e, plyfile.PlyElementParseError) and _looks_truncated(e, header, path):
             raise InputError(f"{name}: truncated file ({one_line(e)})") from e

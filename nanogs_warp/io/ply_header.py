@@ -74,6 +74,8 @@ def parse_header(head: bytes, name: str) -> Header:
         raise InputError(f"{name}: not a PLY file (it does not start with 'ply')")
     m = _END_HEADER.search(head)
     if m is None:
+        if re.search(rb"(?:\r|\n)end_header", head):
+            raise InputError(f"{name}: malformed PLY header ('end_header' must be alone on its line)")
         if len(head) < MAX_HEADER_BYTES:
             raise InputError(f"{name}: truncated PLY header (no 'end_header' line)")
         raise InputError(f"{name}: no 'end_header' line in the first {MAX_HEADER_BYTES >> 20} MiB")
