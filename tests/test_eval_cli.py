@@ -125,3 +125,44 @@ def test_a_scene_in_tiny_or_huge_units_evaluates_as_at_unit_size(exponent):
     assert 5.0 < results[0]["psnr"]["mean"] < 60.0
     for metric in ("psnr", "ssim", "fg_psnr"):
         assert results[1][metric]["mean"] == pytest.approx(results[0][metric]["mean"], abs=0.02)
+
+
+def _on_a_grid(arrays, offset):
+    """The scene with centres on a 1/8 grid within +-16, moved by ``offset``: every centre exact in
+    float32 before and after the move (below 2^21, float32 steps are 1/8 at most)."""
+    moved = dict(arrays)
+    moved["means"] = (np.clip(np.round(arrays["means"] * 8.0), -128, 128) / 8.0 + offset).astype(np.float32)
+    return moved
+
+
+def test_a_scene_far_from_the_origin_evaluates_as_at_the_origin(tmp_path):
+    """Far from the origin for its size, float32 (and float64, at 1e20) cannot place the cameras or
+    the splats around a scene: ``eval`` renders it recentred, with the figures it has at the origin;
+    a cluster at 1e20 was an internal error."""
+    from scene_factory import random_splat_arrays, write_splats_ply
+
+    reference = random_splat_arrays(300, seed=7)
+    test = {k: v[:150].copy() for k, v in reference.items()}
+    figures = []
+    for offset in (0.0, 2.0**20):
+        paths = [tmp_path / f"{name}_{offset:g}.ply" for name in ("ref", "test")]
+        for path, arrays in zip(paths, (reference, test)):
+            write_splats_ply(path, _on_a_grid(arrays, offset))
+        cameras = tmp_path / f"cameras_{offset:g}.json"  # the same trainer's camera, moved with the scene
+        cameras.write_text(json.dumps([{"id": 0, "img_name": "a", "width": 40, "height": 30, "fx": 35.0, "fy": 35.0,
+                                        "position": [offset, offset, offset - 40.0], "rotation": np.eye(3).tolist()}]))  # fmt: skip
+        for extra in ((), ("--cameras", cameras)):
+            result = run(*paths, "--device", "cpu", "--size", "32", "--views", "4", "--json", *extra)
+            assert result.exit_code == 0, result.output
+            figures.append(json.loads(result.stdout)["tests"][0])
+    for plain, far in ((figures[0], figures[2]), (figures[1], figures[3])):
+        assert 5.0 < plain["psnr"]["mean"] < 60.0
+        for metric in ("psnr", "ssim", "fg_psnr"):
+            assert far[metric]["mean"] == pytest.approx(plain[metric]["mean"], abs=0.01)
+
+    cluster = random_splat_arrays(300, seed=1)
+    cluster["means"][:] = 1e20
+    write_splats_ply(tmp_path / "cluster.ply", cluster)
+    result = run(tmp_path / "cluster.ply", tmp_path / "cluster.ply", "--device", "cpu", "--size", "32", "--views", "2", "--json")
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["tests"][0]["identical"]

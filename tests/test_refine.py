@@ -160,3 +160,24 @@ def test_a_scene_in_tiny_or_huge_units_refines_as_at_unit_size(exponent):
     got, want = out.to_numpy(), plain.to_numpy()
     np.testing.assert_allclose(got["means"].astype(np.float64) / scale, want["means"], rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(got["log_scales"] - exponent * np.log(2.0), want["log_scales"], atol=1e-3)
+
+
+def test_a_scene_far_from_the_origin_refines_as_at_the_origin():
+    """A scene 2^20 of its sizes from the origin (centres on a grid float32 holds exactly there) is
+    refined recentred and handed back in place: the losses and the result of the scene at the origin."""
+    from nanogs_warp.eval.units import rescaled
+
+    arrays = _toy_scene(5, "cpu")
+    arrays["means"] = (np.round(arrays["means"] * 8.0) / 8.0).astype(np.float32)
+    reference = SplatSet.from_numpy(**arrays, device="cpu")
+    offset = np.array([2.0**20, -(2.0**20), 2.0**19])
+    far_small = rescaled(simplify(reference, count=20), 1.0, -offset)  # its centres rounded to float32 there
+    small = rescaled(far_small, 1.0, offset)  # the same splats at the origin (exact)
+    config = RefineConfig(steps=8, size=40, reference_views=6)
+    plain, plain_report = refine_with_report(small, reference, config)
+    out, report = refine_with_report(far_small, rescaled(reference, 1.0, -offset), config)
+    assert report.kept_step == plain_report.kept_step > 0
+    assert report.loss_after == pytest.approx(plain_report.loss_after, rel=1e-3)
+    got, want = out.to_numpy(), plain.to_numpy()
+    np.testing.assert_allclose(got["means"].astype(np.float64) - offset, want["means"], atol=0.25)  # float32 steps there: 1/8
+    np.testing.assert_allclose(got["log_scales"], want["log_scales"], atol=1e-5)

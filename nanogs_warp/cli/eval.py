@@ -63,6 +63,7 @@ def eval_command(
     from ..device import resolve_device
     from ..eval.cameras import load_cameras_json, orbit_cameras, parse_up
     from ..eval.evaluate import evaluate, format_table, write_images
+    from ..eval.units import render_offset, rescaled, rescaled_camera
     from ..io import load_splats
     from ..kernel_cache import EVAL_MODULES, load_kernels
 
@@ -83,11 +84,14 @@ def eval_command(
     load_kernels(target, EVAL_MODULES)  # says so in one line when they must be compiled first
 
     ref_splats = load_splats(reference, device=target)
+    test_splats = [load_splats(path, device=target) for path in tests]
+    offset = render_offset(ref_splats)  # a scene far from the origin for its size: seen recentred
+    if offset is not None:
+        ref_splats, test_splats = rescaled(ref_splats, 1.0, offset), [rescaled(t, 1.0, offset) for t in test_splats]
     if cameras is not None:
-        camera_list = load_cameras_json(cameras, size=size or None)
+        camera_list = [rescaled_camera(c, 1.0, offset) for c in load_cameras_json(cameras, size=size or None)]
     else:
         camera_list = orbit_cameras(ref_splats, views=views, size=size, up=up)
-    test_splats = [load_splats(path, device=target) for path in tests]
     rendered: dict = {}
     progress = _Progress(sys.stderr.isatty() and not quiet)
     result = evaluate(ref_splats, test_splats, camera_list, target, bg, names=[str(p) for p in tests], images=rendered,

@@ -1,6 +1,8 @@
-"""The units a scene is rendered in. The rasterisers work in float32, where the squares of
-coordinates and scales beyond about 1e19 overflow and those below 1e-19 vanish; a scene stored in
-such units is rendered rescaled by a power of two, cameras and all (``eval`` and ``--refine``)."""
+"""The units and the origin a scene is rendered in. The rasterisers work in float32, where the
+squares of coordinates and scales beyond about 1e19 overflow and those below 1e-19 vanish; a scene
+stored in such units is rendered rescaled by a power of two, cameras and all (``eval`` and
+``--refine``). A scene far from the origin for its size (a small object at 1e20) is rendered
+recentred: there float32, and even float64, cannot tell a camera's position from the centre."""
 
 from __future__ import annotations
 
@@ -15,6 +17,16 @@ from .cameras import Camera, scene_frame
 
 # Orbit radii (``scene_frame``) of scenes rendered in their own units: inside, nothing changes.
 RENDERED_RADIUS = (2.0**-40, 2.0**40)
+# A scene whose centre lies further from the origin than this many orbit radii is rendered recentred:
+# float32 coordinates there still resolve 1/4000 of the radius (2^-24 x 2^12).
+FAR_CENTRE = 2.0**12
+
+
+def render_offset(reference: SplatSet) -> np.ndarray | None:
+    """None, or the reference's centre (``scene_frame``) where it lies more than FAR_CENTRE orbit
+    radii from the origin: the point ``eval`` and the refinement then render every scene around."""
+    centre, radius = scene_frame(reference.means.numpy())
+    return centre if float(np.max(np.abs(centre))) > FAR_CENTRE * radius else None
 
 
 def render_units(reference: SplatSet) -> float:
@@ -27,18 +39,28 @@ def render_units(reference: SplatSet) -> float:
     return math.ldexp(1.0, -math.frexp(radius)[1])
 
 
-def rescaled(splats: SplatSet, scale: float) -> SplatSet:
-    """``splats`` with centres times ``scale`` (a power of two: exact, clamped to float32's range)
-    and log-scales plus log(scale): the same scene in other units."""
-    if scale == 1.0:
+def rescaled(splats: SplatSet, scale: float, offset: np.ndarray | None = None) -> SplatSet:
+    """``splats`` with centres (x - offset) times ``scale`` (in float64; with a power of two and no
+    offset exact; clamped to float32's range) and log-scales plus log(scale): the same scene in
+    other units, around another origin."""
+    if scale == 1.0 and offset is None:
         return splats
     limit = float(np.finfo(np.float32).max)
-    means = np.clip(splats.means.numpy().astype(np.float64) * scale, -limit, limit).astype(np.float32)
-    log_scales = (splats.log_scales.numpy().astype(np.float64) + math.log(scale)).astype(np.float32)
+    means = splats.means.numpy().astype(np.float64)
+    if offset is not None:
+        means -= np.asarray(offset, np.float64)
+    means = np.clip(means * scale, -limit, limit).astype(np.float32)
     device = splats.device
-    return replace(splats, means=wp.array(means, dtype=wp.vec3, device=device), log_scales=wp.array(log_scales, dtype=wp.vec3, device=device))
+    out = replace(splats, means=wp.array(means, dtype=wp.vec3, device=device))
+    if scale != 1.0:
+        log_scales = (splats.log_scales.numpy().astype(np.float64) + math.log(scale)).astype(np.float32)
+        out = replace(out, log_scales=wp.array(log_scales, dtype=wp.vec3, device=device))
+    return out
 
 
-def rescaled_camera(camera: Camera, scale: float) -> Camera:
-    """``camera`` in a world scaled by ``scale``: the same view of the rescaled scene."""
-    return replace(camera, translation=np.asarray(camera.translation, np.float64) * scale, near=camera.near * scale)
+def rescaled_camera(camera: Camera, scale: float, offset: np.ndarray | None = None) -> Camera:
+    """``camera`` in the world of ``rescaled(..., scale, offset)``: the same view of that scene."""
+    translation = np.asarray(camera.translation, np.float64)
+    if offset is not None:
+        translation = translation + np.asarray(camera.rotation, np.float64) @ np.asarray(offset, np.float64)
+    return replace(camera, translation=translation * scale, near=camera.near * scale)

@@ -21,7 +21,7 @@ import numpy as np
 import warp as wp
 
 from ..eval.render import _Rasteriser
-from ..eval.units import render_units, rescaled
+from ..eval.units import render_offset, render_units, rescaled
 from ..kernels import adam as adam_kernels
 from ..parallel import launch_rows_from
 from ..splats import SplatSet
@@ -204,8 +204,11 @@ def refine_with_report(
         report.seconds = time.perf_counter() - started
         return out, report
 
-    scale = render_units(reference)  # a scene in units of ~1e20 or ~1e-20: optimised rescaled (eval/units.py)
-    refiner = _Refiner(rescaled(simplified, scale), rescaled(reference, scale), config, device)
+    # a scene in units of ~1e20 or ~1e-20, or far from the origin for its size: optimised rescaled
+    # and recentred (eval/units.py), and handed back where it was
+    offset = render_offset(reference)
+    scale = render_units(rescaled(reference, 1.0, offset))
+    refiner = _Refiner(rescaled(simplified, scale, offset), rescaled(reference, scale, offset), config, device)
     try:
         pool = max(1, min(config.reference_views, config.steps * config.views_per_step))
         cameras = training_cameras(refiner.reference.means.numpy(), pool, config.size, config.seed)
@@ -262,7 +265,7 @@ def refine_with_report(
             for target, source in zip(refiner.splats.arrays(), best.arrays()):
                 wp.copy(target, source)
         report.loss_after = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
-        out = rescaled(best, 1.0 / scale)
+        out = rescaled(best, 1.0 / scale, None if offset is None else -offset * scale)
     finally:
         refiner.close()
     wp.synchronize_device(device)
