@@ -287,18 +287,18 @@ def test_ray_tasks_write_the_same_bytes(local_ray, scenes, tmp_path):
 
 
 def test_a_dead_worker_fails_its_scene_and_is_replaced(tmp_path):
-    """The worker blocks reading a FIFO scene; killing it fails that scene alone, and a new worker
-    takes the scene still waiting."""
+    """The worker is busy with a large scene (seconds on a CPU); killing it fails that scene alone,
+    and a new worker takes the scenes still waiting."""
     root = tmp_path / "in"
     root.mkdir()
     random_splats_ply(root / "big.ply", 300)
-    os.mkfifo(root / "a_fifo.ply")  # size 0: after big.ply; before z_empty.ply by name
+    random_splats_ply(root / "a_slow.ply", 120_000)  # the largest: started first
     (root / "z_empty.ply").write_bytes(b"")
     command = [sys.executable, "-m", "nanogs_warp.cli.batch", str(root), "-o", str(tmp_path / "out"),
                "--count", "10", "--devices", "cpu", "--json"]  # fmt: skip
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     for line in process.stderr:
-        if "a_fifo.ply: started" in line:
+        if "a_slow.ply: started" in line:
             break
     workers = subprocess.run(["pgrep", "-P", str(process.pid), "-f", "spawn_main"], capture_output=True, text=True)
     worker = [int(pid) for pid in workers.stdout.split()]
@@ -308,7 +308,7 @@ def test_a_dead_worker_fails_its_scene_and_is_replaced(tmp_path):
     assert process.returncode == 1
     summary = {s["relative"]: s for s in json.loads(out)["scenes"]}
     assert summary["big.ply"]["status"] == "done"
-    assert summary["a_fifo.ply"]["error"] == "the worker process died (killed by SIGKILL); out of memory?"
+    assert summary["a_slow.ply"]["error"] == "the worker process died (killed by SIGKILL); out of memory?"
     assert summary["z_empty.ply"]["status"] == "failed" and "died" not in summary["z_empty.ply"]["error"]
 
 
