@@ -26,6 +26,7 @@ import plyfile
 
 from ..domain import LOG_SCALE_LIMIT
 from ..errors import InputError
+from .open_file import open_regular
 from .ply_header import (
     DC_NAMES,
     MAX_HEADER_BYTES,
@@ -47,7 +48,6 @@ from .ply_header import (
 from .ply_layout import PlyLayout
 from .ply_write import atomic_write, output_properties
 from .ply_write import write_ply_stream as _write_ply_stream  # by this name: the tests patch it here
-from .open_file import open_regular
 from .ply_read import BlockCheck, Columns, copy_run, read_threads, read_vertex_rows, unit_size
 
 if TYPE_CHECKING:
@@ -449,8 +449,6 @@ def _describe_invalid(check: ValueCheck) -> str:
         props = ", ".join(sorted(check.out_of_domain_by_property))
         parts.append(f"{n_od} with log-scales outside [-{LOG_SCALE_LIMIT:g}, {LOG_SCALE_LIMIT:g}] in {props}")
     return "; ".join(parts)
-
-
 
 
 # ----------------------------------------------------------------------------------------------

@@ -23,7 +23,6 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .open_file import open_regular
 from .codebook import kmeans_1d, kmeans_rows
 from .common import (
     SQRT1_2,
@@ -34,6 +33,7 @@ from .common import (
     opacity_to_byte,
     smallest_three,
 )
+from .open_file import open_regular
 
 MAX_SH_DEGREE = 3
 PALETTE_LIMIT = 65536
