@@ -98,6 +98,8 @@ class WarpStart:
 
     def __init__(self, name: str, modules: tuple[str, ...] = (), announce: bool = True):
         self._device = None
+        self._resolved_device = None
+        self._resolved = threading.Event()
         self._error: BaseException | None = None
         self.stages: dict[str, float] = {}
         self._thread = threading.Thread(target=self._run, args=(name, modules, announce), name="nanogs-warp-start", daemon=True)
@@ -106,7 +108,10 @@ class WarpStart:
     def _run(self, name: str, modules, announce: bool) -> None:
         try:
             begun = time.perf_counter()
-            device = resolve_device(name)
+            try:
+                device = self._resolved_device = resolve_device(name)
+            finally:
+                self._resolved.set()
             ready = time.perf_counter()
             if modules:
                 from .kernel_cache import load_kernels
@@ -119,6 +124,12 @@ class WarpStart:
 
     def wait(self) -> None:
         self._thread.join()
+
+    def resolved_device(self):
+        """The device once Warp has started, before the kernels are loaded (None if that failed;
+        ``device()`` then raises the error)."""
+        self._resolved.wait()
+        return self._resolved_device
 
     def device(self):
         self._thread.join()

@@ -111,6 +111,7 @@ def simplify(
     from ..device import WarpStart, keep_freed_host_memory, process_age
     from ..io import format_for_path, output_files, read_any_splats, save_levels
     from ..io.ply import splats_from_host
+    from ..io.row_upload import RowUpload
 
     config = opts.method_config(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
@@ -158,19 +159,22 @@ def simplify(
 
     stages["warp_import"] = time.perf_counter() - started
     warp_start = WarpStart(device, modules=modules, announce=not quiet)
+    upload = RowUpload(warp_start.resolved_device)  # a binary PLY's rows go to the GPU as they are read
     try:
         read_begun = time.perf_counter()
-        arrays, layout = read_any_splats(input, drop_invalid=drop_invalid, on_drop=notes)
+        arrays, layout = read_any_splats(input, drop_invalid=drop_invalid, on_drop=notes, upload=upload)
         read_done = time.perf_counter()
         stages["read"] = read_done - read_begun
         target_device = warp_start.device()
     except BaseException:
+        upload.cancel()
         warp_start.wait()
         raise
     loaded = time.perf_counter()
     stages["warp_wait"] = loaded - read_done  # what the read did not hide of Warp's start
     stages.update(warp_start.stages)
-    splats = splats_from_host(arrays, layout)
+    uploaded = upload.splats(arrays, layout)
+    splats = uploaded if uploaded is not None else splats_from_host(arrays, layout)
     del arrays
     targets = {budget: budget.target(splats.count) for budget in budgets}
     progress = _PassProgress(sys.stderr.isatty() and not quiet and not json_output, max(targets.values()))

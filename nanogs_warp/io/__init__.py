@@ -124,12 +124,14 @@ def load_splats(path, device="cpu", drop_invalid: bool = False, on_drop=None) ->
     return splats_from_host(arrays, layout, device)
 
 
-def read_any_splats(path, drop_invalid: bool = False, on_drop=None) -> tuple[dict[str, np.ndarray], PlyLayout]:
+def read_any_splats(path, drop_invalid: bool = False, on_drop=None, upload=None) -> tuple[dict[str, np.ndarray], PlyLayout]:
     """load_splats' part on the host, without Warp: the checked host arrays (quaternions
-    normalised) and the layout; :func:`nanogs_warp.io.ply.splats_from_host` makes them a SplatSet."""
+    normalised) and the layout; :func:`nanogs_warp.io.ply.splats_from_host` makes them a SplatSet.
+    ``upload`` (a :class:`~nanogs_warp.io.row_upload.RowUpload`) is handed a binary PLY's rows as
+    they are read."""
     path = Path(path)
     if detect_format(path) == "ply":
-        return read_splats(path, drop_invalid=drop_invalid, on_drop=on_drop)
+        return read_splats(path, drop_invalid=drop_invalid, on_drop=on_drop, upload=upload)
     data = read_splat_arrays(path)
     a = checked_rows(data.arrays, path.name, drop_invalid, on_drop)
     a["rotations"] = normalize_quaternions(a["rotations"])

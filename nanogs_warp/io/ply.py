@@ -80,13 +80,15 @@ def load_ply(path, device="cpu", drop_invalid: bool = False, on_drop=None, diges
 
 
 def read_splats(path, drop_invalid: bool = False, digest=None, on_drop=None, file_hash=None,
-                threads: int | None = None) -> tuple[dict[str, np.ndarray], PlyLayout]:
+                threads: int | None = None, upload=None) -> tuple[dict[str, np.ndarray], PlyLayout]:
     """load_ply's part on the host, without Warp: the checked host arrays and the layout;
     ``splats_from_host`` makes them a :class:`SplatSet`. The arrays have ``PlyArrays``' names,
     except that the normalised quaternions are either ``rotations`` (w first) or, from a binary
-    file, ``quats_xyzw`` (Warp's x, y, z, w order, which a SplatSet on the CPU then shares)."""
+    file, ``quats_xyzw`` (Warp's x, y, z, w order, which a SplatSet on the CPU then shares).
+    ``upload`` (a :class:`~nanogs_warp.io.row_upload.RowUpload`), if given, is handed a binary
+    file's rows as they are read."""
     name = Path(path).name
-    data = _read(path, digest, file_hash, threads, prepare=True)
+    data = _read(path, digest, file_hash, threads, prepare=True, upload=upload)
     a, check = data.arrays, data.check
     if check is not None and not check.suspect:  # every value checked block by block: valid
         if check.infinite_opacity:
@@ -241,7 +243,7 @@ def read_ply_arrays(path, digest=None, file_hash=None, threads: int | None = Non
     return _read(path, digest, file_hash, threads, prepare=False)
 
 
-def _read(path, digest, file_hash, threads, prepare: bool) -> PlyArrays:
+def _read(path, digest, file_hash, threads, prepare: bool, upload=None) -> PlyArrays:
     path = Path(path)
     name = path.name
     header = None
@@ -256,7 +258,7 @@ def _read(path, digest, file_hash, threads, prepare: bool) -> PlyArrays:
             ply = plyfile.PlyData.read(str(path), mmap="r")
             check_agreement(header, ply, name)
             with np.errstate(all="ignore"):
-                return _extract(header, vertex_h, ply, path, f, file_bytes, digest, file_hash, threads, prepare)
+                return _extract(header, vertex_h, ply, path, f, file_bytes, digest, file_hash, threads, prepare, upload)
     except (InputError, MemoryError):
         raise
     except OSError as e:
@@ -323,7 +325,7 @@ def sh_degree_for_rest_count(count: int) -> int:
 
 
 def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path, f, file_bytes: int,
-             digest=None, file_hash=None, threads=None, prepare: bool = False) -> PlyArrays:
+             digest=None, file_hash=None, threads=None, prepare: bool = False, upload=None) -> PlyArrays:
     """The vertex columns as host arrays (float32; int64 for integer extras). A binary vertex element
     at a known offset is read from the file by :func:`~nanogs_warp.io.ply_read.read_vertex_rows` on several threads (with
     ``prepare``: checked block by block and quaternions normalised, as ``quats_xyzw``); otherwise
@@ -359,9 +361,11 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     threads = read_threads(file_bytes, threads)
     check = None
     if direct:
+        if upload is not None:
+            upload.begin(arrays)
         found = read_vertex_rows(f.fileno(), file_bytes, offset, n, itemsize, columns, threads,
                                  unit_size(file_bytes, threads, _READ_UNIT_BYTES),
-                                 prepare, file_hash, digest)  # fmt: skip
+                                 prepare, file_hash, digest, upload.rows if upload is not None else None)  # fmt: skip
         check = found if prepare else None
     else:
         if digest is not None or file_hash is not None:  # a pass of its own

@@ -216,14 +216,15 @@ class BlockCheck:
 
 def read_vertex_rows(fd: int, file_bytes: int, vertex_offset: int, rows: int, itemsize: int,
                      columns: dict[str, Columns], threads: int, unit_bytes: int, prepare: bool = False,
-                     hasher: PieceHash | None = None, digest=None) -> BlockCheck:  # fmt: skip
+                     hasher: PieceHash | None = None, digest=None, on_rows=None) -> BlockCheck:  # fmt: skip
     """Fills every ``columns[...].out`` from the file's vertex records (``rows`` records of
     ``itemsize`` bytes from byte ``vertex_offset``), on ``threads`` threads. ``hasher`` (a
     :class:`PieceHash`) or ``digest`` (a hashlib object, fed in order: one thread) is fed every
     byte of the file. With ``prepare``, ``columns`` must hold ``quats_xyzw`` (x, y, z, w), which
     is normalised in place as :func:`nanogs_warp.ply.normalize_quaternions` does (rows that are
     zero or not finite are left as they are), and every block's values are checked: the result
-    says whether any may be invalid."""
+    says whether any may be invalid. ``on_rows(first, stop)``, if given, is called (on the reader's
+    thread) as soon as rows [first, stop) of every column are filled, checked and normalised."""
     if hasher is not None and hasher.file_bytes != file_bytes:
         raise ValueError("the file changed while it was read")
     if hasher is not None or digest is not None:
@@ -246,7 +247,10 @@ def read_vertex_rows(fd: int, file_bytes: int, vertex_offset: int, rows: int, it
             out = plan.out[first:stop]
             for i, j, dt, off in plan.runs:
                 copy_run(out[:, i:j], raw[:, off : off + (j - i) * dt.itemsize], dt)
-        return check_block(columns, first, stop) if prepare else None
+        found = check_block(columns, first, stop) if prepare else None
+        if on_rows is not None:
+            on_rows(first, stop)
+        return found
 
     check = BlockCheck()
     with np.errstate(all="ignore"):
