@@ -393,3 +393,11 @@ def test_a_pipe_among_the_scenes_fails_alone_at_once(scenes, tmp_path):
     summary = run_json(scenes, "-o", tmp_path / "out", "--ratio", "0.1", code=1)
     assert summary["pipe.ply"]["status"] == "failed" and "not a regular file" in summary["pipe.ply"]["error"]
     assert all(summary[rel]["status"] == "done" for rel in SCENES)
+
+
+def test_a_folder_whose_scenes_all_fail_gets_no_output_folder(scenes, tmp_path):
+    (scenes / "broken").mkdir()
+    (scenes / "broken" / "x.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n")
+    summary = run_json(scenes, "-o", tmp_path / "out", "--ratio", "0.1", code=1)
+    assert summary["broken/x.ply"]["status"] == "failed"
+    assert not (tmp_path / "out" / "broken").exists() and (tmp_path / "out" / "room" / "sub").is_dir()

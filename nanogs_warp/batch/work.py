@@ -209,7 +209,6 @@ def _read(scene: LoadedScene, force: bool) -> None:
                               for o in record["outputs"]]  # fmt: skip
             return
 
-    job.out_dir.mkdir(parents=True, exist_ok=True)
     _remove_leftovers(job)  # the old record first: from here on, no record describes these outputs
     if detect_format(job.input) == "ply":  # hashed as it is parsed, by the threads that read it
         hasher = None if scene.sha else PieceHash(scene.size)
@@ -228,6 +227,7 @@ def _write(scene: LoadedScene) -> None:
     from ..io import save_splats
 
     job, result = scene.job, scene.result
+    job.out_dir.mkdir(parents=True, exist_ok=True)  # here: a scene that fails leaves no empty folder
     outputs = []
     for _, simplified, budgets in scene.simplified:
         for budget in budgets:
@@ -312,6 +312,8 @@ def write_json_atomic(path: Path, data: dict) -> None:
 def _remove_leftovers(job: SceneJob) -> None:
     """Deletes the scene's record and the temporary files a killed run of it may have left
     (``.<name>.<random>.tmp`` beside each output; shards never share a scene, so none is live)."""
+    if not job.out_dir.is_dir():
+        return
     job.record_path.unlink(missing_ok=True)
     names = {job.record_path.name} | {job.output_path(b).name for b in job.budgets}
     for entry in os.scandir(job.out_dir):
