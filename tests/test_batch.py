@@ -373,16 +373,24 @@ def test_a_scene_past_its_time_limit_fails_alone(scenes_and_a_spinner, tmp_path,
     check_spinner_timed_out(summary, clean, out, 6, "its worker process was replaced")
 
 
-def test_ray_task_past_its_time_limit_is_cancelled(scenes_and_a_spinner, tmp_path, monkeypatch):
-    """As above with Ray tasks (a private local Ray started with the spinning scene named in its
-    environment; kept last in this file, since it shuts down the shared Ray first)."""
-    ray = pytest.importorskip("ray")
-    (root, clean), out = scenes_and_a_spinner, tmp_path / "out"
-    monkeypatch.setenv(SPIN, "spin.ply")
-    if ray.is_initialized():
-        ray.shutdown()
-    summary = run_json(root, "-o", out, "--ratio", "0.1,0.01", "--scene-timeout", "20", "--ray", "local", code=1)
-    check_spinner_timed_out(summary, clean, out, 20, "its Ray task was cancelled")
+def test_a_batch_whose_last_scene_times_out_ends(scenes_and_a_spinner, tmp_path):
+    """The only worker is stopped at the time limit with nothing left to do: the batch ends (it used
+    to wait for ever on no worker at all). In a child process, so that a regression fails, not hangs."""
+    root, _ = scenes_and_a_spinner
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    (alone / "spin.ply").write_bytes((root / "spin.ply").read_bytes())
+    command = [sys.executable, "-m", "nanogs_warp.cli.batch", str(alone), "-o", str(tmp_path / "out"), "--ratio", "0.1",
+               "--devices", "cpu", "--scene-timeout", "3", "--json"]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=120, env={**os.environ, SPIN: "spin.ply"})
+    assert done.returncode == 1, done.stderr
+    (scene,) = json.loads(done.stdout)["scenes"]
+    assert scene["status"] == "failed" and "timed out after 3 s" in scene["error"]
+
+
+def test_more_workers_than_scenes_start_one_per_scene(scenes, tmp_path):
+    summary = run_json(scenes, "-o", tmp_path / "out", "--ratio", "0.1", "--workers", str(10**20))
+    assert {s["status"] for s in summary.values()} == {"done"}
 
 
 
@@ -401,3 +409,15 @@ def test_a_folder_whose_scenes_all_fail_gets_no_output_folder(scenes, tmp_path):
     summary = run_json(scenes, "-o", tmp_path / "out", "--ratio", "0.1", code=1)
     assert summary["broken/x.ply"]["status"] == "failed"
     assert not (tmp_path / "out" / "broken").exists() and (tmp_path / "out" / "room" / "sub").is_dir()
+
+
+def test_ray_task_past_its_time_limit_is_cancelled(scenes_and_a_spinner, tmp_path, monkeypatch):
+    """As above with Ray tasks (a private local Ray started with the spinning scene named in its
+    environment; kept last in this file, since it shuts down the shared Ray first)."""
+    ray = pytest.importorskip("ray")
+    (root, clean), out = scenes_and_a_spinner, tmp_path / "out"
+    monkeypatch.setenv(SPIN, "spin.ply")
+    if ray.is_initialized():
+        ray.shutdown()
+    summary = run_json(root, "-o", out, "--ratio", "0.1,0.01", "--scene-timeout", "20", "--ray", "local", code=1)
+    check_spinner_timed_out(summary, clean, out, 20, "its Ray task was cancelled")

@@ -212,7 +212,7 @@ def run_local(
         limit = scene_timeout(worker.jobs[0], worker.device != "cpu", timeout_s)
         return None if limit is None else worker.head_since + limit
 
-    for _ in range(workers_per_device):
+    for _ in range(min(workers_per_device, len(pending))):  # never more workers than scenes
         for device in devices:
             if len(workers) < len(pending):
                 start(device)
@@ -240,6 +240,8 @@ def run_local(
                         worker.process.join()
                         reap(worker, timed_out=(worker.jobs[0], error, seconds))
             live = [w for w in workers.values() if not w.reaped]
+            if not live:  # the last worker was stopped past its time limit: done, or none left
+                continue
             deadlines = [d for d in map(deadline, live) if d is not None]
             wait_s = max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
             by_handle = {w.conn: w for w in live if not w.closed} | {w.process.sentinel: w for w in live}
