@@ -232,3 +232,25 @@ def test_an_empty_output_is_refused(scene, tmp_path, monkeypatch):
     result = run("simplify", scene, "-o", "", "--ratio", "0.5,0.1", "--device", "cpu")
     assert result.exit_code == 2 and "give an output path with -o/--output" in result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this platform")
+def test_overwrite_never_replaces_what_is_not_a_regular_file(scene, tmp_path):
+    """-o /dev/null -w, run as root, would have replaced the device node with a regular file."""
+    fifo = tmp_path / "pipe.ply"
+    os.mkfifo(fifo)
+    link = tmp_path / "link.ply"
+    link.symlink_to(fifo)
+    for target in (fifo, link):
+        result = run("simplify", scene, "-o", target, "--ratio", "0.5", "--device", "cpu", "-w")
+        assert result.exit_code == 2 and "exists and is not a regular file" in result.output
+    assert fifo.is_fifo() and link.is_symlink()
+
+
+def test_output_names_too_long_to_write_are_refused_first(scene, tmp_path):
+    """A name is written beside a temporary with 18 more bytes: 237 bytes at most (names of 238-255
+    bytes failed late, and longer ones were an internal error)."""
+    for length in (238, 300):
+        result = run("simplify", scene, "-o", tmp_path / ("x" * (length - 4) + ".ply"), "--ratio", "0.5", "--device", "cpu")
+        assert result.exit_code == 2 and f"is {length} bytes long; at most 237 can be written" in result.output
+    assert run("simplify", scene, "-o", tmp_path / ("y" * 233 + ".ply"), "--ratio", "0.5", "--device", "cpu", "-q").exit_code == 0

@@ -129,7 +129,7 @@ def simplify(
         raise InputError("give an output path with -o/--output (a file, or a folder ending in /)")
     fmt = format_for_path(output, output_format)
     lod_set = fmt == "lod"
-    if lod_set and Path(output).is_dir():
+    if lod_set and _is_folder(output):
         output = str(Path(output) / "lod-meta.json")
     if fmt == "sog" and Path(output).suffix.lower() == ".json" and len(budgets) > 1:
         raise InputError(f"{Path(output).name}: several budgets cannot share one unbundled SOG folder; "
@@ -381,12 +381,23 @@ def _output_paths(output: str, input: Path, budgets: list[Budget], output_format
     """The file of each budget, and the folder to write into when -o names one (ends in a separator
     or is an existing directory): FOLDER/<input stem>_<budget><ext> for each budget, the extension
     of --format (.ply without it)."""
-    if output.endswith(("/", os.sep)) or Path(output).is_dir():
+    if output.endswith(("/", os.sep)) or _is_folder(output):
         folder = Path(output)
         ext = _EXTENSIONS.get(output_format or "ply", ".ply")
         stem = input.name.split(".")[0] if input.name.lower().endswith(".compressed.ply") else input.stem
         return {b: folder / f"{stem}_{b.label}{ext}" for b in budgets}, folder
     return output_paths(Path(output), budgets), None
+
+
+def _is_folder(path: str) -> bool:
+    """Whether ``path`` names an existing folder (False for a name too long to be one)."""
+    try:
+        return Path(path).is_dir()
+    except OSError:
+        return False
+
+
+_LONGEST_OUTPUT_NAME = 255 - 18  # a file name's bytes on common file systems, less the temporary's additions
 
 
 def _check_outputs(input: Path, outputs: list[Path], overwrite: bool = False, folder: Path | None = None,
@@ -398,6 +409,10 @@ def _check_outputs(input: Path, outputs: list[Path], overwrite: bool = False, fo
     the input's files, nor exist without ``overwrite``."""
     from ..io import input_files
 
+    for path in written or outputs:  # written beside a temporary ".<name>.<12 hex>.tmp" (18 more bytes)
+        if len(os.fsencode(path.name)) > _LONGEST_OUTPUT_NAME:
+            raise InputError(f"output name {path.name[:40]}... is {len(os.fsencode(path.name))} bytes long; "
+                             f"at most {_LONGEST_OUTPUT_NAME} can be written")  # fmt: skip
     input_resolved = input.resolve()
     inputs = {p.resolve() for p in input_files(input)}
     if folder is not None and not folder.is_dir():
@@ -424,6 +439,8 @@ def _check_outputs(input: Path, outputs: list[Path], overwrite: bool = False, fo
             raise InputError(f"output {path} is one of the input's files; choose another output path")
         if path.exists() and not overwrite:
             raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it")
+        if path.exists() and not path.is_file():  # -w never replaces a device, a FIFO or a socket
+            raise InputError(f"output {path} exists and is not a regular file; choose another output path")
 
 
 app.command("info", epilog=examples(
