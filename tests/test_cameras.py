@@ -155,3 +155,50 @@ def test_load_cameras_json_rejects_bad_files(tmp_path, text, message):
         load_cameras_json(path)
     with pytest.raises(InputError, match="cannot read"):
         load_cameras_json(tmp_path / "missing.json")
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"width": float("inf")}, "malformed"),  # JSON Infinity: int() of it overflowed, an internal error
+        ({"width": True}, "malformed"),
+        ({"width": 1600.5}, "malformed"),
+        ({"fx": 1e308}, "non-positive size or focal length"),
+        ({"fx": float("inf")}, "non-positive size or focal length"),
+        ({"rotation": [[1, 2, 3], [4, 5, 6], [7, 8, 10]]}, "is not a rotation"),
+        ({"rotation": [[0, 0, 0], [0, 0, 0], [0, 0, 0]]}, "is not a rotation"),
+        ({"rotation": [[-1, 0, 0], [0, 1, 0], [0, 0, 1]]}, "is not a rotation"),  # a reflection
+        ({"position": [1e300, 0, 0]}, "beyond float32"),
+        ({"width": 10, "height": 10}, "renders 10 x 10 pixels"),  # SSIM's window is 11 a side
+        ({"width": 9000, "height": 100}, "renders 9000 x 100 pixels"),
+        ({"width": 10**30}, "renders"),
+    ],
+)
+def test_load_cameras_json_rejects_cameras_no_render_can_use(tmp_path, rng, change, message):
+    """Cameras eval cannot render or compare: one line each, before anything is rendered (they were
+    internal errors, or rendered black and reported 'identical')."""
+    path = tmp_path / "cameras.json"
+    path.write_text(json.dumps([inria_entry(rng, 0, width=200, height=100) | change]))
+    with pytest.raises(InputError, match=message):
+        load_cameras_json(path)
+
+
+def test_eval_sizes_and_view_counts_are_bounded(tmp_path, rng):
+    path = tmp_path / "cameras.json"
+    path.write_text(json.dumps([inria_entry(rng, k, width=8000, height=6000) for k in range(6)]))
+    with pytest.raises(InputError, match="pixels over all views is more than"):
+        load_cameras_json(path)  # 288 M pixels
+    assert len(load_cameras_json(path, size=256)) == 6
+    for size in (10, 0, 8193):
+        with pytest.raises(InputError, match="--size"):
+            load_cameras_json(path, size=size) if size else orbit_cameras(np.zeros((3, 3)), size=size)
+    means = np.zeros((3, 3))
+    with pytest.raises(InputError, match="--views 4097"):
+        orbit_cameras(means, views=4097)
+    with pytest.raises(InputError, match="pixels over all views"):
+        orbit_cameras(means, views=4096, size=512)
+    with pytest.raises(InputError, match="--size 10"):
+        orbit_cameras(means, size=10)
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    with pytest.raises(InputError, match="nested too deeply"):
+        load_cameras_json(path)

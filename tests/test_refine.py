@@ -181,3 +181,12 @@ def test_a_scene_far_from_the_origin_refines_as_at_the_origin():
     got, want = out.to_numpy(), plain.to_numpy()
     np.testing.assert_allclose(got["means"].astype(np.float64) - offset, want["means"], atol=0.25)  # float32 steps there: 1/8
     np.testing.assert_allclose(got["log_scales"], want["log_scales"], atol=1e-5)
+
+
+@pytest.mark.parametrize("steps, size, message", [(100_001, 256, "--refine-steps"), (10**20, 256, "--refine-steps"),
+                                                  (10, 4097, "--refine-size"), (10, 20_000, "--refine-size")])  # fmt: skip
+def test_refinement_sizes_and_steps_are_bounded(steps, size, message):
+    """--refine-size 20000 ran the machine out of memory, and a step count of 1e20 never ended."""
+    with pytest.raises(InputError, match=message):
+        RefineConfig(steps=steps, size=size).validate()
+    RefineConfig(steps=100_000, size=4096).validate()

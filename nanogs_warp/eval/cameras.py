@@ -19,6 +19,12 @@ from ..io.common import read_file_bytes
 from ..splats import SplatSet
 
 NEAR = 0.2  # INRIA's near plane, in world units
+# Image sizes eval renders: at least the SSIM window (11 pixels) a side; at most 8192 a side and
+# 2^28 pixels over all views (3 GB of float32 RGB for the reference's images, as much again per test).
+MIN_SIDE = 11
+MAX_SIDE = 8192
+MAX_PIXELS = 1 << 28
+MAX_VIEWS = 4096
 NEAR_FRACTION = 0.1  # of the distance cameras keep from a scene's centre (``near_plane``)
 
 UP_AXES = {
@@ -104,6 +110,12 @@ def scene_frame(means: np.ndarray) -> tuple[np.ndarray, float]:
     return centre, 2.2 * spread if spread > 0 else 1.0
 
 
+def check_pixels(total: int) -> None:
+    """Refuses renders of more than MAX_PIXELS pixels over all views."""
+    if total > MAX_PIXELS:
+        raise InputError(f"{total:,} pixels over all views is more than the {MAX_PIXELS:,} eval renders; use fewer or smaller views")
+
+
 def fibonacci_directions(count: int, up: np.ndarray) -> np.ndarray:
     """``count`` unit vectors spread evenly on the sphere (Fibonacci lattice), the first near ``up``."""
     i = np.arange(count, dtype=np.float64) + 0.5
@@ -131,10 +143,11 @@ def orbit_cameras(
     ``splats`` is a SplatSet or an (N, 3) array of centres. Derive the cameras from the reference scene
     only, so that every scene compared is seen by identical cameras.
     """
-    if views < 1:
-        raise InputError(f"--views {views}: need at least one view")
-    if size < 1:
-        raise InputError(f"--size {size}: need at least one pixel")
+    if not 1 <= views <= MAX_VIEWS:
+        raise InputError(f"--views {views}: need 1 to {MAX_VIEWS} views")
+    if not MIN_SIDE <= size <= MAX_SIDE:
+        raise InputError(f"--size {size}: must be {MIN_SIDE} to {MAX_SIDE} pixels (SSIM needs {MIN_SIDE} a side)")
+    check_pixels(views * size * size)
     if not 0.0 < fov_y_deg < 180.0:
         raise InputError(f"field of view {fov_y_deg} degrees: expected (0, 180)")
     up_vector = parse_up(up)
@@ -160,27 +173,45 @@ def load_cameras_json(path: Path | str, size: int | None = None) -> list[Camera]
         raise InputError(f"cannot read cameras {path}: {str(e).split(': ', 1)[-1]}") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise InputError(f"cameras {path} is not JSON: {e}") from None
+    except RecursionError:
+        raise InputError(f"cameras {path}: nested too deeply to be a list of cameras") from None
     if not isinstance(entries, list) or not entries:
         raise InputError(f"cameras {path}: expected a non-empty JSON list of cameras")
-    if size is not None and size < 1:
-        raise InputError(f"--size {size}: need at least one pixel")
+    if size is not None and not MIN_SIDE <= size <= MAX_SIDE:
+        raise InputError(f"--size {size}: must be {MIN_SIDE} to {MAX_SIDE} pixels (SSIM needs {MIN_SIDE} a side)")
+    if len(entries) > MAX_VIEWS * 16:
+        raise InputError(f"cameras {path}: {len(entries):,} cameras; eval renders at most {MAX_VIEWS * 16:,}")
     cameras = []
+    limit = float(np.finfo(np.float32).max)
     for k, entry in enumerate(entries):
         try:
-            width, height = int(entry["width"]), int(entry["height"])
+            width, height = _whole(entry["width"]), _whole(entry["height"])
             fx, fy = float(entry["fx"]), float(entry["fy"])
             position = np.asarray(entry["position"], np.float64).reshape(3)
             c2w = np.asarray(entry["rotation"], np.float64).reshape(3, 3)
             name = str(entry.get("img_name", entry.get("id", k)))
-        except (KeyError, TypeError, ValueError) as e:
+        except (KeyError, TypeError, ValueError, OverflowError) as e:
             raise InputError(f"cameras {path}: camera {k} is malformed ({type(e).__name__}: {e})") from None
-        if width < 1 or height < 1 or not (fx > 0 and fy > 0) or not np.isfinite(np.r_[position, c2w.ravel()]).all():
+        if width < 1 or height < 1 or not (0 < fx < limit and 0 < fy < limit) or not np.isfinite(np.r_[position, c2w.ravel()]).all():
             raise InputError(f"cameras {path}: camera {k} has a non-positive size or focal length or a non-finite pose")
+        if np.abs(position).max() >= limit or np.abs(c2w @ c2w.T - np.eye(3)).max() > 1e-3 or np.linalg.det(c2w) < 0:
+            raise InputError(f"cameras {path}: camera {k}'s rotation is not a rotation or its position is beyond float32")
         if size is not None:
             scale = size / max(width, height)
             new_w, new_h = max(1, round(width * scale)), max(1, round(height * scale))
             fx, fy = fx * new_w / width, fy * new_h / height
             width, height = new_w, new_h
+        if not (MIN_SIDE <= min(width, height) and max(width, height) <= MAX_SIDE):
+            raise InputError(f"cameras {path}: camera {k} renders {width} x {height} pixels; eval needs {MIN_SIDE} to "
+                             f"{MAX_SIDE} a side (--size sets the longer side)")  # fmt: skip
         rotation = c2w.T
         cameras.append(Camera(rotation, -rotation @ position, fx, fy, width / 2.0, height / 2.0, width, height, name))
+    check_pixels(sum(c.width * c.height for c in cameras))
     return cameras
+
+
+def _whole(value) -> int:
+    """An image size from JSON: a whole number (not a boolean)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or (isinstance(value, float) and not value.is_integer()):
+        raise ValueError(f"{value!r} is not a whole number of pixels")
+    return int(value)

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 from ..errors import InputError
 
 MIN_SIZE = 32  # the half-size training views must fit the 11-pixel SSIM window
+MAX_SIZE = 4096  # views of 4096 x 4096 (16.8 M pixels): beyond, a view's buffers outgrow a GPU or a host
+MAX_STEPS = 100_000  # hours on a GPU for any scene: a larger count is a typing slip
 
 
 @dataclass
@@ -30,9 +32,9 @@ class RefineConfig:
     logit_range: tuple[float, float] = (-20.0, 20.0)
 
     def validate(self) -> None:
-        if self.steps < 0:
-            raise InputError(f"--refine-steps must be at least 0, got {self.steps}")
-        if self.size < MIN_SIZE:
-            raise InputError(f"--refine-size must be at least {MIN_SIZE} pixels, got {self.size}")
+        if not 0 <= self.steps <= MAX_STEPS:
+            raise InputError(f"--refine-steps must be in [0, {MAX_STEPS}], got {self.steps}")
+        if not MIN_SIZE <= self.size <= MAX_SIZE:
+            raise InputError(f"--refine-size must be in [{MIN_SIZE}, {MAX_SIZE}] pixels, got {self.size}")
         if self.views_per_step < 1 or self.reference_views < 1:
             raise InputError("refinement needs at least one view per step and one reference view")
