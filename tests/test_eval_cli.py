@@ -166,3 +166,20 @@ def test_a_scene_far_from_the_origin_evaluates_as_at_the_origin(tmp_path):
     result = run(tmp_path / "cluster.ply", tmp_path / "cluster.ply", "--device", "cpu", "--size", "32", "--views", "2", "--json")
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout)["tests"][0]["identical"]
+
+
+def test_an_images_folder_that_cannot_be_made_is_refused_before_rendering(scenes, tmp_path):
+    (tmp_path / "afile").write_text("x")
+    args = [scenes / "ref.ply", scenes / "ours" / "scene_0.1.ply", "--views", "2", "--size", "16", "--device", "cpu"]
+    for folder, message in ((tmp_path / "afile" / "sub", "cannot create the folder"), (tmp_path / "afile", "not a directory"),
+                            ("", "give a folder")):  # fmt: skip
+        result = run(*args, "--images", folder)
+        assert result.exit_code == 2 and message in result.output and "Traceback" not in result.output
+
+
+def test_long_view_names_make_short_file_names(tmp_path):
+    from nanogs_warp.eval.evaluate import write_images
+
+    image = np.zeros((12, 12, 3), np.float32)
+    written = write_images(tmp_path / "img", [image], [image], ["v" * 400])
+    assert written[0].name == "v" * 100 + ".png" and written[0].exists()

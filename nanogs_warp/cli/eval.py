@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import sys
 from pathlib import Path
@@ -54,7 +55,7 @@ def eval_command(
     cameras: Annotated[Optional[Path], typer.Option("--cameras", metavar="CAMERAS.JSON", help="The INRIA trainer's cameras.json to render from instead of orbit views.", show_default=False)] = None,
     up: Annotated[str, typer.Option(help="World up axis of the orbit views: +x, -x, +y, -y, +z or -z (INRIA/COLMAP scenes are -y).")] = "-y",
     background: Annotated[str, typer.Option("--background", metavar="R,G,B", help="Background colour R,G,B in [0, 1] (or black, white).")] = "0,0,0",
-    images: Annotated[Optional[Path], typer.Option("--images", metavar="FOLDER", help="Write reference | test | difference x4 PNGs per view and a contact sheet into this directory (one sub-directory per test scene).", show_default=False)] = None,
+    images: Annotated[Optional[str], typer.Option("--images", metavar="FOLDER", help="Write reference | test | difference x4 PNGs per view and a contact sheet into this directory (one sub-directory per test scene).", show_default=False)] = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print machine-readable results (JSON) instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
 ) -> None:
@@ -79,8 +80,18 @@ def eval_command(
     for path in [reference, *tests]:
         if not path.exists():
             raise InputError(f"{path}: no such file")
-    if images is not None and images.exists() and not images.is_dir():
-        raise InputError(f"--images {images}: exists and is not a directory")
+    if images is not None:  # made now, before any rendering: a folder that cannot be is one line
+        if not images.strip():
+            raise InputError("--images: give a folder")
+        images = Path(images)
+        if images.exists() and not images.is_dir():
+            raise InputError(f"--images {images}: exists and is not a directory")
+        try:
+            images.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise InputError(f"--images {images}: cannot create the folder: {e.strerror or e}") from None
+        if not os.access(images, os.W_OK):
+            raise InputError(f"--images {images}: the folder is not writable")
     load_kernels(target, EVAL_MODULES)  # says so in one line when they must be compiled first
 
     ref_splats = load_splats(reference, device=target)
@@ -111,11 +122,14 @@ def eval_command(
 
     if images is not None:
         for k, (label, test_images) in enumerate(zip(labels, rendered["tests"])):
-            folder = images / label.replace("/", "_")
+            folder = images / label.replace("/", "_")[-100:]
             t = result["tests"][k]
             title = [f"REFERENCE {_scene_label(reference)} | {label} | DIFFERENCE ×4",
                      f"{t['count']:,} SPLATS  PSNR {_number(t['psnr']['mean'], 2)}  SSIM {_number(t['ssim']['mean'], 3)} (MEAN)"]  # fmt: skip
-            written = write_images(folder, rendered["reference"], test_images, result["view_names"], comparison=t, title=title)
+            try:
+                written = write_images(folder, rendered["reference"], test_images, result["view_names"], comparison=t, title=title)
+            except OSError as e:
+                raise InputError(f"--images {folder}: cannot write the images: {e.strerror or e}") from None
             t["images"] = str(folder.resolve())
             if not quiet:
                 print(f"wrote {len(written)} images to {folder}", file=sys.stderr)

@@ -324,5 +324,6 @@ def write_images(
 
 
 def _safe_name(name: str) -> str:
+    """A view's name as a file name: letters, digits, '-', '_' and '.', at most 100 characters."""
     stem = Path(str(name)).stem or "view"
-    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in stem)
+    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in stem)[:100]
