@@ -202,6 +202,8 @@ def test_manifests(scenes, tmp_path):
         (["--devices", "tpu"], "--devices 'tpu'"),
         (["--k", "0"], "--k"),
         (["--count", "0"], "--count 0"),
+        (["--scene-timeout", "2200000"], "--scene-timeout must be 0 (no limit) to 1e+06 seconds"),
+        (["--scene-timeout", "nan"], "--scene-timeout"),
     ],
 )
 def test_bad_arguments_exit_2(scenes, tmp_path, args, message):
@@ -409,6 +411,40 @@ def test_a_folder_whose_scenes_all_fail_gets_no_output_folder(scenes, tmp_path):
     summary = run_json(scenes, "-o", tmp_path / "out", "--ratio", "0.1", code=1)
     assert summary["broken/x.ply"]["status"] == "failed"
     assert not (tmp_path / "out" / "broken").exists() and (tmp_path / "out" / "room" / "sub").is_dir()
+
+
+@pytest.mark.parametrize("content", ['["in/c\\u0000.ply"]', '[{"path": "in/c\\u0000.ply"}]', "in/c\0.ply\n",
+                                     "[" * 100_000 + "]" * 100_000])  # fmt: skip
+def test_hostile_manifests_are_one_line(scenes, tmp_path, content):
+    manifest = tmp_path / ("m.json" if content.startswith("[") else "m.txt")
+    manifest.write_text(content)
+    result = run(manifest, "-o", tmp_path / "out", "--ratio", "0.1", "--devices", "cpu")
+    assert result.exit_code == 2 and ("NUL character" in result.stderr or "nested too deeply" in result.stderr), result.output
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda r: r.update(input_count="lots"),
+        lambda r: r["outputs"][0].update(count="ten"),
+        lambda r: r["outputs"][0].update(count=10**400),
+        lambda r: r["outputs"][0].update(path="c_0.1\0.ply"),
+        lambda r: r["outputs"][0].update(path="../c.ply"),
+    ],
+)
+def test_a_record_edited_by_hand_is_redone(scenes, tmp_path, edit):
+    """Records with wrong types or names crashed the summary after all the work, or failed the scene."""
+    out = tmp_path / "out"
+    run_json(scenes, "-o", out, "--ratio", "0.1")
+    record_path = out / "c.nanogs.json"
+    record = json.loads(record_path.read_text())
+    edit(record)
+    record_path.write_text(json.dumps(record))
+    summary = run_json(scenes, "-o", out, "--ratio", "0.1")
+    assert summary["c.ply"]["status"] == "done" and summary["c.ply"]["input_count"] == 500
+    assert {summary[rel]["status"] for rel in SCENES if rel != "c.ply"} == {"skipped"}
+    record_path.write_text("[" * 100_000 + "]" * 100_000)
+    assert run_json(scenes, "-o", out, "--ratio", "0.1")["c.ply"]["status"] == "done"
 
 
 def test_ray_task_past_its_time_limit_is_cancelled(scenes_and_a_spinner, tmp_path, monkeypatch):

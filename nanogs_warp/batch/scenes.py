@@ -192,10 +192,15 @@ def _read_manifest(path: Path) -> list[tuple[Path, dict]]:
             items = json.loads(text)
         except json.JSONDecodeError as e:
             raise InputError(f"{path.name}: not valid JSON: {e}") from None
+        except RecursionError:
+            raise InputError(f"{path.name}: nested too deeply to be a list of scenes") from None
         if not isinstance(items, list):
             raise InputError(f"{path.name}: expected a JSON list of paths or {{\"path\": ...}} objects")
         return [_manifest_entry(item, i, path.name, base) for i, item in enumerate(items)]
-    lines = (line.strip() for line in text.splitlines())
+    lines = [line.strip() for line in text.splitlines()]
+    for i, line in enumerate(lines):
+        if "\0" in line:
+            raise InputError(f"{path.name}: line {i + 1}: a path with a NUL character")
     return [(base / line, {}) for line in lines if line and not line.startswith("#")]
 
 
@@ -205,6 +210,8 @@ def _manifest_entry(item, i: int, name: str, base: Path) -> tuple[Path, dict]:
         item = {"path": item}
     if not isinstance(item, dict) or not isinstance(item.get("path"), str) or not item["path"]:
         raise InputError(f"{where}: expected a path or an object with a \"path\" string")
+    if "\0" in item["path"]:
+        raise InputError(f"{where}: a path with a NUL character")
     options = {key.replace("-", "_"): value for key, value in item.items()}
     unknown = sorted(set(options) - _SCENE_KEYS)
     if unknown:
@@ -258,7 +265,7 @@ def _typed(value, kind, where: str):
 def _check_unique(jobs: list[SceneJob]) -> None:
     seen: dict[Path, str] = {}
     for job in jobs:
-        key = job.record_path.resolve()
+        key = Path(os.path.realpath(job.record_path))  # never raises, even on a symlink loop
         if key in seen:
             raise InputError(f"{seen[key]} and {job.relative} would write the same outputs ({job.out_dir / job.stem}_*)")
         seen[key] = job.relative

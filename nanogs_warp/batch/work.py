@@ -274,7 +274,7 @@ def spin_if_asked(job: SceneJob) -> None:
 def read_record(path: Path) -> dict | None:
     try:
         record = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return None
     return record if isinstance(record, dict) else None
 
@@ -288,11 +288,24 @@ def record_matches(record: dict | None, job: SceneJob, size: int, sha: str | Non
                 or record["input"]["bytes"] != size or (sha is not None and record["input"]["sha256_pieces"] != sha)):  # fmt: skip
             return False
         outputs = record["outputs"]
+        if not (_whole(record["input_count"]) and all(_whole(o["count"]) and _whole(o["bytes"]) and _plain_name(o["path"])
+                                                       for o in outputs)):  # fmt: skip
+            return False  # a record edited by hand: the scene is redone
         if sorted(o["budget"] for o in outputs) != sorted(b.label for b in job.budgets):
             return False
         return all((job.out_dir / o["path"]).stat().st_size == o["bytes"] for o in outputs)
     except (KeyError, TypeError, OSError):
         return False
+
+
+def _whole(value) -> bool:
+    """A count a record may hold: a whole number from 0 to 2^63."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 1 << 63
+
+
+def _plain_name(value) -> bool:
+    """An output's name in a record: a file name beside the record, nothing else."""
+    return isinstance(value, str) and value not in ("", ".", "..") and not any(c in value for c in "/\\\0")
 
 
 def write_json_atomic(path: Path, data: dict) -> None:
@@ -314,6 +327,8 @@ def _remove_leftovers(job: SceneJob) -> None:
     (``.<name>.<random>.tmp`` beside each output; shards never share a scene, so none is live)."""
     if not job.out_dir.is_dir():
         return
+    if job.record_path.is_dir():
+        raise InputError(f"{job.relative}: its record {job.record_path} is a folder; move it away")
     job.record_path.unlink(missing_ok=True)
     names = {job.record_path.name} | {job.output_path(b).name for b in job.budgets}
     for entry in os.scandir(job.out_dir):

@@ -21,6 +21,10 @@ from ..refinement.config import RefineConfig
 from . import options as opts
 
 
+# The longest --scene-timeout: 11.6 days (the workers' waits take milliseconds in a 32-bit integer, 24.8 days).
+MAX_SCENE_TIMEOUT = 1e6
+
+
 def batch_command(
     input: Annotated[str, typer.Argument(help="A directory (every .ply, .spz, .sog and .splat below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
     output: Annotated[str, typer.Option("-o", "--output", metavar="DIRECTORY", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.<ext of --format>, and <stem>.nanogs.json records for resuming.", show_default=False)],
@@ -68,8 +72,8 @@ def batch_command(
     config.validate()
     budgets = parse_budgets(ratio, count) if ratio is not None or count is not None else None
     shard_index, shard_count = parse_shard(shard)
-    if scene_timeout is not None and not (scene_timeout >= 0 and scene_timeout < float("inf")):
-        raise InputError(f"--scene-timeout must be a number of seconds >= 0, got {scene_timeout}")
+    if scene_timeout is not None and not (0 <= scene_timeout <= MAX_SCENE_TIMEOUT):  # NaN too
+        raise InputError(f"--scene-timeout must be 0 (no limit) to {MAX_SCENE_TIMEOUT:g} seconds, got {scene_timeout}")
     if workers < 1:
         raise InputError(f"--workers must be at least 1, got {workers}")
     if readers is not None and readers < 1:
