@@ -47,13 +47,21 @@ def cache_dir_from_environment() -> str | None:
 
 def use_cache_dir(path: str | os.PathLike | None) -> None:
     """Points Warp's kernel cache at ``path`` (created if needed); call before Warp initialises.
-    None leaves Warp's own choice ($WARP_CACHE_PATH or its default)."""
-    if path is None:
-        return
+    None leaves Warp's own choice ($WARP_CACHE_PATH or its default), after checking that a
+    $WARP_CACHE_PATH can hold it (Warp would fail on its own with a traceback)."""
     import warp as wp
 
     from .errors import InputError
 
+    if path is None:
+        chosen = os.environ.get("WARP_CACHE_PATH")
+        if chosen:
+            folder = Path(chosen).expanduser() / wp.config.version
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                raise InputError(f"WARP_CACHE_PATH {chosen}: cannot create the kernel cache {folder}: {e.strerror or e}") from None
+        return
     path = Path(path).expanduser()
     try:
         path.mkdir(parents=True, exist_ok=True)

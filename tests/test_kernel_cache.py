@@ -1,5 +1,6 @@
 """Start-up: a quiet, lazy import; `info` without Warp; the kernel cache the user names; `warmup`."""
 
+import os
 import subprocess
 import sys
 
@@ -15,8 +16,6 @@ SAMPLE = "nanogs_warp/data/plant_crop.ply"
 
 
 def python(code: str, **env) -> subprocess.CompletedProcess:
-    import os
-
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, **env},
                           cwd=__file__.rsplit("/tests/", 1)[0])  # fmt: skip
 
@@ -38,6 +37,16 @@ def test_the_cache_variable_is_honoured(tmp_path):
     code = "from nanogs_warp.device import init_warp; init_warp(); import warp; print(warp.config.kernel_cache_dir)"
     result = python(code, NANOGS_WARP_CACHE=str(tmp_path / "kernels"))
     assert result.returncode == 0 and result.stdout.strip().startswith(str(tmp_path / "kernels"))
+
+
+def test_a_warp_cache_path_that_cannot_hold_the_cache_is_one_line(tmp_path):
+    """Warp's own variable naming a file: Warp failed with a traceback (an internal error)."""
+    (tmp_path / "afile").write_text("x")
+    result = subprocess.run([sys.executable, "-m", "nanogs_warp", "simplify", "--sample", "-o", str(tmp_path / "o.ply"),
+                             "--ratio", "0.5", "--device", "cpu"], capture_output=True, text=True,
+                            env={**os.environ, "NANOGS_WARP_CACHE": "", "WARP_CACHE_PATH": str(tmp_path / "afile")})  # fmt: skip
+    assert result.returncode == 2 and result.stderr.startswith("nanogs-warp: error: WARP_CACHE_PATH ")
+    assert "cannot create the kernel cache" in result.stderr and not (tmp_path / "o.ply").exists()
 
 
 def test_missing_modules_sees_the_cache(tmp_path):
