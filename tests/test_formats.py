@@ -267,3 +267,20 @@ def test_quantised_formats_say_what_they_clamp_visibly(tmp_path, name):
             assert int(re.search(r"([\d,]+) splats clamped", notes[0]).group(1).replace(",", "")) > 250
     if name == "s.spz":
         assert "positions finer than 1/4096 units: rounded" in notes[0]
+
+
+def test_splat_sizes_beyond_float32_are_clamped_and_said(tmp_path):
+    """.splat stores sizes, not their logs: log-scales above 88.7 (inside the input domain of +-100)
+    were written as inf, and the tool refused its own output on the next load."""
+    a = scene(50, 0, seed=33)
+    a["log_scales"][:10] = 95.0
+    notes = []
+    save_splats(SplatSet.from_numpy(**a), tmp_path / "big.splat", on_loss=notes.append)
+    assert len(notes) == 1 and "sizes outside 0 to 3.4e+38 units: 10 splats clamped" in notes[0], notes
+    back = load_splats(tmp_path / "big.splat").to_numpy()
+    assert np.isfinite(back["log_scales"]).all() and back["log_scales"][:10].min() == pytest.approx(88.72, abs=0.01)
+    assert load_splats(tmp_path / "big.splat").count == 50
+    notes.clear()
+    a["log_scales"][:10] = -100.0  # the domain's floor: a float32 subnormal, read back
+    save_splats(SplatSet.from_numpy(**a), tmp_path / "small.splat", on_loss=notes.append)
+    assert notes == [] and load_splats(tmp_path / "small.splat").count == 50

@@ -8,12 +8,13 @@ and scales are exact (scales as exp of the log scales, float32); colour, opacity
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
-from .common import SH_C0, byte_to_opacity_logit, host_arrays, opacity_to_byte, unit_quaternions
+from .common import SH_C0, byte_to_opacity_logit, clamped_scales_note, host_arrays, opacity_to_byte, unit_quaternions
 
 ROW = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rotation", "u1", 4)])
 MAX_SH_DEGREE = 0
@@ -37,13 +38,21 @@ def read_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
     return host_arrays(rows["position"], rotations, log_scales, byte_to_opacity_logit(rgba[:, 3]), features)
 
 
+_LARGEST_SCALE = float(np.finfo(np.float32).max)  # .splat stores sizes, not their logs, in float32
+
+
+def notes(host: dict[str, np.ndarray]) -> list[str]:
+    """What ``encode`` cannot hold visibly: sizes beyond float32 (log-scales above 88.7)."""
+    return clamped_scales_note(host["log_scales"], host["means"], -np.inf, math.log(_LARGEST_SCALE))
+
+
 def encode(host: dict[str, np.ndarray]) -> bytes:
     """The .splat bytes of host arrays (rows in their order; SH bands above 0 are not written)."""
     n = host["means"].shape[0]
     rows = np.zeros(n, ROW)
     rows["position"] = host["means"]
-    with np.errstate(over="ignore"):
-        rows["scale"] = np.exp(host["log_scales"].astype(np.float64)).astype(np.float32)
+    with np.errstate(over="ignore"):  # sizes beyond float32 clamped to its largest (notes())
+        rows["scale"] = np.minimum(np.exp(host["log_scales"].astype(np.float64)), _LARGEST_SCALE).astype(np.float32)
     colour = 255.0 * (0.5 + SH_C0 * host["features"][:, :3].astype(np.float64))
     rows["rgba"][:, :3] = np.clip(np.rint(colour), 0, 255)
     rows["rgba"][:, 3] = opacity_to_byte(host["opacities"])
