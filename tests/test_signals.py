@@ -1,0 +1,72 @@
+"""SIGTERM and SIGHUP end a command as an interrupt does: its ``finally`` blocks run, so no
+temporary file is left beside an output and a batch stops its worker processes (which the default
+action, dying at once, left running)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from scene_factory import random_splats_ply
+
+from nanogs_warp.io.ply import load_ply
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="POSIX signals, pgrep and /proc")
+
+
+def _wait_for(predicate, seconds: float = 60.0) -> None:
+    end = time.monotonic() + seconds
+    while not predicate():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.02)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_a_signal_during_simplify_leaves_no_temporary_file(tmp_path, signum):
+    scene = tmp_path / "big.ply"
+    random_splats_ply(scene, 200_000, sh_degree=1, seed=3)
+    out = tmp_path / "out"
+    out.mkdir()
+    process = subprocess.Popen([sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out / "o.ply"),
+                                "--ratio", "0.5", "--device", "cpu", "-q"], stderr=subprocess.PIPE, text=True)  # fmt: skip
+    _wait_for(lambda: any(p.name.endswith(".tmp") for p in out.iterdir()) or process.poll() is not None)
+    process.send_signal(signum)
+    assert process.wait(timeout=120) in (128 + signum, 0)  # 0: it had just finished
+    assert [p.name for p in out.iterdir()] in ([], ["o.ply"])
+    if (out / "o.ply").exists():
+        assert load_ply(out / "o.ply").count == 100_000
+
+
+def test_a_signal_to_batch_stops_its_workers(tmp_path):
+    root = tmp_path / "in"
+    root.mkdir()
+    for name in ("a.ply", "b.ply"):
+        random_splats_ply(root / name, 150_000, seed=len(name))
+    process = subprocess.Popen([sys.executable, "-m", "nanogs_warp", "batch", str(root), "-o", str(tmp_path / "out"),
+                                "--ratio", "0.1", "--devices", "cpu", "--workers", "2", "-q"])  # fmt: skip
+
+    def workers() -> list[int]:
+        found = subprocess.run(["pgrep", "-P", str(process.pid)], capture_output=True, text=True).stdout.split()
+        return [int(pid) for pid in found]
+
+    _wait_for(lambda: len(workers()) >= 2)
+    children = workers()
+    process.send_signal(signal.SIGTERM)
+    assert process.wait(timeout=120) == 128 + signal.SIGTERM
+    written = sorted(p.name for p in tmp_path.rglob("*") if p.is_file())
+    _wait_for(lambda: not any(_running(pid) for pid in children), 30)
+    time.sleep(1.0)
+    assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == written  # no worker wrote on alone
+    assert not any(name.endswith(".tmp") for name in written)
+
+
+def _running(pid: int) -> bool:
+    """Whether the process is alive (a zombie, exited but not yet reaped, is not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
