@@ -154,3 +154,14 @@ def _force_load(modules: list, devices: list, to_compile: int) -> None:
 
     workers = min(to_compile, os.cpu_count() or 1)
     wp.force_load(device=devices, modules=modules, max_workers=workers if workers > 1 else 0)
+
+
+def damaged_cache(error: BaseException) -> str | None:
+    """One line for an error of Warp's that means a compiled module in the kernel cache is damaged
+    (it cannot be loaded, or lacks a kernel it must hold); None for any other error."""
+    if not str(error).startswith(("Failed to load CPU module", "Failed to load CUDA module", "Failed to find forward kernel")):
+        return None
+    import warp as wp
+
+    return (f"kernel cache {wp.config.kernel_cache_dir}: a compiled kernel module is damaged ({error}); "
+            "delete the directory to compile the kernels again")

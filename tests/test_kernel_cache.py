@@ -77,3 +77,31 @@ def test_warmup_bad_arguments_exit_2():
     for args, message in ((["--arch", "9x"], "--arch '9x'"), (["--device", "tpu"], "--device 'tpu'")):
         result = CliRunner().invoke(app, ["warmup", *args])
         assert result.exit_code == 2 and result.stderr.startswith(f"nanogs-warp: error: {message}"), result.output
+
+
+def test_a_damaged_kernel_cache_is_one_line(tmp_path):
+    """Compiled modules overwritten with other bytes: Warp cannot load them, or finds no kernel in
+    them (plain Exceptions, internal errors); the command says which cache and what to do."""
+    import shutil
+    from pathlib import Path
+
+    from warp._src.context import _resolve_launch_block_dim
+
+    from nanogs_warp.kernel_cache import simplify_modules
+
+    cpu = wp.get_device("cpu")
+    load_kernels(cpu, simplify_modules())  # in the tests' own cache
+    copy = tmp_path / "kernels" / wp.config.version
+    for module in warp_modules(simplify_modules()):
+        folder = Path(wp.config.kernel_cache_dir) / module.get_module_identifier(_resolve_launch_block_dim(cpu, None))
+        shutil.copytree(folder, copy / folder.name)
+    damaged = list(copy.rglob("*.o"))
+    assert damaged
+    for path in damaged:
+        path.write_bytes(b"\x00" * 4096)
+    result = subprocess.run([sys.executable, "-m", "nanogs_warp", "simplify", "--sample", "-o", str(tmp_path / "o.ply"),
+                             "--ratio", "0.5", "--device", "cpu"], capture_output=True, text=True,
+                            env={**os.environ, "NANOGS_WARP_CACHE": str(tmp_path / "kernels")})  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert "a compiled kernel module is damaged" in result.stderr and "delete the directory to compile the kernels again" in result.stderr
+    assert not (tmp_path / "o.ply").exists()

@@ -58,6 +58,11 @@ def user_errors(command):
         except Exception as e:  # noqa: BLE001 - the last line of defence for a command-line tool
             if os.environ.get("NANOGS_DEBUG"):
                 traceback.print_exc()
+            from ..kernel_cache import damaged_cache
+
+            damaged = damaged_cache(e)
+            if damaged is not None:
+                _fail(damaged, 2)
             _fail(f"internal error: {type(e).__name__}: {e} (set NANOGS_DEBUG=1 for details)", 1)
 
     return wrapper
