@@ -51,24 +51,15 @@ def use_cache_dir(path: str | os.PathLike | None) -> None:
     $WARP_CACHE_PATH can hold it (Warp would fail on its own with a traceback)."""
     import warp as wp
 
-    from .errors import InputError
+    from .folders import writable_folder
 
     if path is None:
         chosen = os.environ.get("WARP_CACHE_PATH")
         if chosen:
             folder = Path(chosen).expanduser() / wp.config.version
-            try:
-                folder.mkdir(parents=True, exist_ok=True)
-            except OSError as e:
-                raise InputError(f"WARP_CACHE_PATH {chosen}: cannot create the kernel cache {folder}: {e.strerror or e}") from None
+            writable_folder(folder, f"WARP_CACHE_PATH {chosen}: kernel cache {folder}")
         return
-    path = Path(path).expanduser()
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError(f"kernel cache {path}: cannot create the directory: {e.strerror or e}") from None
-    if not os.access(path, os.W_OK):
-        raise InputError(f"kernel cache {path}: the directory is not writable")
+    path = writable_folder(Path(path).expanduser(), f"kernel cache {Path(path).expanduser()}")
     wp.config.kernel_cache_dir = str(path.resolve())
 
 

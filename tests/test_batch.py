@@ -395,7 +395,6 @@ def test_more_workers_than_scenes_start_one_per_scene(scenes, tmp_path):
     assert {s["status"] for s in summary.values()} == {"done"}
 
 
-
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs on this platform")
 def test_a_pipe_among_the_scenes_fails_alone_at_once(scenes, tmp_path):
     """A FIFO named like a scene would block its worker until the scene's time limit: it fails at once."""

@@ -171,7 +171,7 @@ def test_a_scene_far_from_the_origin_evaluates_as_at_the_origin(tmp_path):
 def test_an_images_folder_that_cannot_be_made_is_refused_before_rendering(scenes, tmp_path):
     (tmp_path / "afile").write_text("x")
     args = [scenes / "ref.ply", scenes / "ours" / "scene_0.1.ply", "--views", "2", "--size", "16", "--device", "cpu"]
-    for folder, message in ((tmp_path / "afile" / "sub", "cannot create the folder"), (tmp_path / "afile", "not a directory"),
+    for folder, message in ((tmp_path / "afile" / "sub", "cannot create the directory"), (tmp_path / "afile", "not a directory"),
                             ("", "give a folder")):  # fmt: skip
         result = run(*args, "--images", folder)
         assert result.exit_code == 2 and message in result.output and "Traceback" not in result.output

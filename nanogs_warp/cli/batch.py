@@ -17,6 +17,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import InputError
+from ..folders import writable_folder
 from ..refinement.config import RefineConfig
 from . import options as opts
 
@@ -103,7 +104,7 @@ def batch_command(
         from ..batch.local import parse_devices
 
         device_list = parse_devices(devices)
-    _make_output_dir(output)
+    writable_folder(output, f"--output {output}")
 
     progress = BatchProgress(len(selected), quiet=quiet)
     if shard_count > 1 and not quiet:
@@ -124,15 +125,6 @@ def batch_command(
     sys.stdout.flush()
     if any(r.status == "failed" for r in results):
         raise typer.Exit(1)
-
-
-def _make_output_dir(output: Path) -> None:
-    try:
-        output.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise InputError(f"--output {output}: cannot create the directory: {e.strerror or e}") from None
-    if not os.access(output, os.W_OK):
-        raise InputError(f"--output {output}: the directory is not writable")
 
 
 def main() -> None:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import sys
 from pathlib import Path
@@ -65,6 +64,7 @@ def eval_command(
     from ..eval.cameras import load_cameras_json, orbit_cameras, parse_up
     from ..eval.evaluate import evaluate, format_table, write_images
     from ..eval.units import render_offset, rescaled, rescaled_camera
+    from ..folders import writable_folder
     from ..io import load_splats
     from ..kernel_cache import EVAL_MODULES, load_kernels
 
@@ -86,12 +86,7 @@ def eval_command(
         images = Path(images)
         if images.exists() and not images.is_dir():
             raise InputError(f"--images {images}: exists and is not a directory")
-        try:
-            images.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise InputError(f"--images {images}: cannot create the folder: {e.strerror or e}") from None
-        if not os.access(images, os.W_OK):
-            raise InputError(f"--images {images}: the folder is not writable")
+        writable_folder(images, f"--images {images}")
     load_kernels(target, EVAL_MODULES)  # says so in one line when they must be compiled first
 
     ref_splats = load_splats(reference, device=target)
