@@ -95,3 +95,18 @@ def test_adjacent_row_ranges_are_copied_as_one():
 
     assert _merged([(0, 5), (5, 9), (12, 20), (20, 21), (30, 31)]) == [(0, 9), (12, 21), (30, 31)]
     assert _merged([]) == []
+
+
+def test_a_copy_that_fails_falls_back_to_the_plain_upload(tmp_path, monkeypatch):
+    """Out of device memory, say: the uploader stops, drains the reader's ranges and copies nothing."""
+    from nanogs_warp.io import row_upload
+
+    def no_memory(*args):
+        raise RuntimeError("Failed to allocate")
+
+    monkeypatch.setattr(row_upload, "_device_array", no_memory)
+    path = tmp_path / "s.ply"
+    random_splats_ply(path, 40_000, seed=1)
+    upload = RowUpload(lambda: wp.get_device("cpu"), cpu=True)
+    arrays, layout = read_any_splats(path, upload=upload)
+    assert upload.splats(arrays, layout) is None

@@ -20,6 +20,7 @@ from collections.abc import Callable
 import numpy as np
 
 _STOP = None
+_FIELDS = {"quats_xyzw": "rotations"}  # host array -> SplatSet field, where the names differ
 
 
 class RowUpload:
@@ -63,8 +64,6 @@ class RowUpload:
         self._thread.join()
         if self._failed or not self._uploaded:
             return None
-        import warp as wp
-
         from ..splats import SplatSet
 
         device = next(iter(self._uploaded.values())).device
@@ -79,12 +78,11 @@ class RowUpload:
             "extras": arrays["extras"].reshape(n, -1),
             "integer_extras": arrays["integer_extras"].reshape(n, -1),
         }
-        source = {"rotations": "quats_xyzw"}
         out = {}
         for field, host in final.items():
-            key = source.get(field, field)
+            key = "quats_xyzw" if field == "rotations" else field
             copied = self._uploaded.get(key)
-            same = key in self._host and host.shape == self._host[key].shape and np.shares_memory(host, self._host[key])
+            same = key in self._host and host.shape == self._host[key].shape and np.may_share_memory(host, self._host[key])
             if copied is None or not same or (field == "rotations" and quats_key is None):
                 copied = _device_array(field, host.shape, device)
                 copied.assign(_host_view(field, np.ascontiguousarray(host)))
@@ -100,26 +98,29 @@ class RowUpload:
         if device is None or (device.is_cpu and not self._cpu):
             self._failed = True
         n = self._host["means"].shape[0] if self._host else 0
-        if not self._failed:
-            fields = {"quats_xyzw": "rotations"}
-            for key, host in self._host.items():
-                self._uploaded[key] = _device_array(fields.get(key, key), host.shape, device)
         done = False
-        while not done:
-            batch = [self._queue.get()]  # and every range finished meanwhile: adjacent ones in one copy
-            while True:
-                try:
-                    batch.append(self._queue.get_nowait())
-                except queue.Empty:
-                    break
-            done = _STOP in batch
-            if self._failed:
-                continue
-            for first, stop in _merged(sorted(r for r in batch if r is not _STOP)):
+        try:
+            if not self._failed:
                 for key, host in self._host.items():
-                    if host.size and first < stop <= n:
-                        field = {"quats_xyzw": "rotations"}.get(key, key)
-                        self._uploaded[key][first:stop].assign(_host_view(field, host[first:stop]))
+                    self._uploaded[key] = _device_array(_FIELDS.get(key, key), host.shape, device)
+            while not done:
+                batch = [self._queue.get()]  # and every range finished meanwhile: adjacent ones in one copy
+                while True:
+                    try:
+                        batch.append(self._queue.get_nowait())
+                    except queue.Empty:
+                        break
+                done = _STOP in batch
+                if self._failed:
+                    continue
+                for first, stop in _merged(sorted(r for r in batch if r is not _STOP)):
+                    for key, host in self._host.items():
+                        if host.size and first < stop <= n:
+                            self._uploaded[key][first:stop].assign(_host_view(_FIELDS.get(key, key), host[first:stop]))
+        except BaseException:  # noqa: BLE001 - out of device memory, say: the command copies after the read instead
+            self._failed = True
+            while not done:
+                done = self._queue.get() is _STOP
 
 
 def _merged(ranges: list[tuple[int, int]]) -> list[tuple[int, int]]:
