@@ -254,3 +254,26 @@ def test_output_names_too_long_to_write_are_refused_first(scene, tmp_path):
         result = run("simplify", scene, "-o", tmp_path / ("x" * (length - 4) + ".ply"), "--ratio", "0.5", "--device", "cpu")
         assert result.exit_code == 2 and f"is {length} bytes long; at most 237 can be written" in result.output
     assert run("simplify", scene, "-o", tmp_path / ("y" * 233 + ".ply"), "--ratio", "0.5", "--device", "cpu", "-q").exit_code == 0
+
+
+def test_without_overwrite_a_file_that_appears_meanwhile_is_kept(scene, tmp_path, monkeypatch):
+    """The check that an output does not exist comes before the work; a file put there meanwhile
+    (another run writing the same name) used to be replaced by the final rename. Now the write fails
+    in one line and the other file stays, with no temporary file left."""
+    from nanogs_warp.io import ply_write
+    from nanogs_warp.io.ply import save_ply
+
+    out = tmp_path / "o.ply"
+    original = ply_write.atomic_write
+
+    def first_another_run(path, write, overwrite=True):
+        path.write_bytes(b"the other run's output")
+        return original(path, write, overwrite)
+
+    monkeypatch.setattr("nanogs_warp.io.ply.atomic_write", first_another_run)
+    result = run("simplify", scene, "-o", out, "--ratio", "0.5", "--device", "cpu")
+    assert result.exit_code == 2 and "already exists; pass --overwrite (-w)" in result.output
+    assert out.read_bytes() == b"the other run's output" and sorted(p.name for p in tmp_path.iterdir()) == ["o.ply", "scene.ply"]
+    assert run("simplify", scene, "-o", out, "--ratio", "0.5", "--device", "cpu", "-w").exit_code == 0
+    assert load_ply(out).count == 300
+    save_ply(load_ply(scene), out, overwrite=True)  # the library's default replaces, as before

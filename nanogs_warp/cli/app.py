@@ -196,7 +196,7 @@ def simplify(
         with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
             warnings.simplefilter("always", NanogsWarning)
             _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels,
-                               refine_config, writer, stages)  # fmt: skip
+                               refine_config, writer, stages, overwrite)  # fmt: skip
         writer.finish(stages)
     finally:
         writer.close()
@@ -204,7 +204,7 @@ def simplify(
     if lod_set:  # level 0 is the finest: the largest budget, reached first
         for level, out in enumerate(written):
             out["level"] = level
-        save_levels(levels, Path(output), fmt, on_loss=notes)
+        save_levels(levels, Path(output), fmt, on_loss=notes, overwrite=overwrite)
     for warning in caught:
         if not issubclass(warning.category, NanogsWarning):
             warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
@@ -300,11 +300,12 @@ class _Writer:
 
 
 def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels,
-                       refine_config=None, writer=None, stages=None):  # fmt: skip
+                       refine_config=None, writer=None, stages=None, overwrite=True):  # fmt: skip
     """Runs the progressive merge and writes each budget as it is reached (appending to ``written``);
     for a level-of-detail set (``levels`` a list) keeps each level on the host instead. With
     ``refine_config``, each budget's result is refined toward the input first. Each result comes
-    to the host here (``stages["download"]``) and is handed to ``writer``."""
+    to the host here (``stages["download"]``) and is handed to ``writer``. Without ``overwrite``
+    a file that appeared at an output's path since it was checked stays, and the write fails."""
     from ..io import save_splats
     from ..pipeline import simplify_progressively
 
@@ -326,7 +327,7 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
             if levels is not None:
                 levels.append(host)
             else:
-                writer.submit(lambda host=host, path=paths[budget]: save_splats(host, path, fmt, on_loss=notes))
+                writer.submit(lambda host=host, path=paths[budget]: save_splats(host, path, fmt, on_loss=notes, overwrite=overwrite))
             written.append({"path": str(paths[budget].resolve()), "budget": budget.label, "count": result.count,
                             "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
             if report is not None:

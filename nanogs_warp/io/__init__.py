@@ -138,14 +138,15 @@ def read_any_splats(path, drop_invalid: bool = False, on_drop=None, upload=None)
     return a, data.layout
 
 
-def save_splats(splats: SplatSet, path, format: str | None = None, on_loss=None) -> None:
+def save_splats(splats: SplatSet, path, format: str | None = None, on_loss=None, overwrite: bool = True) -> None:
     """Writes ``splats`` in ``format`` (by default: by the name, :func:`format_for_path`), each
     file atomically. ``on_loss``, if given, is called with one line naming what the format could
-    not hold (SH bands, extra properties, PLY elements), when anything."""
-    save_levels([splats], path, format, on_loss)
+    not hold (SH bands, extra properties, PLY elements), when anything. Without ``overwrite`` a
+    file already there is an InputError and stays as it is."""
+    save_levels([splats], path, format, on_loss, overwrite)
 
 
-def save_levels(levels: list[SplatSet], path, format: str | None = None, on_loss=None) -> None:
+def save_levels(levels: list[SplatSet], path, format: str | None = None, on_loss=None, overwrite: bool = True) -> None:
     """Writes one scene (``levels`` of one) or, for the ``lod`` format, a level-of-detail set of
     several, finest first."""
     path = Path(path)
@@ -153,13 +154,16 @@ def save_levels(levels: list[SplatSet], path, format: str | None = None, on_loss
     if fmt != "lod" and len(levels) != 1:
         raise ValueError("several levels need the lod format")
     if fmt == "ply":
-        save_ply(levels[0], path)
+        save_ply(levels[0], path, overwrite=overwrite)
         return
     with np.errstate(all="ignore"):  # out-of-range values clip, by design
-        _write_levels([s.to_numpy() for s in levels], levels, path, fmt, on_loss)
+        _write_levels([s.to_numpy() for s in levels], levels, path, fmt, on_loss, overwrite)
 
 
-def _write_levels(hosts, levels, path: Path, fmt: str, on_loss) -> None:
+def _write_levels(hosts, levels, path: Path, fmt: str, on_loss, overwrite: bool = True) -> None:
+    def _write(path: Path, data: bytes) -> None:
+        atomic_write(path, lambda stream: stream.write(data), overwrite)
+
     lost, changed = [], []  # parts the format drops; values it holds only clamped or rounded
     for s, host in zip(levels, hosts):
         lost += [p for p in dropped_parts(host, s.layout, _MAX_SH[fmt]) if p not in lost]
@@ -229,10 +233,6 @@ def input_files(path) -> list[Path]:
         except InputError:
             return [meta_path]
     return [path]
-
-
-def _write(path: Path, data: bytes) -> None:
-    atomic_write(path, lambda stream: stream.write(data))
 
 
 def _head(path: Path) -> bytes:

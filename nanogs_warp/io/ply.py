@@ -143,7 +143,7 @@ def saturate_opacity_logits(logits: np.ndarray) -> np.ndarray:
     return out
 
 
-def save_ply(splats: SplatSet, path, threads: int | None = None) -> None:
+def save_ply(splats: SplatSet, path, threads: int | None = None, overwrite: bool = True) -> None:
     """Writes ``splats`` as a binary little-endian PLY file, atomically.
 
     Vertex properties follow ``splats.layout`` (names, order, dtypes; integer extras are clipped to
@@ -152,12 +152,14 @@ def save_ply(splats: SplatSet, path, threads: int | None = None) -> None:
     Other elements, comments and obj_info of the layout are written back unchanged, after the
     vertex element. The data goes to a temporary file beside ``path`` that then replaces it, so a
     failure never leaves a partial file and never touches an existing one. ``threads`` pack the rows
-    (None: :func:`~nanogs_warp.io.ply_read.read_threads`, at least two).
+    (None: :func:`~nanogs_warp.io.ply_read.read_threads`, at least two). Without ``overwrite`` an
+    existing ``path`` is an InputError and stays as it is.
     """
     host = _host_arrays(splats)
     props = output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1],
                               host["integer_extras"].shape[1])  # fmt: skip
-    atomic_write(Path(path), lambda stream: _write_ply_stream(stream, host, props, splats.layout, _CHUNK_BYTES, threads))
+    atomic_write(Path(path), lambda stream: _write_ply_stream(stream, host, props, splats.layout, _CHUNK_BYTES, threads),
+                 overwrite)  # fmt: skip
 
 
 def _host_arrays(splats: SplatSet) -> dict[str, np.ndarray]:

@@ -201,8 +201,10 @@ def copy_columns(block: np.ndarray, values: np.ndarray, dt: np.dtype) -> None:
         block.view(dt)[...] = values
 
 
-def atomic_write(path: Path, write) -> None:
-    """Calls ``write(stream)`` on a new temporary file beside ``path`` and moves it into place."""
+def atomic_write(path: Path, write, overwrite: bool = True) -> None:
+    """Calls ``write(stream)`` on a new temporary file beside ``path`` and moves it into place;
+    without ``overwrite`` only where no file is (a file that appeared since it was checked, say by
+    another run writing the same name, is an InputError and stays as it is)."""
     name = path.name
     directory = path.parent
     if path.is_dir():
@@ -216,7 +218,8 @@ def atomic_write(path: Path, write) -> None:
         created = True
         with os.fdopen(fd, "wb") as f:
             write(f)
-        os.replace(tmp, path)
+        if overwrite or not _linked(tmp, path):
+            os.replace(tmp, path)
         created = False
     except OSError as e:
         if isinstance(e, PermissionError) or e.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
@@ -228,4 +231,20 @@ def atomic_write(path: Path, write) -> None:
                 os.unlink(tmp)
             except OSError:
                 pass
+
+
+def _linked(tmp: Path, path: Path) -> bool:
+    """Puts ``tmp`` in place as ``path`` only if no file is there (a hard link, then the temporary's
+    name removed): True when done; False where the file system has no hard links (the caller then
+    renames it, as with ``overwrite``). A file already at ``path`` is an InputError."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it") from None
+    except OSError as e:
+        if e.errno in (errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EXDEV, errno.EMLINK):
+            return False
+        raise
+    os.unlink(tmp)
+    return True
 
