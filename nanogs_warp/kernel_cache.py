@@ -59,7 +59,8 @@ def use_cache_dir(path: str | os.PathLike | None) -> None:
             folder = Path(chosen).expanduser() / wp.config.version
             writable_folder(folder, f"WARP_CACHE_PATH {chosen}: kernel cache {folder}")
         return
-    path = writable_folder(Path(path).expanduser(), f"kernel cache {Path(path).expanduser()}")
+    path = Path(path).expanduser()
+    writable_folder(path, f"kernel cache {path}")
     wp.config.kernel_cache_dir = str(path.resolve())
 
 

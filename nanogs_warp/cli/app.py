@@ -139,7 +139,7 @@ def simplify(
     else:
         paths, folder = _output_paths(output, input, budgets, output_format)
     written = [f for p in dict.fromkeys(paths.values()) for f in output_files(p, fmt, len(budgets) if lod_set else 1)]
-    _check_outputs(input, list(paths.values()), overwrite, folder, written)
+    _check_outputs(input, list(paths.values()), written, overwrite, folder)
     keep_freed_host_memory()
     notes = _Notes(quiet or json_output)
 
@@ -401,16 +401,17 @@ def _is_folder(path: str) -> bool:
 _LONGEST_OUTPUT_NAME = 255 - 18  # a file name's bytes on common file systems, less the temporary's additions
 
 
-def _check_outputs(input: Path, outputs: list[Path], overwrite: bool = False, folder: Path | None = None,
-                   written: list[Path] | None = None) -> None:  # fmt: skip
+def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwrite: bool = False,
+                   folder: Path | None = None) -> None:  # fmt: skip
     """Refuses outputs that would overwrite the input, replace an existing file without
-    ``overwrite``, or cannot be written, before any work. ``folder`` (from -o DIR/) may be created:
-    its parent must exist. ``written``: every file the outputs consist of, when more than
-    ``outputs`` (an unbundled SOG's images, a level-of-detail set's levels): none may be one of
-    the input's files, nor exist without ``overwrite``."""
+    ``overwrite``, or cannot be written, before any work. ``outputs``: the paths named; ``written``:
+    every file they consist of (themselves, or an unbundled SOG's images, a level-of-detail set's
+    levels besides), none of which may be one of the input's files, exist without ``overwrite``,
+    or exist as anything but a regular file. ``folder`` (from -o DIR/) may be created: its parent
+    must exist."""
     from ..io import input_files
 
-    for path in written or outputs:  # written beside a temporary ".<name>.<12 hex>.tmp" (18 more bytes)
+    for path in written:  # written beside a temporary ".<name>.<12 hex>.tmp" (18 more bytes)
         if len(os.fsencode(path.name)) > _LONGEST_OUTPUT_NAME:
             raise InputError(f"output name {path.name[:40]}... is {len(os.fsencode(path.name))} bytes long; "
                              f"at most {_LONGEST_OUTPUT_NAME} can be written")  # fmt: skip
@@ -433,9 +434,7 @@ def _check_outputs(input: Path, outputs: list[Path], overwrite: bool = False, fo
             raise InputError(f"output directory {parent} is not writable")
         if path.is_dir():
             raise InputError(f"output {path} is a directory")
-        if path.exists() and not overwrite:
-            raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it")
-    for path in written or ():
+    for path in written:
         if path.resolve() in inputs:
             raise InputError(f"output {path} is one of the input's files; choose another output path")
         if path.exists() and not overwrite:

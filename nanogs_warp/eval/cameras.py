@@ -110,6 +110,12 @@ def scene_frame(means: np.ndarray) -> tuple[np.ndarray, float]:
     return centre, 2.2 * spread if spread > 0 else 1.0
 
 
+def check_side(size: int) -> None:
+    """Refuses an image side outside [MIN_SIDE, MAX_SIDE] (``--size``)."""
+    if not MIN_SIDE <= size <= MAX_SIDE:
+        raise InputError(f"--size {size}: must be {MIN_SIDE} to {MAX_SIDE} pixels (SSIM needs {MIN_SIDE} a side)")
+
+
 def check_pixels(total: int) -> None:
     """Refuses renders of more than MAX_PIXELS pixels over all views."""
     if total > MAX_PIXELS:
@@ -145,8 +151,7 @@ def orbit_cameras(
     """
     if not 1 <= views <= MAX_VIEWS:
         raise InputError(f"--views {views}: need 1 to {MAX_VIEWS} views")
-    if not MIN_SIDE <= size <= MAX_SIDE:
-        raise InputError(f"--size {size}: must be {MIN_SIDE} to {MAX_SIDE} pixels (SSIM needs {MIN_SIDE} a side)")
+    check_side(size)
     check_pixels(views * size * size)
     if not 0.0 < fov_y_deg < 180.0:
         raise InputError(f"field of view {fov_y_deg} degrees: expected (0, 180)")
@@ -177,8 +182,8 @@ def load_cameras_json(path: Path | str, size: int | None = None) -> list[Camera]
         raise InputError(f"cameras {path}: nested too deeply to be a list of cameras") from None
     if not isinstance(entries, list) or not entries:
         raise InputError(f"cameras {path}: expected a non-empty JSON list of cameras")
-    if size is not None and not MIN_SIDE <= size <= MAX_SIDE:
-        raise InputError(f"--size {size}: must be {MIN_SIDE} to {MAX_SIDE} pixels (SSIM needs {MIN_SIDE} a side)")
+    if size is not None:
+        check_side(size)
     if len(entries) > MAX_VIEWS * 16:
         raise InputError(f"cameras {path}: {len(entries):,} cameras; eval renders at most {MAX_VIEWS * 16:,}")
     cameras = []
