@@ -26,7 +26,7 @@ from typing import Any
 
 import warp as wp
 
-from .knn import neighbour_key, squared_distance
+from .knn import INEXACT, neighbour_key, squared_distance
 
 wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
 
@@ -67,8 +67,9 @@ def row_lists(
 ) -> bool:
     """Whether row j lists i. Rows of an exact kNN graph with ``reach`` (row j's k-th neighbour as
     its key, ``knn.neighbour_key``, the distance computed as the query computes it): one
-    comparison. Otherwise a scan of row j."""
-    if reach.shape[0] > 0:
+    comparison. Otherwise (no ``reach``, or a row its query left inexact: ``knn.INEXACT``) a scan
+    of row j."""
+    if reach.shape[0] > 0 and reach[j] != INEXACT:
         d = squared_distance(means[j], means[i])  # row j's query, candidate i
         return neighbour_key(d, j, i, means.shape[0]) <= reach[j]
     listed = int(0)

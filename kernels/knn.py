@@ -22,7 +22,7 @@ Candidates rank by (squared distance, tie), one int64 key. The tie is the candid
 when the distance is positive; at distance zero (a copy of the query's position) it is the index
 counted from the query, (j - i) mod N, so each copy of a duplicated position lists the copies that
 follow it, not all of them the same k lowest-index ones. The result is exact and independent of the
-order in which threads or cells run.
+order in which threads or cells run, with one bound on the work below.
 
 Termination: every loop is bounded by its inputs (noted beside it). Squared distances of finite
 points may overflow float32 to +inf (coordinates beyond ~1e19 apart); they then rank by the tie
@@ -32,6 +32,17 @@ ranks after the query's current k-th; a query still scans each point once per le
 The host therefore measures a scene whose extent is far from 1 in a copy of its points scaled by a
 power of two (``scaled_points``, ``nanogs_warp.topology.measured_points``): then only far outliers
 can overflow, and a query scans everything only for them.
+
+Work limit: where no power of two helps (coordinates spread over forty and more decades, as random
+bytes give), most squared distances are 0 or +inf and tie, and every query would scan a large part
+of the scene: N^2 in all. So a query stops once its work (candidates examined, tree nodes stepped
+through, cells looked up) reaches L = WORK_BASE + WORK_PER_NEIGHBOUR k, keeping the best k it met,
+and marks its row inexact. If at most L queries stopped, a second launch searches them again without
+the limit (far outliers are few: their rows stay exact); otherwise the rows stay as they are. Either
+way the work is at most 2 L N. The queries of ordinary scenes stay below L (at most 3,934 at
+k = 16 in the twelve scenes of docs/quality.md, where L = 4,096, and a few above it at k = 24, then
+searched again), so their graphs are exact; the stopping point depends only on the inputs, so the
+result is the same on every device.
 """
 
 import warp as wp
@@ -46,6 +57,12 @@ BLOCK = wp.constant(8)  # sorted points per pruning box (a level-1 node)
 NODE_LEVELS = wp.constant(7)  # implicit tree over the sorted points: level s nodes hold 8^s points
 RING_LIMIT = wp.constant(6)  # rings searched at a point's own level before it goes on at the top level
 SLACK = wp.constant(1.000001)  # box distances are compared with this relative slack for rounding
+# A query's work (the candidates it examines, the tree nodes it steps through and the cells it looks
+# up) is limited to WORK_BASE + WORK_PER_NEIGHBOUR k; see the module's docstring.
+WORK_BASE = wp.constant(2048)
+WORK_PER_NEIGHBOUR = wp.constant(128)
+NO_WORK_LIMIT = wp.constant(2147483647)
+INEXACT = wp.constant(wp.int64(-1))  # the reach of a query that stopped at its limit: not exact
 
 # Knuth's multiplicative hash constant (2^64 / golden ratio).
 HASH_MUL = wp.constant(wp.uint64(0x9E3779B97F4A7C15))
@@ -472,6 +489,7 @@ def _close_cells(
 @wp.kernel
 def _knn_query(
     first: int,
+    retry: int,
     points: wp.array(dtype=wp.vec3),
     order: wp.array(dtype=wp.int32),
     search_level: wp.array(dtype=wp.int32),
@@ -490,6 +508,8 @@ def _knn_query(
     node_hi: wp.array(dtype=wp.vec3),
     node_first: wp.array(dtype=wp.int32),
     node_last: wp.array(dtype=wp.int32),
+    stopped: wp.array(dtype=wp.int32),
+    stopped_total: wp.array(dtype=wp.int32),
     neighbours: wp.array2d(dtype=wp.int32),
     reach: wp.array(dtype=wp.int64),
     candidates: wp.array(dtype=wp.int32),
@@ -497,8 +517,16 @@ def _knn_query(
     # exact k nearest neighbours of sorted point i (from `first` on): seed, then rings of cells
     # around its own cell; the best k are kept as (distance bits << 32 | tie rank) by insertion sort.
     # Local arrays: best 256 B, seed 2 x 256 B + histogram 260 B, block filter 64 B.
+    # The first launch (retry 0) stops a query at its work limit (stopped[i] = 1); the second (retry 1,
+    # stopped_total the inclusive sum of stopped) searches those again without a limit when they are
+    # at most that limit in number, and leaves everything as it is otherwise.
     i = first + wp.tid()
     n = points.shape[0]
+    work_limit = WORK_BASE + WORK_PER_NEIGHBOUR * k
+    if retry != 0:
+        if stopped[i] == 0 or stopped_total[n - 1] > work_limit:
+            return
+        work_limit = NO_WORK_LIMIT
     p = points[i]
     row = order[i]
     level = search_level[i]
@@ -519,7 +547,8 @@ def _knn_query(
         best[t] = NO_KEY
     worst = NO_KEY  # best[k - 1]
     worst_d = float(wp.inf)  # its squared distance
-    visited = int(0)
+    visited = int(0)  # candidates examined
+    work = int(0)  # candidates, tree steps and cell lookups
     filled = int(0)  # keys in best (seed only)
     # the seed: blocks holding the 2h+1 points around i in Morton order (at least k besides i)
     h = k - k / 4
@@ -529,6 +558,7 @@ def _knn_query(
     seed_begin = seed_first * BLOCK
     m = wp.min(seed_last * BLOCK + BLOCK, n) - seed_begin
     visited += m
+    work += m
     # seed distances, branch-free (i itself: inf), and the smallest positive one
     sd = seed_dists()
     d_min = float(wp.inf)
@@ -582,7 +612,7 @@ def _knn_query(
     ring = int(0)
     # Rings: at most RING_LIMIT + 1 at the search level, then ring 0 at the top level (one cell), and
     # the top level has no ring 1; a level whose cells are all visited ends the search.
-    while True:
+    while work < work_limit:
         if ring > 0:
             # nothing unseen lies nearer than the nearest cell of this ring (inf: no cells left)
             ring_gap = wp.min(wp.min(_ring_gap(u[0], cx, ring, side, cells_per_axis),
@@ -621,11 +651,12 @@ def _knn_query(
                 for dz in range(-r, r + 1, step):
                     z = cz + dz
                     gz = _gap(u[2], cz, dz, side, margin_p)
-                    if z < 0 or z >= cells_per_axis or gy + gz * gz > worst_d:
+                    if z < 0 or z >= cells_per_axis or gy + gz * gz > worst_d or work >= work_limit:
                         continue
                     begin = int(0)  # the top level's one cell holds every point
                     end = n
                     if level < LEVELS - 1:
+                        work += 1
                         slot = find_cell(keys, base, mask, morton_code(wp.vec3i(x, y, z)))
                         if slot < 0:
                             continue
@@ -638,7 +669,8 @@ def _knn_query(
                     q = begin
                     top_cap = wp.where(end - begin >= 64, int(NODE_LEVELS), 1)  # small cells: blocks only
                     cap = top_cap
-                    while q < end:
+                    while q < end and work < work_limit:
+                        work += 1
                         level_s = int(1)
                         size = int(BLOCK)
                         while level_s < cap and (q & (8 * size - 1)) == 0 and q + 8 * size <= end:
@@ -666,6 +698,7 @@ def _knn_query(
                                 j = wp.max(begin, node_start)
                                 block_end = wp.min(end, node_start + BLOCK)
                                 visited += block_end - j
+                                work += block_end - j
                                 # branch-free filter of the block, then insertion of the few kept
                                 nc = int(0)
                                 while j < block_end:  # at most BLOCK steps
@@ -696,7 +729,9 @@ def _knn_query(
 
     for t in range(k):
         neighbours[row, t] = wp.int32(key_index(best[t], row, n))
+    exact = work < work_limit
+    stopped[i] = wp.where(exact, 0, 1)
     if reach.shape[0] > 0:
-        reach[row] = best[k - 1]
+        reach[row] = wp.where(exact, best[k - 1], INEXACT)
     if candidates.shape[0] > 0:
         candidates[row] = visited

@@ -20,6 +20,7 @@ from nanogs_warp.kernels import knn as knn_kernels
 from nanogs_warp.parallel import cpu_workers, launch_rows_from, worker_pool
 
 KMAX = knn_kernels.KMAX
+INEXACT = knn_kernels.INEXACT  # a reach entry whose query stopped at its work limit
 _LEVELS = knn_kernels.LEVELS
 _GRID_CELLS = 1 << knn_kernels.GRID_BITS
 _NODE_LEVELS = knn_kernels.NODE_LEVELS
@@ -50,9 +51,13 @@ def knn_graph(
     """(N, k) int32 array on means.device: for each point its k nearest OTHER points (self excluded),
     sorted by (squared distance, index) ascending. Requires 1 <= k <= min(KMAX, N-1).
 
+    A query whose search would take more than a work limit keeps the best k it met, unless few did
+    (``nanogs_warp.kernels.knn``, "Work limit"): on scenes whose float32 distances mostly tie.
+
     ``candidates``, if given (int32, length N), receives the number of points each query examined;
     ``reach``, if given (int64, length N), each point's k-th neighbour as one key, its squared
-    distance's float32 bits << 32 | its index (``candidate_edges`` uses it). The distances are those
+    distance's float32 bits << 32 | its index, or ``INEXACT`` where the query stopped at the limit
+    (``candidate_edges`` uses it). The distances are those
     of ``measured_points(means)``: ``means`` themselves unless their extent is far from 1. ``cube``:
     that function's cube, when ``means`` are its points already.
     """
@@ -81,14 +86,14 @@ def knn_graph(
     nodes = _tree_nodes(points, order)
 
     neighbours = wp.full((n, k), -1, dtype=wp.int32, device=device)
-    launch_rows_from(
-        knn_kernels._knn_query,
-        n,
-        [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, *nodes]
-        + [neighbours, reach, candidates],
-        device,
-        min_rows=512,  # about 2 us a query on a CPU core
-    )
+    stopped = wp.empty(n, dtype=wp.int32, device=device)
+    stopped_total = wp.empty(n, dtype=wp.int32, device=device)
+    search = [points, order, search_level, k, lo, 1.0 / quantum, quantum, margin, *tables, *nodes]
+    search += [stopped, stopped_total, neighbours, reach, candidates]
+    # Every query within its work limit; then, if few stopped at it, those again without one.
+    launch_rows_from(knn_kernels._knn_query, n, [0, *search], device, min_rows=512)  # ~2 us a query on a CPU core
+    wp.utils.array_scan(stopped, stopped_total, inclusive=True)
+    launch_rows_from(knn_kernels._knn_query, n, [1, *search], device, min_rows=4096)
     return neighbours
 
 

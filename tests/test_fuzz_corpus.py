@@ -22,7 +22,12 @@ from fuzz_corpus import corpus  # noqa: E402
 SAMPLE = Path(str(resources.files("nanogs_warp.data") / "plant_crop.ply"))
 SPLATS = 4000  # of the sample, and of the generated SH-3 scene
 STRIDE = 13  # every 13th case, plus the inputs that once made the kNN spin
-ALWAYS = ("one splat at z = 1e20", "every splat at one position", "half of the splats at one position")
+ALWAYS = (
+    "one splat at z = 1e20",
+    "every splat at one position",
+    "half of the splats at one position",
+    "coordinates from random float32 bits",
+)
 LIMIT_S = 30.0  # per case; a clean run of these scenes takes well under a second, warm
 RATIO = 0.1
 

@@ -14,6 +14,7 @@ import warp as wp
 from reference_topology import edges_reference, knn_reference
 
 from nanogs_warp.kernels import edges as edge_kernels
+from nanogs_warp.kernels import knn as knn_kernels
 from nanogs_warp.parallel import launch_rows_from
 from nanogs_warp.topology import KMAX, MEASURED_SIDE, Edges, KnnTopology, candidate_edges, knn_graph, measured_points
 
@@ -233,6 +234,56 @@ def test_knn_of_coordinates_over_every_magnitude(knn_device, monkeypatch):
     assert work <= plain_work and work < 0.25 * len(points) ** 2  # every query scanned everything before
 
 
+def random_bit_points(n, seed):
+    """Coordinates from random float32 bit patterns (a damaged file's), infinities and NaNs set to 0:
+    every magnitude from 1e-45 to 3e38 about equally often, so most squared distances are 0 or +inf
+    in float32 and tie."""
+    bits = np.random.default_rng(seed).integers(0, 2**32, size=(n, 3), dtype=np.uint64).astype(np.uint32)
+    points = bits.view(np.float32).copy()
+    points[~np.isfinite(points)] = 0.0
+    return points
+
+
+def work_limit(k):
+    return knn_kernels.WORK_BASE + knn_kernels.WORK_PER_NEIGHBOUR * k
+
+
+def test_knn_work_is_bounded_where_distances_tie(knn_device):
+    """Where float32 cannot tell most distances apart, queries stop at their work limit and keep the
+    best k they met: the work grows as N, not N^2. Such rows are marked in ``reach``, and the
+    edges read them by a scan of the row, giving exactly the edges of the table itself."""
+    points = random_bit_points(20000, seed=31)
+    means = wp.array(points, dtype=wp.vec3, device=knn_device)
+    candidates = wp.zeros(len(points), dtype=wp.int32, device=knn_device)
+    reach = wp.zeros(len(points), dtype=wp.int64, device=knn_device)
+    table = knn_graph(means, 16, candidates=candidates, reach=reach)
+    neighbours = table.numpy()
+    check_valid(neighbours)
+    inexact = reach.numpy() == knn_kernels.INEXACT
+    assert inexact.sum() > work_limit(16)  # too many to search again
+    assert candidates.numpy().max() < work_limit(16) + knn_kernels.BLOCK
+    with_reach = candidate_edges(table, means, reach)
+    scanned = candidate_edges(table)
+    assert with_reach.count == scanned.count
+    np.testing.assert_array_equal(with_reach.i.numpy(), scanned.i.numpy())
+    np.testing.assert_array_equal(with_reach.j.numpy(), scanned.j.numpy())
+    again = wp.zeros(len(points), dtype=wp.int64, device=knn_device)
+    np.testing.assert_array_equal(knn_graph(means, 16, reach=again).numpy(), neighbours)  # deterministic
+    np.testing.assert_array_equal(again.numpy(), reach.numpy())
+
+
+def test_knn_few_queries_past_the_limit_are_searched_again(knn_device):
+    """Where only a few queries reach the work limit (here 378 of 10,000), they are searched again
+    without it: every row exact, none marked."""
+    points = random_bit_points(10000, seed=2)
+    means = wp.array(points, dtype=wp.vec3, device=knn_device)
+    reach = wp.zeros(len(points), dtype=wp.int64, device=knn_device)
+    candidates = wp.zeros(len(points), dtype=wp.int32, device=knn_device)
+    check_valid(knn_graph(means, 16, candidates=candidates, reach=reach).numpy())
+    assert not np.any(reach.numpy() == knn_kernels.INEXACT)
+    assert candidates.numpy().max() > work_limit(16)  # some did search past it
+
+
 def test_measured_points(knn_device):
     """Scenes inside MEASURED_SIDE are measured as they are; others in a copy scaled by a power of
     two to a side in [1/2, 1), clamped to float32's range and without subnormals; a far outlier
@@ -296,7 +347,11 @@ HAS_CUDA = wp.get_cuda_device_count() > 0 and wp.is_cpu_available()  # both back
 @pytest.mark.skipif(not HAS_CUDA, reason="compares the CPU with a CUDA GPU (needs Warp's CPU compiler too)")
 def test_knn_same_on_cpu_and_cuda():
     """The CPU and CUDA kNN graphs are identical on inputs where distances round."""
-    for points in (off_lattice_points(6000, seed=9), uniform_points(4000, seed=19) * np.float32(1e3) + np.float32(7.3)):
+    for points in (
+        off_lattice_points(6000, seed=9),
+        uniform_points(4000, seed=19) * np.float32(1e3) + np.float32(7.3),
+        random_bit_points(20000, seed=31),  # queries stopped at their work limit
+    ):
         np.testing.assert_array_equal(run_knn(points, 16, "cuda:0"), run_knn(points, 16, "cpu"))
 
 

@@ -12,7 +12,7 @@ generated scene with SH degree 3 (clustered splats, seeded). Per seed, the famil
   extreme   one row or a tenth of the rows of one property set to a denormal, 1e-38, 1e20,
             -1e38, +-FLT_MAX, +-Inf or NaN
   geometry  1-3 splats, every splat at one position, collinear, coplanar, identical rows, one far
-            outlier, clusters of copies
+            outlier, clusters of copies, coordinates over sixty decades or from random float bits
 
 The same arguments give the same files, byte for byte. Besides the cases the folder gets
 ``corpus.jsonl``: one line per case (file, family, what was done). Nothing of it is meant to be
@@ -230,6 +230,13 @@ def geometry_cases(vertices: np.ndarray, rng: np.random.Generator) -> Iterator[C
         return p
 
     yield positions(half_at_one, "half of the splats at one position")
+    yield positions(lambda p: np.c_[10.0 ** rng.uniform(-30, 30, n), np.zeros((n, 2))], "on one ray over sixty decades")
+
+    def random_bits(p):
+        bits = rng.integers(0, 2**32, size=p.shape, dtype=np.uint64).astype(np.uint32).view(np.float32)
+        return np.where(np.isfinite(bits), bits, 0.0).astype(np.float64)
+
+    yield positions(random_bits, "coordinates from random float32 bits")
     for label, value in (("1e20", 1e20), ("1e30", 1e30), ("-max", -FLT_MAX)):
 
         def far(p, value=value):

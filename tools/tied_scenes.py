@@ -1,0 +1,72 @@
+"""Scenes whose centres float32 cannot measure apart, for the kNN's work limit (docs/numerics.md,
+"Scenes in any units"): made deterministically (seeded), nothing is committed as data.
+
+    python tools/tied_scenes.py OUT_DIR --count 400000 [--seed 0]
+
+Writes two INRIA 3DGS PLY files (SH degree 0; rotations, log-scales in [-6, -1], opacity logits
+N(0, 2) and colours N(0, 0.5) as ordinary random splats):
+
+- ``ray.ply``: every centre on the x axis at 10^U(-30, 30): sixty decades, so most squared
+  distances between centres are 0 or +inf in float32.
+- ``bits.ply``: every coordinate a random float32 bit pattern (infinities and NaNs set to 0), as
+  random bytes give: every magnitude from 1e-45 to 3e38 about equally often, either sign.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def random_splats(n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    q = rng.normal(size=(n, 4))
+    return {
+        "rotations": (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32),
+        "log_scales": rng.uniform(-6.0, -1.0, (n, 3)).astype(np.float32),
+        "opacities": rng.normal(scale=2.0, size=n).astype(np.float32),
+        "features": rng.normal(scale=0.5, size=(n, 3)).astype(np.float32),
+    }
+
+
+def ray_centres(n: int, rng: np.random.Generator) -> np.ndarray:
+    centres = np.zeros((n, 3), np.float32)
+    centres[:, 0] = 10.0 ** rng.uniform(-30.0, 30.0, n)
+    return centres
+
+
+def bit_centres(n: int, rng: np.random.Generator) -> np.ndarray:
+    centres = rng.integers(0, 2**32, size=(n, 3), dtype=np.uint64).astype(np.uint32).view(np.float32).copy()
+    centres[~np.isfinite(centres)] = 0.0
+    return centres
+
+
+SCENES = {"ray": ray_centres, "bits": bit_centres}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out_dir", type=Path)
+    parser.add_argument("--count", type=int, default=100_000, help="splats a scene")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    import warp as wp
+
+    wp.config.quiet = True  # no start-up banner
+    from nanogs_warp.io.ply import save_ply
+    from nanogs_warp.splats import SplatSet
+
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    for k, (name, centres) in enumerate(SCENES.items()):
+        rng = np.random.default_rng(args.seed * 100 + k)
+        a = random_splats(args.count, rng)
+        splats = SplatSet.from_numpy(centres(args.count, rng), a["rotations"], a["log_scales"], a["opacities"], a["features"], device="cpu")
+        save_ply(splats, args.out_dir / f"{name}.ply")
+        print(f"{name}: {splats.count:,} splats", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
