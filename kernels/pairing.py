@@ -9,7 +9,9 @@ same matching:
 - In parallel: an edge whose priority (cost, edge index), packed in one uint64, is the smallest
   among the free edges at both of its ends (locally dominant) is in the greedy matching; accept all
   of them, drop the edges with a matched end, repeat until no free edge is left. No sort of the
-  edges: only the matched edges are sorted, to list the pairs in rank order.
+  edges: only the matched edges are sorted, to list the pairs in rank order. A round may match only
+  one edge (costs that grow along a chain of splats), so after a bounded number of rounds the edges
+  left are sorted and matched sequentially, which gives the same matching.
 
 The greedy result capped at P pairs is the first P matched edges by rank. Each pair comes with its
 edge's cost; in rank order the costs do not decrease, so ``cheap_pair_count`` finds by bisection how
@@ -214,6 +216,49 @@ def gather_still_free(
     e = active_edge(active, wp.tid())
     if both_free(partner, edge_i[e], edge_j[e]):
         next_active[wp.atomic_add(slots, 0, 1)] = e
+
+
+@wp.kernel
+def active_priorities(
+    active: wp.array(dtype=wp.int32),
+    costs: wp.array(dtype=float),
+    keys: wp.array(dtype=wp.uint64),
+    edges: wp.array(dtype=wp.int32),
+):
+    """The active edges' priorities and indices, for the sort before ``greedy_rest_in_rank_order``."""
+    t = wp.tid()
+    e = active_edge(active, t)
+    keys[t] = priority(costs[e], e)
+    edges[t] = e
+
+
+@wp.kernel
+def greedy_rest_in_rank_order(
+    keys: wp.array(dtype=wp.uint64),
+    edges: wp.array(dtype=wp.int32),
+    count: int,
+    edge_i: wp.array(dtype=wp.int32),
+    edge_j: wp.array(dtype=wp.int32),
+    partner: wp.array(dtype=wp.int32),
+    matched_keys: wp.array(dtype=wp.uint64),
+    matched_edges: wp.array(dtype=wp.int32),
+    matched_count: wp.array(dtype=wp.int32),
+):
+    """One thread: the edges the rounds left (both ends free), sorted by priority, scanned in order;
+    an edge whose ends are both still free is matched and listed. On what the rounds left, the
+    greedy matching is what the remaining rounds would have matched."""
+    taken = matched_count[0]
+    for t in range(count):
+        e = edges[t]
+        i = edge_i[e]
+        j = edge_j[e]
+        if both_free(partner, i, j):
+            partner[i] = j
+            partner[j] = i
+            matched_keys[taken] = keys[t]
+            matched_edges[taken] = e
+            taken += 1
+    matched_count[0] = taken
 
 
 @wp.kernel

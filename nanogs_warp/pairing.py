@@ -21,6 +21,10 @@ if TYPE_CHECKING:
 # buffer), indexed with int32 as Warp's array lengths are: 2 E must stay below this. A module
 # constant so that tests can lower it.
 INDEX_LIMIT = 2**31
+# Rounds of the parallel pairing before the edges left are matched sequentially (same result): twice
+# the most any pass of the twelve scenes of docs/quality.md takes (32). A module constant so that
+# tests can lower it.
+MAX_ROUNDS = 64
 
 
 def check_sequential_fits(edge_count: int, vertex_count: int, limit: int | None = None) -> None:
@@ -143,8 +147,11 @@ def _median_cost_order(costs: wp.array) -> int:
 def _locally_dominant_pairs(edges: Edges, costs, vertex_count, cap, pair_i, pair_j, pair_cost) -> int:
     """Rounds of: free edges claim both ends by priority, mutual winners match, edges with a
     matched end leave the active list. Every round matches at least the smallest-priority active
-    edge, and the active list shrinks fast, so the total work stays a small multiple of the edge
-    count. The matched edges are then sorted by priority: the first ``cap`` are the pairs."""
+    edge, and on scenes the active list shrinks fast (at most 32 rounds in the twelve scenes of
+    docs/quality.md). Where costs grow along chains of splats a round can match as little as one
+    edge, N/2 rounds over all the edges; so after MAX_ROUNDS the edges left are sorted and matched
+    by one thread in rank order, the same matching. The matched edges are then sorted by priority:
+    the first ``cap`` are the pairs."""
     device = costs.device
     edge_i, edge_j = edges.i, edges.j
     best = wp.full(vertex_count, kernels.NO_CLAIM, dtype=wp.uint64, device=device)
@@ -157,8 +164,10 @@ def _locally_dominant_pairs(edges: Edges, costs, vertex_count, cap, pair_i, pair
     active = wp.empty(0, dtype=wp.int32, device=device)  # empty: every edge
     count = edges.count
     # Ends: the active edge of smallest priority (a total order on distinct keys) wins both its ends
-    # and is matched each round, so there are at most edges.count rounds.
-    while count > 0:
+    # and is matched each round; after MAX_ROUNDS the rest are matched in one sequential scan.
+    rounds = 0
+    while count > 0 and rounds < MAX_ROUNDS:
+        rounds += 1
         wp.launch(kernels.claim_endpoints, count, inputs=[active, edge_i, edge_j, costs], outputs=[best], device=device)
         wp.launch(
             kernels.accept_mutual_claims, count,
@@ -178,6 +187,16 @@ def _locally_dominant_pairs(edges: Edges, costs, vertex_count, cap, pair_i, pair
                 inputs=[active, edge_i, edge_j, partner], outputs=[counter, next_active], device=device,
             )  # fmt: skip
         active, count = next_active, remaining
+    if count > 0:
+        keys = wp.empty(2 * count, dtype=wp.uint64, device=device)  # the sort's second buffer too
+        rest = wp.empty(2 * count, dtype=wp.int32, device=device)
+        wp.launch(kernels.active_priorities, count, inputs=[active, costs], outputs=[keys, rest], device=device)
+        wp.utils.radix_sort_pairs(keys, rest, count)
+        wp.launch(
+            kernels.greedy_rest_in_rank_order, 1,
+            inputs=[keys, rest, count, edge_i, edge_j], outputs=[partner, matched_keys, matched_edges, matched_count],
+            device=device,
+        )  # fmt: skip
     matched = int(matched_count.numpy()[0])
     wp.utils.radix_sort_pairs(matched_keys, matched_edges, matched)
     taken = min(matched, cap)

@@ -61,6 +61,48 @@ def test_sorted_path_needs_many_rounds(device, method):
     assert list(zip(pairs.i.numpy(), pairs.j.numpy())) == [(k, k + 1) for k in range(0, n - 1, 2)]
 
 
+def test_rounds_are_bounded_and_the_rest_matched_in_rank_order(device, monkeypatch):
+    """A path of 20,000 edges with costs growing along it (splats spaced ever wider, all alike)
+    would take one round per pair: after MAX_ROUNDS the rest is matched by one sequential scan,
+    and the pairs are still the greedy ones."""
+    import nanogs_warp.pairing as pairing
+
+    rounds = []
+    launch = pairing.wp.launch
+
+    def counting_launch(kernel, *args, **kwargs):
+        rounds.append(kernel is pairing.kernels.claim_endpoints)
+        return launch(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(pairing.wp, "launch", counting_launch)
+    n = 20_001
+    ei = np.arange(n - 1, dtype=np.int32)
+    ej = ei + 1
+    costs = np.linspace(1.0, 2.0, n - 1).astype(np.float32)
+    edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), n - 1)
+    pairs = select_pairs(edges, wp.array(costs, device=device), n, n, method="parallel")
+    assert list(zip(pairs.i.numpy(), pairs.j.numpy())) == [(k, k + 1) for k in range(0, n - 1, 2)]
+    assert sum(rounds) == pairing.MAX_ROUNDS
+
+
+@pytest.mark.parametrize("max_rounds", [0, 1, 3])
+@pytest.mark.parametrize("tie_levels", [None, 2])
+def test_rest_after_a_few_rounds_equals_sequential_greedy(device, rng, monkeypatch, max_rounds, tie_levels):
+    """Whatever the rounds have matched, the sequential scan of the edges left completes the greedy
+    matching: the same pairs, costs and rank order as the reference."""
+    import nanogs_warp.pairing as pairing
+
+    monkeypatch.setattr(pairing, "MAX_ROUNDS", max_rounds)
+    n = 3000
+    ei, ej, costs = random_graph(rng, n, 12_000, tie_levels)
+    edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), len(ei))
+    pairs = select_pairs(edges, wp.array(costs, device=device), n, 1000, method="parallel")
+    got = list(zip(pairs.i.numpy().tolist(), pairs.j.numpy().tolist()))
+    assert got == reference.greedy_pairs(ei, ej, costs, n, 1000)
+    cost_of = {(a, b): c for a, b, c in zip(ei.tolist(), ej.tolist(), costs.tolist())}
+    assert pairs.costs.numpy().tolist() == [cost_of[(min(a, b), max(a, b))] for a, b in got]
+
+
 def test_no_edges_no_pairs(device):
     empty = wp.zeros(0, dtype=wp.int32, device=device)
     pairs = select_pairs(Edges(empty, empty, 0), wp.zeros(0, dtype=float, device=device), 5, 2)

@@ -1,15 +1,19 @@
-"""Scenes whose centres float32 cannot measure apart, for the kNN's work limit (docs/numerics.md,
-"Scenes in any units"): made deterministically (seeded), nothing is committed as data.
+"""Scenes made to defeat the search structures, for their work bounds (docs/numerics.md, "Scenes in
+any units", and docs/performance.md, "Pairing"): made deterministically (seeded), nothing is
+committed as data.
 
-    python tools/tied_scenes.py OUT_DIR --count 400000 [--seed 0]
+    python tools/adversarial_scenes.py OUT_DIR --count 400000 [--seed 0]
 
-Writes two INRIA 3DGS PLY files (SH degree 0; rotations, log-scales in [-6, -1], opacity logits
-N(0, 2) and colours N(0, 0.5) as ordinary random splats):
+Writes three INRIA 3DGS PLY files (SH degree 0; where not said otherwise, rotations, log-scales in
+[-6, -1], opacity logits N(0, 2) and colours N(0, 0.5) as ordinary random splats):
 
 - ``ray.ply``: every centre on the x axis at 10^U(-30, 30): sixty decades, so most squared
-  distances between centres are 0 or +inf in float32.
+  distances between centres are 0 or +inf in float32 (the kNN's work limit).
 - ``bits.ply``: every coordinate a random float32 bit pattern (infinities and NaNs set to 0), as
   random bytes give: every magnitude from 1e-45 to 3e38 about equally often, either sign.
+- ``chain.ply``: alike splats (one colour, one opacity, axis-aligned) on the x axis, spaced ever
+  wider (x_i = 10^(6 i / N)), each as long as its spacing: merge costs grow along the chain, which
+  would take the GPU's parallel pairing one round per pair (its bounded rounds).
 """
 
 from __future__ import annotations
@@ -43,7 +47,28 @@ def bit_centres(n: int, rng: np.random.Generator) -> np.ndarray:
     return centres
 
 
-SCENES = {"ray": ray_centres, "bits": bit_centres}
+def chain_splats(n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    x = 10.0 ** (6.0 * np.arange(n, dtype=np.float64) / n)
+    spacing = np.gradient(x)
+    a = random_splats(n, rng)
+    a["means"] = np.c_[x, np.zeros(n), np.zeros(n)].astype(np.float32)
+    a["log_scales"] = np.log(np.c_[spacing, spacing / 2, spacing / 2]).astype(np.float32)
+    a["rotations"][:] = (1.0, 0.0, 0.0, 0.0)
+    a["opacities"][:] = 2.0
+    a["features"][:] = 0.0
+    return a
+
+
+def with_centres(centres):
+    def make(n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        a = random_splats(n, rng)
+        a["means"] = centres(n, rng)
+        return a
+
+    return make
+
+
+SCENES = {"ray": with_centres(ray_centres), "bits": with_centres(bit_centres), "chain": chain_splats}
 
 
 def main(argv=None) -> int:
@@ -52,17 +77,13 @@ def main(argv=None) -> int:
     parser.add_argument("--count", type=int, default=100_000, help="splats a scene")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    import warp as wp
-
-    wp.config.quiet = True  # no start-up banner
     from nanogs_warp.io.ply import save_ply
     from nanogs_warp.splats import SplatSet
 
     args.out_dir.mkdir(parents=True, exist_ok=True)
-    for k, (name, centres) in enumerate(SCENES.items()):
-        rng = np.random.default_rng(args.seed * 100 + k)
-        a = random_splats(args.count, rng)
-        splats = SplatSet.from_numpy(centres(args.count, rng), a["rotations"], a["log_scales"], a["opacities"], a["features"], device="cpu")
+    for k, (name, make) in enumerate(SCENES.items()):
+        a = make(args.count, np.random.default_rng(args.seed * 100 + k))
+        splats = SplatSet.from_numpy(a["means"], a["rotations"], a["log_scales"], a["opacities"], a["features"], device="cpu")
         save_ply(splats, args.out_dir / f"{name}.ply")
         print(f"{name}: {splats.count:,} splats", file=sys.stderr)
     return 0
