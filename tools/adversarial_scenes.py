@@ -11,9 +11,10 @@ Writes three INRIA 3DGS PLY files (SH degree 0; where not said otherwise, rotati
   distances between centres are 0 or +inf in float32 (the kNN's work limit).
 - ``bits.ply``: every coordinate a random float32 bit pattern (infinities and NaNs set to 0), as
   random bytes give: every magnitude from 1e-45 to 3e38 about equally often, either sign.
-- ``chain.ply``: alike splats (one colour, one opacity, axis-aligned) on the x axis, spaced ever
-  wider (x_i = 10^(6 i / N)), each as long as its spacing: merge costs grow along the chain, which
-  would take the GPU's parallel pairing one round per pair (its bounded rounds).
+- ``chain.ply``: chains of up to 100,000 alike splats (one colour, one opacity, axis-aligned),
+  side by side along y, each along x and spaced ever wider (x_i = 10^(6 i / 100,000)), each splat
+  as long as its spacing: merge costs grow along every chain, which would take the GPU's parallel
+  pairing one round per pair (its bounded rounds).
 """
 
 from __future__ import annotations
@@ -47,11 +48,15 @@ def bit_centres(n: int, rng: np.random.Generator) -> np.ndarray:
     return centres
 
 
+CHAIN = 100_000  # splats a chain: float32 still orders the costs of neighbouring pairs
+
+
 def chain_splats(n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    x = 10.0 ** (6.0 * np.arange(n, dtype=np.float64) / n)
-    spacing = np.gradient(x)
+    step = np.arange(n) % CHAIN
+    x = 10.0 ** (6.0 * step / CHAIN)
+    spacing = x * (10.0 ** (6.0 / CHAIN) - 1.0)
     a = random_splats(n, rng)
-    a["means"] = np.c_[x, np.zeros(n), np.zeros(n)].astype(np.float32)
+    a["means"] = np.c_[x, 3e6 * (np.arange(n) // CHAIN), np.zeros(n)].astype(np.float32)
     a["log_scales"] = np.log(np.c_[spacing, spacing / 2, spacing / 2]).astype(np.float32)
     a["rotations"][:] = (1.0, 0.0, 0.0, 0.0)
     a["opacities"][:] = 2.0
