@@ -11,6 +11,8 @@ import pytest
 import reference_render as ref
 import warp as wp
 
+import nanogs_warp.eval.render as render_module
+from nanogs_warp.errors import InputError
 from nanogs_warp.eval.cameras import Camera, orbit_cameras
 from nanogs_warp.eval.render import _Rasteriser, render, render_views
 from nanogs_warp.splats import SplatSet
@@ -194,3 +196,35 @@ def test_view_dependent_colour_follows_the_sh_basis(device):
         compare(splats, camera, (0.0, 0.0, 0.0), image)
         reds.append(image[16, 16, 0])
     assert reds[0] < reds[1]
+
+
+def huge_splats(n, device="cpu"):
+    """n splats each covering the whole of an orbit view (log-scale 3, faint)."""
+    rng = np.random.default_rng(7)
+    return SplatSet.from_numpy(
+        rng.normal(size=(n, 3)), rng.normal(size=(n, 4)), np.full((n, 3), 3.0), np.full(n, -3.0), rng.normal(size=(n, 3)), device=device
+    )
+
+
+def test_a_view_with_more_tile_entries_than_memory_is_refused(device, monkeypatch):
+    """A view whose (tile, splat) pairs would not fit the device's memory is refused in one line
+    before any entry buffer is made (a hostile file of huge splats at a large --size ran the
+    machine out of memory); one that fits renders. The device's own free memory is asked too."""
+    assert render_module.entry_memory(wp.get_device(device)) > 0
+    splats = huge_splats(200, device)
+    camera = orbit_cameras(splats, views=1, size=64)[0]
+    monkeypatch.setattr(render_module, "entry_memory", lambda device: 200 * 16 * render_module.ENTRY_BYTES)  # 16 tiles a splat
+    assert np.isfinite(render(splats, camera).numpy()).all()
+    monkeypatch.setattr(render_module, "entry_memory", lambda device: 200 * 15 * render_module.ENTRY_BYTES)
+    with pytest.raises(InputError, match=r"a 64x64 view of these 200 splats covers 3,200 \(tile, splat\) pairs"):
+        render(splats, camera)
+
+
+def test_tile_entries_beyond_int32_are_counted_in_int64(device, monkeypatch):
+    """Where splats x tiles can pass int32, the pairs are summed in int64: a wrapped running sum
+    can no longer pass for a small one."""
+    monkeypatch.setattr(render_module, "INDEX_LIMIT", 1000)  # 200 splats x 16 tiles pass it
+    splats = huge_splats(200, device)
+    camera = orbit_cameras(splats, views=1, size=64)[0]
+    with pytest.raises(InputError, match="covers 3,200"):
+        render(splats, camera)

@@ -115,3 +115,23 @@ def test_lanes_per_tile_give_the_same_gradients(device, rng, lanes):
     for a, b, c in zip(one, many, again):
         assert np.abs(a - b).max() <= 1e-5 * np.abs(a).max()
         assert b.tobytes() == c.tobytes()
+
+
+@pytest.mark.parametrize("lanes", [1, 16])
+def test_the_backward_buffers_count_in_the_memory_bound(monkeypatch, lanes):
+    """A view that fits the forward rasteriser's memory bound but not the backward pass's buffers
+    as well is refused by the refinement's rasteriser, in one line (``InputError``)."""
+    import nanogs_warp.eval.render as render_module
+    from test_render import huge_splats
+
+    from nanogs_warp.errors import InputError
+    from nanogs_warp.eval.cameras import orbit_cameras
+
+    splats = huge_splats(200, "cpu")
+    camera = orbit_cameras(splats, views=1, size=64)[0]
+    monkeypatch.setattr(render_module, "entry_memory", lambda device: 200 * 16 * render_module.ENTRY_BYTES)
+    assert np.isfinite(render(splats, camera).numpy()).all()
+    rasteriser = GradRasteriser(splats, lanes=lanes)
+    image = wp.zeros((1, 64, 64, 3), dtype=wp.float32, device="cpu")
+    with pytest.raises(InputError, match="covers 3,200"):
+        rasteriser.forward(camera, wp.vec3(0.0, 0.0, 0.0), image)

@@ -12,6 +12,7 @@ in chunks from one thread per core (they use no atomics, so the chunks are indep
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Sequence
 
@@ -25,6 +26,21 @@ from ..splats import SplatSet
 from .cameras import Camera
 
 TILE = 16
+# Bytes a (tile, splat) entry takes in the entry buffers: its key and value twice (the radix sort's
+# second buffer), then its 2D mean, conic and opacity, colour and box.
+ENTRY_BYTES = 2 * 8 + 2 * 4 + 8 + 16 + 12 + 16
+INDEX_LIMIT = 2**31 - 1  # entries are indexed with int32
+
+
+def entry_memory(device) -> int:
+    """Bytes a view's entry buffers may take on ``device``: half of the memory free now (a GPU's,
+    or the host's available memory for the CPU)."""
+    if device.is_cuda:
+        return int(device.free_memory) // 2
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2
+    except (ValueError, OSError, AttributeError):  # not on this system: no memory bound but int32's
+        return INDEX_LIMIT * ENTRY_BYTES
 
 
 def camera_params(camera: Camera) -> kernels.CameraParams:
@@ -80,6 +96,7 @@ class _Rasteriser:
         self.touched = wp.empty(n, dtype=wp.int32, device=d)
         self.ends = wp.empty(n, dtype=wp.int32, device=d)
         self.capacity = 0
+        self.entry_bytes = ENTRY_BYTES  # what an entry takes in this rasteriser's buffers
         self.tile_start = self.tile_end = None
         wp.load_module(kernels, device=d)
 
@@ -138,7 +155,18 @@ class _Rasteriser:
             [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.rect, self.touched],
         )
         wp.utils.array_scan(self.touched, self.ends, inclusive=True)
-        return int(self.ends[self.n - 1 :].numpy()[0])
+        if self.n * tiles <= INDEX_LIMIT:
+            count = int(self.ends[self.n - 1 :].numpy()[0])
+        else:  # the int32 running sum may have wrapped: the total in int64, on the host
+            count = int(self.touched.numpy().sum(dtype=np.int64))
+        limit = min(INDEX_LIMIT, max(self.capacity, entry_memory(self.device) // self.entry_bytes))  # what it holds, or can
+        if count > limit:
+            raise InputError(
+                f"a {p.width}x{p.height} view of these {self.n:,} splats covers {count:,} (tile, splat) pairs "
+                f"({count * self.entry_bytes / 2**30:.1f} GiB); {self.device} has room for {limit:,}: "
+                "render smaller images (eval --size, --refine-size)"
+            )
+        return count
 
     def render_into(self, camera: Camera, background: wp.vec3, image: wp.array, view: int) -> None:
         """Composites view ``view`` of ``image`` (V, H, W, 3) from ``camera``."""

@@ -51,6 +51,12 @@ class SplatGradients:
             a.zero_()
 
 
+# Bytes an entry adds for the backward pass (``_reserve_grad``): three int32 indices and its
+# gradients (2D mean, conic, opacity, colour); and per lane where several threads share a tile.
+GRAD_ENTRY_BYTES = 3 * 4 + 8 + 12 + 4 + 12
+LANE_BYTES = 8 + 12 + 4 + 12
+
+
 class GradRasteriser(_Rasteriser):
     """Renders one view at a time of a splat set whose parameters may change between views, and
     back-propagates dL/dimage of the last view rendered."""
@@ -62,6 +68,7 @@ class GradRasteriser(_Rasteriser):
         if lanes not in (1, 2, 4, 8, 16):
             raise ValueError(f"lanes {lanes}: expected 1, 2, 4, 8 or 16")
         self.lanes = lanes
+        self.entry_bytes += GRAD_ENTRY_BYTES + (lanes * LANE_BYTES if lanes > 1 else 0)
         wp.load_module(grad_kernels, device=self.device)
         self.grad_capacity = 0
         self.scratch_pixels = 0
