@@ -34,9 +34,16 @@ INDEX_LIMIT = 2**31 - 1  # entries are indexed with int32
 
 def entry_memory(device) -> int:
     """Bytes a view's entry buffers may take on ``device``: half of the memory free now (a GPU's,
-    or the host's available memory for the CPU)."""
+    or for the CPU the host's available memory, page cache included as the kernel counts it)."""
     if device.is_cuda:
         return int(device.free_memory) // 2
+    try:
+        with open("/proc/meminfo") as info:
+            for line in info:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024 // 2
+    except (OSError, ValueError, IndexError):
+        pass
     try:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2
     except (ValueError, OSError, AttributeError):  # not on this system: no memory bound but int32's
