@@ -65,6 +65,27 @@ def keep_freed_host_memory() -> bool:
     return bool(mallopt(m_mmap_threshold, 1 << 30)) and bool(mallopt(m_trim_threshold, (1 << 31) - 1))
 
 
+def gpu_fault() -> str | None:
+    """The CUDA error a GPU's context holds, in words ("cuda:0: CUDA error 700 (...)"), or None.
+    After such an error (an illegal memory access, say) every later launch and kernel lookup on
+    that GPU fails, which must not read as a damaged kernel cache. Only GPUs whose context Warp has
+    made are asked; nothing is started for the question."""
+    if "warp" not in sys.modules:
+        return None
+    try:
+        from warp._src.context import runtime
+    except ImportError:
+        return None
+    if runtime is None:
+        return None
+    for device in getattr(runtime, "cuda_devices", ()):
+        if device.has_context:
+            code = runtime.core.wp_cuda_context_check(device.context)
+            if code:
+                return f"{device}: CUDA error {code} ({runtime.get_error_string()})"
+    return None
+
+
 def resolve_device(name: str):
     """``auto`` (the first GPU, else the CPU), ``cpu``, ``cuda`` or ``cuda:N`` -> a Warp device."""
     import warp as wp

@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 
+import pytest
 import typer
 import warp as wp
 from typer.testing import CliRunner
@@ -105,3 +106,58 @@ def test_a_damaged_kernel_cache_is_one_line(tmp_path):
     assert result.returncode == 2, result.stderr
     assert "a compiled kernel module is damaged" in result.stderr and "delete the directory to compile the kernels again" in result.stderr
     assert not (tmp_path / "o.ply").exists()
+
+
+def test_a_gpu_that_stopped_is_not_called_a_damaged_cache(monkeypatch):
+    """After a CUDA error that a GPU's context keeps (an illegal memory access), every later kernel
+    lookup fails with the damaged-cache message's words: the command names the GPU's error as an
+    internal error (exit 1) instead of advising to delete the cache."""
+    import types
+
+    import warp._src.context as warp_context
+
+    device = type("FakeDevice", (), {"has_context": True, "context": 1, "__str__": lambda self: "cuda:0"})()
+    core = types.SimpleNamespace(wp_cuda_context_check=lambda context: 700)
+    fake = types.SimpleNamespace(cuda_devices=[device], core=core, get_error_string=lambda: "an illegal memory access was encountered")
+    monkeypatch.setattr(warp_context, "runtime", fake)
+
+    app = typer.Typer()
+
+    @app.command()
+    @user_errors
+    def lookup() -> None:
+        raise Exception("Failed to find forward kernel 'gather_entries' from module 'nanogs_warp.kernels.render' for device 'cuda:0'")
+
+    result = CliRunner().invoke(app, [])
+    assert result.exit_code == 1
+    lines = result.output.strip().splitlines()
+    assert lines == ["nanogs-warp: error: internal error: the GPU stopped: cuda:0: CUDA error 700 (an illegal memory access was "
+                     "encountered) (set NANOGS_DEBUG=1 for details)"], lines  # fmt: skip
+
+
+@pytest.mark.skipif(wp.get_cuda_device_count() == 0, reason="needs a CUDA GPU")
+def test_gpu_fault_reads_a_real_illegal_address_on_cuda(tmp_path):
+    """A kernel that writes to address 16 stops the GPU's context (in a process of its own, whose
+    context it spoils): ``gpu_fault`` names the error; a fresh process has none."""
+    probe = (
+        "import warp as wp\n"
+        "wp.config.quiet = True\n"
+        "from nanogs_warp.device import gpu_fault\n"
+        "wp.init()\n"
+        "print('before', gpu_fault())\n"
+        "@wp.kernel\n"
+        "def poke(a: wp.array(dtype=float)):\n"
+        "    a[0] = 1.0\n"
+        "bad = wp.array(ptr=16, shape=(1,), dtype=float, device='cuda:0')\n"
+        "try:\n"
+        "    wp.launch(poke, 1, inputs=[bad], device='cuda:0')\n"
+        "    wp.synchronize_device('cuda:0')\n"
+        "except Exception:\n"
+        "    pass\n"
+        "print('after', gpu_fault())\n"
+    )
+    script = tmp_path / "probe.py"  # a file: Warp reads a kernel's source
+    script.write_text(probe)
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert "before None" in result.stdout, result.stdout + result.stderr
+    assert "after cuda:0: CUDA error" in result.stdout, result.stdout + result.stderr

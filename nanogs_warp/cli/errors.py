@@ -58,8 +58,12 @@ def user_errors(command):
         except Exception as e:  # noqa: BLE001 - the last line of defence for a command-line tool
             if os.environ.get("NANOGS_DEBUG"):
                 traceback.print_exc()
+            from ..device import gpu_fault
             from ..kernel_cache import damaged_cache
 
+            fault = gpu_fault()  # a GPU that stopped makes every later kernel look missing
+            if fault is not None:
+                _fail(f"internal error: the GPU stopped: {fault} (set NANOGS_DEBUG=1 for details)", 1)
             damaged = damaged_cache(e)
             if damaged is not None:
                 _fail(damaged, 2)
