@@ -78,11 +78,14 @@ def gpu_fault() -> str | None:
         return None
     if runtime is None:
         return None
-    for device in getattr(runtime, "cuda_devices", ()):
-        if device.has_context:
-            code = runtime.core.wp_cuda_context_check(device.context)
-            if code:
-                return f"{device}: CUDA error {code} ({runtime.get_error_string()})"
+    try:  # asked while another error is reported: the question itself must not fail
+        for device in getattr(runtime, "cuda_devices", ()):
+            if device.has_context:
+                code = runtime.core.wp_cuda_context_check(device.context)
+                if code:
+                    return f"{device}: CUDA error {code} ({runtime.get_error_string()})"
+    except Exception:  # noqa: BLE001
+        return None
     return None
 
 
