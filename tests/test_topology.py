@@ -6,7 +6,9 @@ neighbour sets only across gaps wider than it, and whole rows exactly where ever
 (integer coordinates).
 """
 
+import sys
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +19,9 @@ from nanogs_warp.kernels import edges as edge_kernels
 from nanogs_warp.kernels import knn as knn_kernels
 from nanogs_warp.parallel import launch_rows_from
 from nanogs_warp.topology import KMAX, MEASURED_SIDE, Edges, KnnTopology, candidate_edges, knn_graph, measured_points
+
+sys.path.insert(0, str(Path(__file__).parents[1] / "tools"))
+from adversarial_scenes import bit_centres  # noqa: E402 - the same scenes as the tool's
 
 wp.config.log_level = wp.LOG_WARNING
 
@@ -235,13 +240,10 @@ def test_knn_of_coordinates_over_every_magnitude(knn_device, monkeypatch):
 
 
 def random_bit_points(n, seed):
-    """Coordinates from random float32 bit patterns (a damaged file's), infinities and NaNs set to 0:
-    every magnitude from 1e-45 to 3e38 about equally often, so most squared distances are 0 or +inf
-    in float32 and tie."""
-    bits = np.random.default_rng(seed).integers(0, 2**32, size=(n, 3), dtype=np.uint64).astype(np.uint32)
-    points = bits.view(np.float32).copy()
-    points[~np.isfinite(points)] = 0.0
-    return points
+    """Coordinates from random float32 bit patterns (a damaged file's), infinities and NaNs set to 0
+    (tools/adversarial_scenes.py): every magnitude from 1e-45 to 3e38 about equally often, so most
+    squared distances are 0 or +inf in float32 and tie."""
+    return bit_centres(n, np.random.default_rng(seed))
 
 
 def work_limit(k):

@@ -82,15 +82,11 @@ def main(argv=None) -> int:
     parser.add_argument("--count", type=int, default=100_000, help="splats a scene")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    from nanogs_warp.io.ply import save_ply
-    from nanogs_warp.splats import SplatSet
+    from stress_scenes import write_scene  # this folder's: a script's own folder is on the path
 
     args.out_dir.mkdir(parents=True, exist_ok=True)
     for k, (name, make) in enumerate(SCENES.items()):
-        a = make(args.count, np.random.default_rng(args.seed * 100 + k))
-        splats = SplatSet.from_numpy(a["means"], a["rotations"], a["log_scales"], a["opacities"], a["features"], device="cpu")
-        save_ply(splats, args.out_dir / f"{name}.ply")
-        print(f"{name}: {splats.count:,} splats", file=sys.stderr)
+        write_scene(make(args.count, np.random.default_rng(args.seed * 100 + k)), args.out_dir / f"{name}.ply")
     return 0
 
 

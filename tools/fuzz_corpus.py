@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import plyfile
+from adversarial_scenes import bit_centres, ray_centres  # this folder's
 
 FLT_MAX = float(np.finfo(np.float32).max)
 EXTREMES = {
@@ -230,13 +231,8 @@ def geometry_cases(vertices: np.ndarray, rng: np.random.Generator) -> Iterator[C
         return p
 
     yield positions(half_at_one, "half of the splats at one position")
-    yield positions(lambda p: np.c_[10.0 ** rng.uniform(-30, 30, n), np.zeros((n, 2))], "on one ray over sixty decades")
-
-    def random_bits(p):
-        bits = rng.integers(0, 2**32, size=p.shape, dtype=np.uint64).astype(np.uint32).view(np.float32)
-        return np.where(np.isfinite(bits), bits, 0.0).astype(np.float64)
-
-    yield positions(random_bits, "coordinates from random float32 bits")
+    yield positions(lambda p: ray_centres(n, rng).astype(np.float64), "on one ray over sixty decades")
+    yield positions(lambda p: bit_centres(n, rng).astype(np.float64), "coordinates from random float32 bits")
     for label, value in (("1e20", 1e20), ("1e30", 1e30), ("-max", -FLT_MAX)):
 
         def far(p, value=value):

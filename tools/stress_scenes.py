@@ -172,21 +172,27 @@ def backdrop(rng, scale: float) -> dict[str, np.ndarray]:
 SCENES = {"stress_fur": fur, "stress_grass": grass, "stress_panels": panels, "stress_backdrop": backdrop}
 
 
+def write_scene(arrays: dict[str, np.ndarray], path: Path) -> None:
+    """Writes a generated scene (means, rotations w first, log_scales, opacities, features) as an
+    INRIA 3DGS PLY file and says on stderr how many splats it holds."""
+    from nanogs_warp.io.ply import save_ply
+    from nanogs_warp.splats import SplatSet
+
+    a = arrays
+    splats = SplatSet.from_numpy(a["means"], a["rotations"], a["log_scales"], a["opacities"], a["features"], device="cpu")
+    save_ply(splats, path)
+    print(f"{path.stem}: {splats.count:,} splats", file=sys.stderr)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("out_dir", type=Path)
     parser.add_argument("--scale", type=float, default=1.0, help="multiplies every splat count")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    from nanogs_warp.io.ply import save_ply
-    from nanogs_warp.splats import SplatSet
-
     args.out_dir.mkdir(parents=True, exist_ok=True)
     for k, (name, make) in enumerate(SCENES.items()):
-        a = make(np.random.default_rng(args.seed * 100 + k), args.scale)
-        splats = SplatSet.from_numpy(a["means"], a["rotations"], a["log_scales"], a["opacities"], a["features"], device="cpu")
-        save_ply(splats, args.out_dir / f"{name}.ply")
-        print(f"{name}: {splats.count:,} splats", file=sys.stderr)
+        write_scene(make(np.random.default_rng(args.seed * 100 + k), args.scale), args.out_dir / f"{name}.ply")
     return 0
 
 
