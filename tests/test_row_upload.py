@@ -110,3 +110,34 @@ def test_a_copy_that_fails_falls_back_to_the_plain_upload(tmp_path, monkeypatch)
     upload = RowUpload(lambda: wp.get_device("cpu"), cpu=True)
     arrays, layout = read_any_splats(path, upload=upload)
     assert upload.splats(arrays, layout) is None
+
+
+def test_the_upload_lets_go_of_the_host_arrays(tmp_path):
+    """Once the splat set is made (or the upload gave up), the uploader keeps no host array: the
+    caller's references are the last, so the command frees the read's memory for the results'
+    copies back to the host."""
+    import weakref
+
+    path = tmp_path / "s.ply"
+    random_splats_ply(path, 40_000, seed=2)
+
+    def no_device():
+        raise RuntimeError("no such GPU")
+
+    for device in (lambda: wp.get_device("cpu"), no_device):
+        upload = RowUpload(device, cpu=True)
+        arrays, layout = read_any_splats(path, upload=upload)
+        refs = [weakref.ref(a) for a in arrays.values()]
+        splats = upload.splats(arrays, layout)
+        assert (splats is None) == (device is no_device)
+        del arrays
+        assert all(ref() is None for ref in refs)
+        if splats is not None:
+            assert splats.count == 40_000 and splats.device == wp.get_device("cpu")
+
+    upload = RowUpload(lambda: wp.get_device("cpu"), cpu=True)  # a read that failed after its start
+    arrays, layout = read_any_splats(path, upload=upload)
+    refs = [weakref.ref(a) for a in arrays.values()]
+    upload.cancel()
+    del arrays
+    assert all(ref() is None for ref in refs)

