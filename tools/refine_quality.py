@@ -3,6 +3,11 @@ orbit (16 views at 2.2x the 90th-percentile radius, 60 degrees, 256 x 256) and o
 refinement never saw (close-ups at 1.3x that radius, 45 degrees, random directions of a fixed seed).
 
     python tools/refine_quality.py scenes/guitar.ply scenes/statue.ply -o refine_quality/ --ratios 0.1,0.01
+    python tools/refine_quality.py scenes/statue.ply -o rq_geometry/ --ratios 0.001 --learn geometry
+
+``--learn`` refines only some of the parameters (the others' learning rates are 0): ``geometry``
+(centres, rotations, scales), ``appearance`` (opacity and colour) or ``opacity``; each row also
+gives the mean change of the splats' log-scales, smallest to largest axis, that refinement made.
 
 Writes OUT/refine_quality.jsonl (one line per scene and ratio), OUT/refine_quality.md (the table) and
 OUT/<scene>_closeups.json (the close-up cameras, for ``nanogs-warp eval --cameras``).
@@ -29,6 +34,13 @@ from nanogs_warp.refinement.refine import RefineConfig, refine_with_report
 CLOSEUP_DISTANCE = 1.3
 CLOSEUP_FOV_DEG = 45.0
 CLOSEUP_SEED = 20261123
+# --learn: the learning rates set to 0, by what is left to learn
+FROZEN = {
+    "all": (),
+    "geometry": ("lr_opacities", "lr_features_dc", "lr_features_rest"),
+    "appearance": ("lr_means", "lr_rotations", "lr_log_scales"),
+    "opacity": ("lr_means", "lr_rotations", "lr_log_scales", "lr_features_dc", "lr_features_rest"),
+}
 
 
 def closeup_cameras(means: np.ndarray, views: int, size: int, up: str = "-y") -> list[Camera]:
@@ -45,6 +57,14 @@ def closeup_cameras(means: np.ndarray, views: int, size: int, up: str = "-y") ->
         d /= np.linalg.norm(d)
         cameras.append(Camera.look_at(centre + CLOSEUP_DISTANCE * p90 * d, centre, up_vector, focal, focal, size, size, f"closeup_{k:03d}", near))
     return cameras
+
+
+def sorted_log_scale_change(before, after) -> list[float]:
+    """The mean over splats of the change of each splat's log-scales, sorted smallest to largest
+    (refinement keeps the count and the order of the splats)."""
+    a = np.sort(before.log_scales.numpy().astype(np.float64), axis=1)
+    b = np.sort(after.log_scales.numpy().astype(np.float64), axis=1)
+    return [round(float(v), 4) for v in (b - a).mean(axis=0)]
 
 
 def cameras_json(cameras: list[Camera]) -> list[dict]:
@@ -66,6 +86,7 @@ def main(argv=None) -> int:
     parser.add_argument("--views", type=int, default=16)
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--learn", choices=list(FROZEN), default="all", help="which parameters refinement may change")
     args = parser.parse_args(argv)
     init_warp()
     device = resolve_device(args.device)
@@ -80,12 +101,13 @@ def main(argv=None) -> int:
             (args.out / f"{path.stem}_closeups.json").write_text(json.dumps(cameras_json(closeups), indent=1))
             targets = sorted({max(1, math.ceil(r * splats.count)) for r in ratios}, reverse=True)
             for target, simplified in simplify_progressively(splats, targets, SimplifyConfig()):
-                config = RefineConfig(steps=args.steps, size=args.refine_size)
+                config = RefineConfig(steps=args.steps, size=args.refine_size, **{name: 0.0 for name in FROZEN[args.learn]})
                 started = time.perf_counter()
                 refined, report = refine_with_report(simplified, splats, config)
                 seconds = time.perf_counter() - started
                 row = {"scene": path.stem, "count": target, "ratio": target / splats.count, "steps": args.steps,
-                       "device": str(device), "refine_seconds": round(seconds, 3), "refine": report.to_json()}  # fmt: skip
+                       "device": str(device), "learn": args.learn, "refine_seconds": round(seconds, 3), "refine": report.to_json(),
+                       "log_scale_change": sorted_log_scale_change(simplified, refined)}  # fmt: skip
                 for name, cams in (("orbit", orbit), ("closeup", closeups)):
                     result = evaluate(splats, [simplified, refined], cams, device)
                     row[f"{name}_before"] = result["tests"][0]["psnr"]["mean"]
@@ -95,13 +117,14 @@ def main(argv=None) -> int:
                 log.flush()
                 print(f"{row['scene']} {target}: orbit {row['orbit_before']:.2f} -> {row['orbit_after']:.2f} dB, "
                       f"close-ups {row['closeup_before']:.2f} -> {row['closeup_after']:.2f} dB, {seconds:.1f} s", flush=True)  # fmt: skip
-    lines = ["| scene | splats | orbit PSNR | refined | gain | close-up PSNR | refined | gain | refine s |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]  # fmt: skip
+    lines = ["| scene | splats | learn | orbit PSNR | refined | gain | close-up PSNR | refined | gain | log-scale change, axes small to large | refine s |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---|---:|"]  # fmt: skip
     for r in rows:
         lines.append(
-            f"| {r['scene']} | {r['count']:,} | {r['orbit_before']:.2f} | {r['orbit_after']:.2f} | "
+            f"| {r['scene']} | {r['count']:,} | {r['learn']} | {r['orbit_before']:.2f} | {r['orbit_after']:.2f} | "
             f"{r['orbit_after'] - r['orbit_before']:+.2f} | {r['closeup_before']:.2f} | {r['closeup_after']:.2f} | "
-            f"{r['closeup_after'] - r['closeup_before']:+.2f} | {r['refine_seconds']:.1f} |"
+            f"{r['closeup_after'] - r['closeup_before']:+.2f} | {' / '.join(f'{v:+.3f}' for v in r['log_scale_change'])} | "
+            f"{r['refine_seconds']:.1f} |"
         )
     (args.out / "refine_quality.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
