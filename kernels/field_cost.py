@@ -43,7 +43,7 @@ import warp as wp
 
 from .cost import UNMERGEABLE, finite_cost
 from .field import pair_view_overlaps
-from .merge import coverage_merged, mpmm_merged
+from .merge import coverage_merged, log_coverage_mass, mpmm_merged
 from .portable_math import SMALLEST_NORMAL, exp64, log64, scale_by_power_of_two, sigmoid64
 from .splat_math import Splats, covariance, symmetric_eigen, to_vec3d
 
@@ -58,18 +58,20 @@ COVERAGE = wp.constant(1)
 
 @wp.func
 def operator_merged(
-    operator_id: int, i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, a_i: wp.float64, a_j: wp.float64, growth: float
+    operator_id: int, i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, a_i: wp.float64, a_j: wp.float64,
+    log_w_i: wp.float64, log_w_j: wp.float64, growth: float,
 ):
     """The operator's merged splat as (pi, mu_m, eigenvalues, frame, alpha_m) and the overlap sums
     (own, cross, comp) of the pair and the merged splat over the three views along its axes
-    (``view_overlaps``); ``a_i``, ``a_j``: the pair's opacities."""
+    (``view_overlaps``); ``a_i``, ``a_j``: the pair's opacities, ``log_w_i``, ``log_w_j``: the logs
+    of their coverage weights (``splat_terms``)."""
     if operator_id == MPMM:
         pi, mu_m, cov_m, logit_m = mpmm_merged(i, j, src)
         values, frame = symmetric_eigen(cov_m)
         alpha_m = sigmoid64(wp.float64(logit_m))
         own, cross, comp = pair_view_overlaps(frame, values, to_vec3d(src.means[i]), to_vec3d(src.means[j]), mu_m, cov_i, cov_j)
         return pi, mu_m, values, frame, alpha_m, own, cross, comp
-    return coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, growth)
+    return coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, log_w_i, log_w_j, growth)
 
 
 @wp.func
@@ -92,15 +94,21 @@ def colour_dot(features: wp.array2d(dtype=float), a: int, b: int):
 def splat_terms(
     rotations: wp.array(dtype=wp.quat),
     log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
     features: wp.array2d(dtype=float),
     covariances: wp.array(dtype=wp.mat33d),
     colour_norms: wp.array(dtype=wp.float64),
+    alphas: wp.array(dtype=wp.float64),
+    log_weights: wp.array(dtype=wp.float64),
 ):
-    """Per splat, once per pass (every edge reads two): Sigma and mean_d |c(d)|^2 (``colour_dot`` of
-    the splat with itself, the same operations an edge would do)."""
+    """Per splat, once per pass (every edge reads two): Sigma, mean_d |c(d)|^2 (``colour_dot`` of
+    the splat with itself), the opacity alpha and the log of the coverage weight alpha s_a s_b
+    (``log_coverage_mass``): the same operations an edge (and the merge) would do, once."""
     i = wp.tid()
     covariances[i] = covariance(rotations[i], log_scales[i])
     colour_norms[i] = colour_dot(features, i, i)
+    alphas[i] = sigmoid64(wp.float64(opacities[i]))
+    log_weights[i] = log_coverage_mass(opacities[i], log_scales[i])
 
 
 @wp.func
@@ -199,6 +207,8 @@ def field_costs(
     src: Splats,
     covariances: wp.array(dtype=wp.mat33d),
     colour_norms: wp.array(dtype=wp.float64),
+    alphas: wp.array(dtype=wp.float64),
+    log_weights: wp.array(dtype=wp.float64),
     operator_id: int,
     growth: float,
     lambda_geo: float,
@@ -215,9 +225,11 @@ def field_costs(
     j = int(edge_j[e])
     cov_i = covariances[i]
     cov_j = covariances[j]
-    a_i = sigmoid64(wp.float64(src.opacities[i]))
-    a_j = sigmoid64(wp.float64(src.opacities[j]))
-    pi, mu_m, values, frame, alpha_m, own, cross, comp = operator_merged(operator_id, i, j, src, cov_i, cov_j, a_i, a_j, growth)
+    a_i = alphas[i]
+    a_j = alphas[j]
+    pi, mu_m, values, frame, alpha_m, own, cross, comp = operator_merged(
+        operator_id, i, j, src, cov_i, cov_j, a_i, a_j, log_weights[i], log_weights[j], growth
+    )
     if not (wp.isfinite(alpha_m) and wp.isfinite(values[0] * values[1] * values[2])):
         costs[e] = wp.float32(UNMERGEABLE)
         return

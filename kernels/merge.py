@@ -237,7 +237,8 @@ def area_weighted_moment_matching(
 
 @wp.func
 def coverage_merged(
-    i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, a_i: wp.float64, a_j: wp.float64, growth: float
+    i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, a_i: wp.float64, a_j: wp.float64,
+    log_w_i: wp.float64, log_w_j: wp.float64, growth: float,
 ):
     """The coverage operator's merged splat: weights w = alpha s_a s_b (face-on footprint). With
     (c0, c1) the merged splat's two major axes (its face plane) and F_k = sqrt(det) of splat k's
@@ -245,11 +246,12 @@ def coverage_merged(
     merged splat F_m = s0 s1; where C / F_m > 1, the variances along c0 and c1 grow by
     (C / F_m)^growth. The opacity is then the one that best keeps the pair's opacity field seen along
     each of the merged splat's three axes (``field_opacity``), at most MERGED_ALPHA_MAX.
-    ``cov_i``, ``cov_j``: the pair's covariances; ``a_i``, ``a_j``: their opacities (``sigmoid64``). Returns (pi, mu_m, eigenvalues, frame, alpha_m,
+    ``cov_i``, ``cov_j``: the pair's covariances; ``a_i``, ``a_j``: their opacities (``sigmoid64``);
+    ``log_w_i``, ``log_w_j``: their weights' logs (``log_coverage_mass``). Returns (pi, mu_m, eigenvalues, frame, alpha_m,
     own, cross, comp): the overlap sums of ``view_overlaps``, which the field cost reuses.
     The frame comes from the float64 Jacobi sweep, whose arithmetic (and sqrt) rounds alike on every
     device, so CPU and CUDA merges agree bit for bit."""
-    pi = first_weight(log_coverage_mass(src.opacities[i], src.log_scales[i]), log_coverage_mass(src.opacities[j], src.log_scales[j]))
+    pi = first_weight(log_w_i, log_w_j)
     mu_i = to_vec3d(src.means[i])
     mu_j = to_vec3d(src.means[j])
     mu_m, cov_m = moment_match(pi, mu_i, cov_i, mu_j, cov_j)
@@ -286,7 +288,9 @@ def coverage_moment_matching(
     cov_j = covariance(src.rotations[j], src.log_scales[j])
     a_i = sigmoid64(wp.float64(src.opacities[i]))
     a_j = sigmoid64(wp.float64(src.opacities[j]))
-    pi, mu_m, values, frame, alpha, own, cross, comp = coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, growth)
+    log_w_i = log_coverage_mass(src.opacities[i], src.log_scales[i])
+    log_w_j = log_coverage_mass(src.opacities[j], src.log_scales[j])
+    pi, mu_m, values, frame, alpha, own, cross, comp = coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, log_w_i, log_w_j, growth)
     blend_appearance(i, j, pi, row, src, out)
     store_gaussian(row, mu_m, values, frame, out)
     out.opacities[row] = logit_of_log_alpha(log64(wp.max(alpha, wp.float64(1e-300))))

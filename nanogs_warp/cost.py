@@ -143,17 +143,20 @@ class FieldCost:
         device = splats.device
         covariances = wp.empty(splats.count, dtype=wp.mat33d, device=device)
         colour_norms = wp.empty(splats.count, dtype=wp.float64, device=device)
+        alphas = wp.empty(splats.count, dtype=wp.float64, device=device)
+        log_weights = wp.empty(splats.count, dtype=wp.float64, device=device)
         launch_rows(
             field_cost.splat_terms, splats.count,
-            lambda rows: [splats.rotations[rows], splats.log_scales[rows], splats.features[rows], covariances[rows],
-                          colour_norms[rows]],
+            lambda rows: [splats.rotations[rows], splats.log_scales[rows], splats.opacities[rows], splats.features[rows],
+                          covariances[rows], colour_norms[rows], alphas[rows], log_weights[rows]],
             device,
         )  # fmt: skip
         energy = reference_energy(splats, self.ENERGY_CHUNK)
         costs = wp.empty(edges.count, dtype=wp.float32, device=device)
         launch_rows(
             field_cost.field_costs, edges.count,
-            lambda rows: [edges.i[rows], edges.j[rows], splats.kernel_view(), covariances, colour_norms, self.OPERATOR_IDS[self.operator],
+            lambda rows: [edges.i[rows], edges.j[rows], splats.kernel_view(), covariances, colour_norms, alphas, log_weights,
+                          self.OPERATOR_IDS[self.operator],
                           self.growth, self.lambda_geo, self.lambda_app, self.lambda_contrast, energy, costs[rows]],
             splats.device,
         )  # fmt: skip

@@ -202,24 +202,32 @@ def test_field_cost_matches_reference(device, rng, operator):
     f = arrays["features"].astype(np.float64)
     want_norms = ((0.5 + 0.28209479177387814 * f[:, :3]) ** 2).sum(1) + (f[:, 3:] ** 2).sum(1) / (4 * np.pi)
     # the per-splat terms against the references, over poisoned outputs
+    want_alphas = reference.sigmoid(arrays["opacities"].astype(np.float64))
+    want_log_weights = np.log(want_alphas * reference.footprint(arrays["log_scales"]))
     covariances = wp.full(24, wp.mat33d(*([np.nan] * 9)), dtype=wp.mat33d, device=device)
     colour_norms = wp.full(24, np.nan, dtype=wp.float64, device=device)
+    alphas = wp.full(24, np.nan, dtype=wp.float64, device=device)
+    log_weights = wp.full(24, np.nan, dtype=wp.float64, device=device)
     wp.launch(
-        field_cost.splat_terms, 24, inputs=[splats.rotations, splats.log_scales, splats.features],
-        outputs=[covariances, colour_norms], device=device,
+        field_cost.splat_terms, 24, inputs=[splats.rotations, splats.log_scales, splats.opacities, splats.features],
+        outputs=[covariances, colour_norms, alphas, log_weights], device=device,
     )  # fmt: skip
     np.testing.assert_allclose(covariances.numpy(), want_covariances, rtol=1e-6, atol=1e-12 * np.abs(want_covariances).max())
     np.testing.assert_allclose(colour_norms.numpy(), want_norms, rtol=1e-12)
+    np.testing.assert_allclose(alphas.numpy(), want_alphas, rtol=1e-14)
+    np.testing.assert_allclose(log_weights.numpy(), want_log_weights, rtol=1e-12, atol=1e-12)
     # the edge costs from the references' per-splat terms
     covariances = wp.array(want_covariances, dtype=wp.mat33d, device=device)
     colour_norms = wp.array(want_norms, dtype=wp.float64, device=device)
+    alphas = wp.array(want_alphas, dtype=wp.float64, device=device)
+    log_weights = wp.array(want_log_weights, dtype=wp.float64, device=device)
     costs = wp.full(len(ei), np.nan, dtype=float, device=device)  # poisoned
     energy = reference.reference_energy(arrays)
     unit = cost_unit(arrays)
     wp.launch(
         field_cost.field_costs, len(ei),
         inputs=[wp.array(ei, device=device), wp.array(ej, device=device), splats.kernel_view(), covariances,
-                colour_norms, FieldCost.OPERATOR_IDS[operator], FieldCost.growth, 1.0, 0.5, 7.0,
+                colour_norms, alphas, log_weights, FieldCost.OPERATOR_IDS[operator], FieldCost.growth, 1.0, 0.5, 7.0,
                 wp.array([energy, unit], dtype=wp.float64, device=device)],
         outputs=[costs], device=device,
     )  # fmt: skip

@@ -493,15 +493,21 @@ def main(argv=None) -> int:
     covs = {}
 
     norms = {}
+    alphas = {}
+    log_weights = {}
 
     def splat_terms(t):
         i = int(rows[t])
         covs[i] = k["splat_math"].covariance(src.rotations[i], src.log_scales[i])
         norms[i] = k["field_cost"].colour_dot(src.features, i, i)
+        alphas[i] = k["portable_math"].sigmoid64(fake.float64(src.opacities[i]))
+        log_weights[i] = k["merge"].log_coverage_mass(src.opacities[i], src.log_scales[i])
 
     per_splat_field, _ = measure(splat_terms, len(rows))
     mats = MatArray({int(r): covs[int(r)] for r in rows})
     colour_norms = MatArray({int(r): norms[int(r)] for r in rows})
+    alpha_of = MatArray({int(r): alphas[int(r)] for r in rows})
+    log_weight_of = MatArray({int(r): log_weights[int(r)] for r in rows})
     one = HostArray(np.zeros(1, np.float32))
     rot, ls, op = src.rotations, src.log_scales, src.opacities
     per_splat_runnalls, _ = measure(
@@ -513,10 +519,10 @@ def main(argv=None) -> int:
     energy = HostArray(reference_energy(splats).numpy())  # E_ref of the contrast term: once a pass
     contrast = FieldCost.lambda_contrast
     field, field_by = measure(
-        lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, 1, FieldCost.growth, 1.0, 1.0, contrast, energy, out), len(ei)
+        lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, alpha_of, log_weight_of, 1, FieldCost.growth, 1.0, 1.0, contrast, energy, out), len(ei)
     )
     field_mpmm, _ = measure(
-        lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, 0, FieldCost.growth, 1.0, 1.0, contrast, energy, out), len(ei)
+        lambda t: k["field_cost"].field_costs(edge_i, edge_j, src, mats, colour_norms, alpha_of, log_weight_of, 0, FieldCost.growth, 1.0, 1.0, contrast, energy, out), len(ei)
     )
     weights = MatArray({int(r): F(1.0) for r in rows})
     log_dets = MatArray({int(r): F(-10.0) for r in rows})
