@@ -27,15 +27,15 @@ MAX_SCENE_TIMEOUT = 1e6
 
 
 def batch_command(
-    input: Annotated[str, typer.Argument(help="A directory (every .ply, .spz, .sog and .splat below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
+    input: Annotated[str, typer.Argument(metavar="INPUT", help="A directory (every .ply, .spz, .sog and .splat below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
     output: Annotated[str, typer.Option("-o", "--output", metavar="DIRECTORY", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.<ext of --format>, and <stem>.nanogs.json records for resuming.", show_default=False)],
     ratio: opts.Ratio = None,
     count: opts.Count = None,
-    devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, all,cpu (every GPU and the CPU), or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.")] = "auto",
-    workers: Annotated[int, typer.Option(help="Worker processes per device (e.g. several on the CPU).")] = 1,
+    devices: Annotated[str, typer.Option(help="auto (every GPU, else the CPU), all (every GPU), cpu, all,cpu (every GPU and the CPU), or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.", metavar="DEVICES")] = "auto",
+    workers: Annotated[int, typer.Option(help="Worker processes per device (e.g. several on the CPU).", metavar="WORKERS")] = 1,
     readers: Annotated[Optional[int], typer.Option("--readers", metavar="N", help="Threads per worker that read, check and hash each input file while the device works on the previous scene. [default: the CPU cores shared out among the workers, 1 to 8]", show_default=False)] = None,
-    shard: Annotated[Optional[str], typer.Option(help="Only scenes i, i+n, i+2n, ... of the sorted list, as i/n (0-based), e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT.", show_default=False)] = None,
-    ray: Annotated[Optional[str], typer.Option("--ray", help="Run each scene as a Ray task: auto (the cluster this machine belongs to), local (a Ray instance started here) or the head's ADDRESS. Needs nanogs-warp[ray].", show_default=False)] = None,
+    shard: Annotated[Optional[str], typer.Option(help="Only scenes i, i+n, i+2n, ... of the sorted list, as i/n (0-based), e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT.", show_default=False, metavar="SHARD")] = None,
+    ray: Annotated[Optional[str], typer.Option("--ray", help="Run each scene as a Ray task: auto (the cluster this machine belongs to), local (a Ray instance started here) or the head's ADDRESS. Needs nanogs-warp[ray].", show_default=False, metavar="RAY")] = None,
     scene_timeout: Annotated[Optional[float], typer.Option("--scene-timeout", metavar="SECONDS", help="Time limit per scene; a scene past it fails and its worker process is replaced. 0: no limit. [default: 300 s plus 0.1 s per MB of input on a GPU, 0.5 s per MB on the CPU]", show_default=False)] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo every scene, even those whose outputs and record are up to date.")] = False,
     preset: opts.Preset = "default",
@@ -53,7 +53,7 @@ def batch_command(
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
     refine_size: opts.RefineSize = RefineConfig.size,
-    output_format: Annotated[Optional[str], typer.Option("--format", show_default=False, help="Output format: ply (default), compressed-ply, spz, sog or splat.")] = None,
+    output_format: Annotated[Optional[str], typer.Option("--format", show_default=False, metavar="OUTPUT_FORMAT", help="Output format: ply (default), compressed-ply, spz, sog or splat.")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
 ) -> None:
