@@ -43,7 +43,7 @@ import warp as wp
 
 from .cost import UNMERGEABLE, finite_cost
 from .field import pair_view_overlaps
-from .merge import coverage_merged, log_coverage_mass, mpmm_merged
+from .merge import coverage_merged, coverage_terms, mpmm_merged
 from .portable_math import SMALLEST_NORMAL, exp64, log64, scale_by_power_of_two, sigmoid64
 from .splat_math import Splats, covariance, symmetric_eigen, to_vec3d
 
@@ -102,13 +102,14 @@ def splat_terms(
     log_weights: wp.array(dtype=wp.float64),
 ):
     """Per splat, once per pass (every edge reads two): Sigma, mean_d |c(d)|^2 (``colour_dot`` of
-    the splat with itself), the opacity alpha and the log of the coverage weight alpha s_a s_b
-    (``log_coverage_mass``): the same operations an edge (and the merge) would do, once."""
+    the splat with itself) and ``coverage_terms`` (the opacity and the log of the coverage weight,
+    as the merge computes them): the same operations an edge would do, once."""
     i = wp.tid()
     covariances[i] = covariance(rotations[i], log_scales[i])
     colour_norms[i] = colour_dot(features, i, i)
-    alphas[i] = sigmoid64(wp.float64(opacities[i]))
-    log_weights[i] = log_coverage_mass(opacities[i], log_scales[i])
+    alpha, log_weight = coverage_terms(opacities[i], log_scales[i])
+    alphas[i] = alpha
+    log_weights[i] = log_weight
 
 
 @wp.func

@@ -171,6 +171,14 @@ def log_coverage_mass(opacity_logit: float, log_scale: wp.vec3):
 
 
 @wp.func
+def coverage_terms(opacity_logit: float, log_scale: wp.vec3):
+    """A splat's own terms of the coverage merge: its opacity alpha and the log of its weight
+    alpha s_a s_b (``log_coverage_mass``). The merge computes them here for its pair; the field cost
+    once a pass for every splat (``field_cost.splat_terms``), with this same function."""
+    return sigmoid64(wp.float64(opacity_logit)), log_coverage_mass(opacity_logit, log_scale)
+
+
+@wp.func
 def projected_footprint(cov: wp.mat33d, c0: wp.vec3d, c1: wp.vec3d):
     """sqrt(det) of the covariance's 2x2 block in the plane spanned by the unit vectors c0, c1: the
     footprint (up to 2 pi) of its splat seen along c0 x c1."""
@@ -247,7 +255,7 @@ def coverage_merged(
     (C / F_m)^growth. The opacity is then the one that best keeps the pair's opacity field seen along
     each of the merged splat's three axes (``field_opacity``), at most MERGED_ALPHA_MAX.
     ``cov_i``, ``cov_j``: the pair's covariances; ``a_i``, ``a_j``: their opacities (``sigmoid64``);
-    ``log_w_i``, ``log_w_j``: their weights' logs (``log_coverage_mass``). Returns (pi, mu_m, eigenvalues, frame, alpha_m,
+    ``log_w_i``, ``log_w_j``: their weights' logs (``coverage_terms``). Returns (pi, mu_m, eigenvalues, frame, alpha_m,
     own, cross, comp): the overlap sums of ``view_overlaps``, which the field cost reuses.
     The frame comes from the float64 Jacobi sweep, whose arithmetic (and sqrt) rounds alike on every
     device, so CPU and CUDA merges agree bit for bit."""
@@ -286,10 +294,8 @@ def coverage_moment_matching(
     row = int(destination[i])
     cov_i = covariance(src.rotations[i], src.log_scales[i])
     cov_j = covariance(src.rotations[j], src.log_scales[j])
-    a_i = sigmoid64(wp.float64(src.opacities[i]))
-    a_j = sigmoid64(wp.float64(src.opacities[j]))
-    log_w_i = log_coverage_mass(src.opacities[i], src.log_scales[i])
-    log_w_j = log_coverage_mass(src.opacities[j], src.log_scales[j])
+    a_i, log_w_i = coverage_terms(src.opacities[i], src.log_scales[i])
+    a_j, log_w_j = coverage_terms(src.opacities[j], src.log_scales[j])
     pi, mu_m, values, frame, alpha, own, cross, comp = coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, log_w_i, log_w_j, growth)
     blend_appearance(i, j, pi, row, src, out)
     store_gaussian(row, mu_m, values, frame, out)

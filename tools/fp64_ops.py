@@ -500,8 +500,7 @@ def main(argv=None) -> int:
         i = int(rows[t])
         covs[i] = k["splat_math"].covariance(src.rotations[i], src.log_scales[i])
         norms[i] = k["field_cost"].colour_dot(src.features, i, i)
-        alphas[i] = k["portable_math"].sigmoid64(fake.float64(src.opacities[i]))
-        log_weights[i] = k["merge"].log_coverage_mass(src.opacities[i], src.log_scales[i])
+        alphas[i], log_weights[i] = k["merge"].coverage_terms(src.opacities[i], src.log_scales[i])
 
     per_splat_field, _ = measure(splat_terms, len(rows))
     mats = MatArray({int(r): covs[int(r)] for r in rows})
