@@ -10,8 +10,8 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "InputError": "errors",
     "SimplifyConfig": "config",
-    "simplify": "pipeline",
-    "simplify_progressively": "pipeline",
+    "simplify": "refinement.simplify",
+    "simplify_progressively": "refinement.simplify",
     "load_ply": "io.ply",
     "save_ply": "io.ply",
     "SplatSet": "splats",
@@ -30,7 +30,7 @@ def __getattr__(name: str):
         raise AttributeError(f"module 'nanogs_warp' has no attribute {name!r}")
     import importlib
 
-    if module in ("pipeline", "io.ply", "splats", "io", "refinement.refine"):
+    if module in ("refinement.simplify", "io.ply", "splats", "io", "refinement.refine"):
         importlib.import_module(".device", __name__).quiet_warp()
     value = getattr(importlib.import_module(f".{module}", __name__), name)
     globals()[name] = value

@@ -26,7 +26,8 @@ class SimplifyConfig:
     The defaults are the configuration chosen by leave-one-scene-out over the shared scenes and
     generated stress scenes (docs/quality.md): the coverage merge operator, the field cost, at most
     45 % of the splats merged a pass and no pair above 3 times the pass's median pair cost, no
-    opacity pruning and k = None: 24 neighbours below 65,536 splats, 16 from there on. ``SimplifyConfig.paper()`` is
+    opacity pruning, k = None: 24 neighbours below 65,536 splats, 16 from there on, and the size
+    fit of the outputs at or below 1 % of the input. ``SimplifyConfig.paper()`` is
     the NanoGS paper's configuration (``--preset paper``).
 
     ``pass_fraction``: at most this fraction of the current splats merge in one pass, the cheapest
@@ -36,6 +37,10 @@ class SimplifyConfig:
     ``median_cost_factor``: of those pairs, a pass merges none that costs more than this many times
     the median pair's cost (at least half of them always merge): a region whose merges cost far
     more than the rest waits for a later pass instead of being forced. 0 turns the limit off.
+
+    ``fit_size``: each output of at most 1 % of the input's splats has its splats' axes scaled by
+    the one factor whose renders match the input's best at a coarse and at a fine pixel size
+    (``refinement.size_fit``); the merging itself, and every larger output, is unchanged.
     """
 
     k: int | None = None
@@ -48,6 +53,7 @@ class SimplifyConfig:
     operator: str = "coverage"
     pass_fraction: float = 0.45
     median_cost_factor: float = 3.0
+    fit_size: bool = True
 
     def __post_init__(self):
         self.validate()  # a bad configuration fails where it is built, not where it runs
@@ -108,8 +114,9 @@ MAX_K = 32
 # budgets, worse on meshes and flat opaque content; docs/quality.md) and the NanoGS paper's own.
 PRESETS: dict[str, dict] = {
     "default": {},
-    "fast": {"cost": "runnalls", "pass_fraction": 0.5, "median_cost_factor": 0.0},
-    "paper": {"k": 16, "prune_opacity": 0.1, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5, "median_cost_factor": 0.0},
+    "fast": {"cost": "runnalls", "pass_fraction": 0.5, "median_cost_factor": 0.0, "fit_size": False},
+    "paper": {"k": 16, "prune_opacity": 0.1, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5, "median_cost_factor": 0.0,
+              "fit_size": False},
 }
 
 

@@ -20,20 +20,22 @@ from pathlib import Path
 CACHE_VARIABLE = "NANOGS_WARP_CACHE"
 
 # The kernel modules each command launches (their Warp helpers come with them).
-SIMPLIFY_MODULES = ("knn", "edges", "cost", "field_cost", "pairing", "compact", "merge", "prune")
+SIMPLIFY_MODULES = ("knn", "edges", "cost", "field_cost", "pairing", "compact", "merge", "prune", "splat_size")
 EVAL_MODULES = ("render",)
 REFINE_MODULES = ("render", "render_grad", "image_loss", "adam")
 ALL_MODULES = SIMPLIFY_MODULES + EVAL_MODULES + REFINE_MODULES[1:]
 
 def simplify_modules(config=None) -> tuple[str, ...]:
     """The kernel modules a simplification with ``config`` (a SimplifyConfig) launches: its cost's
-    module and pruning only when it prunes (None: every one of SIMPLIFY_MODULES). A module left
-    out would still load when first launched."""
+    module, pruning only when it prunes and the size fit (with the renderer) only when it fits
+    (None: every one of SIMPLIFY_MODULES). A module left out would still load when first launched."""
     if config is None:
         return SIMPLIFY_MODULES
     cost = "field_cost" if config.cost == "field" else "cost"
     prune = ("prune",) if config.prune_opacity > 0 else ()
-    return tuple(m for m in SIMPLIFY_MODULES if m not in ("cost", "field_cost", "prune")) + (cost,) + prune
+    fit = ("splat_size", "render") if config.fit_size else ()
+    optional = ("cost", "field_cost", "prune", "splat_size")
+    return tuple(m for m in SIMPLIFY_MODULES if m not in optional) + (cost,) + prune + fit
 
 
 # GPU architectures compiled by `warmup` on a machine without a GPU (Turing to Hopper).

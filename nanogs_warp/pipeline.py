@@ -97,11 +97,14 @@ def simplify_progressively(
     config: SimplifyConfig = SimplifyConfig(),
     on_pass: Callable[[PassReport], None] | None = None,
     clock: StageClock | None = None,
+    finish: Callable[[SplatSet], SplatSet] | None = None,
 ) -> Iterator[tuple[int, SplatSet]]:
     """Yields (target, splats) for each target count, largest first, continuing one progressive merge.
 
     Every yielded splat set has exactly ``target`` splats and stays on ``splats.device``; none of
     them, nor the input, is changed afterwards. ``clock`` (benchmarks) records per-stage times.
+    ``finish`` (the size fit of ``nanogs_warp.simplify_progressively``) makes each yielded set from
+    the merged one; the merging goes on from the merged one.
     """
     config.validate()
     targets = sorted(set(int(t) for t in targets), reverse=True)
@@ -161,7 +164,7 @@ def simplify_progressively(
                 renumbered_layout = without_vertex_indexed(splats.layout)
             if renumbered_layout is not current.layout:
                 current = replace(current, layout=renumbered_layout)
-        yield target, current
+        yield target, (current if finish is None else finish(current))
 
 
 def simplify(
@@ -173,6 +176,7 @@ def simplify(
     *,
     ratios: Sequence[float | str] | None = None,
     counts: Sequence[int] | None = None,
+    finish: Callable[[SplatSet], SplatSet] | None = None,
 ) -> SplatSet | list[SplatSet]:
     """Simplifies ``splats`` to ``count`` splats, or to max(1, ceil(ratio * N)) (exactly: the ratio
     as written, a float through its shortest repr).
@@ -181,7 +185,7 @@ def simplify(
     continue one progressive merge, as the command line does, and give a list of splat sets in the
     order the budgets were given. ``device`` is where the work runs ("auto", "cpu", "cuda",
     "cuda:0", a ``wp.Device``; None: the splats' own device); the results stay there. A device that
-    is not on this machine raises InputError.
+    is not on this machine raises InputError. ``finish``: as ``simplify_progressively``'s.
     """
     if ratios is not None:
         if ratio is not None:
@@ -210,5 +214,5 @@ def simplify(
 
         device = resolve_device(device)
     on_device = splats.to(wp.get_device(device) if device is not None else splats.device)
-    results = dict(simplify_progressively(on_device, targets, config))
+    results = dict(simplify_progressively(on_device, targets, config, finish=finish))
     return [results[t] for t in targets] if several else results[targets[0]]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scene_factory import in_units, random_splat_arrays
 
-from nanogs_warp import SplatSet
+from nanogs_warp import InputError, SplatSet
 from nanogs_warp.io import detect_format, format_for_path, load_splats, save_splats
 from nanogs_warp.io.common import SH_C0, morton_order
 from nanogs_warp.io.ply import load_ply
@@ -224,6 +224,19 @@ def test_sog_archive_holds_the_published_layout(tmp_path):
     assert meta["version"] == 2 and meta["count"] == 100
     assert meta["shN"]["bands"] == 3 and meta["shN"]["count"] == 100
     assert len(meta["scales"]["codebook"]) <= 256 and len(meta["sh0"]["codebook"]) <= 256
+
+
+def test_sog_with_an_unsupported_zip_version_is_one_clear_error(tmp_path):
+    """A central-directory entry that declares a zip version Python's zipfile refuses (it raises
+    NotImplementedError while opening the archive) is an input error, not a traceback."""
+    path = tmp_path / "x.sog"
+    save_splats(SplatSet.from_numpy(**scene(20, 0, seed=81)), path)
+    data = bytearray(path.read_bytes())
+    entry = data.index(b"PK\x01\x02")  # the first central-directory entry: "version needed" at +6
+    data[entry + 6 : entry + 8] = (0xFFFF).to_bytes(2, "little")
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="not a readable .sog archive"):
+        load_splats(path)
 
 
 def test_sog_palette_for_large_scenes(tmp_path, monkeypatch):

@@ -42,7 +42,8 @@ from nanogs_warp.device import resolve_device  # noqa: E402
 from nanogs_warp.eval.cameras import orbit_cameras  # noqa: E402
 from nanogs_warp.eval.evaluate import compare_images, render_all  # noqa: E402
 from nanogs_warp.io.ply import load_ply, save_ply  # noqa: E402
-from nanogs_warp.pipeline import SimplifyConfig, simplify_progressively, target_count  # noqa: E402
+from nanogs_warp.pipeline import SimplifyConfig, target_count  # noqa: E402
+from nanogs_warp.refinement.simplify import simplify_progressively  # noqa: E402 - with the size fit, as the command line
 
 RATIOS = (0.1, 0.01, 0.001)
 PAPER = dataclasses.asdict(SimplifyConfig.paper())  # every setting, so --define can change any of them

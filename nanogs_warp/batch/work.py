@@ -119,7 +119,7 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
         return
     download = 0.0
     with _stage(scene, "simplify"):
-        from ..pipeline import simplify_progressively
+        from ..refinement.simplify import simplify_progressively
 
         by_target: dict[int, list] = {}
         for budget in job.budgets:

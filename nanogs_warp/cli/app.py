@@ -102,6 +102,7 @@ def simplify(
     operator: opts.Operator = None,
     pass_fraction: opts.PassFraction = None,
     median_cost_factor: opts.MedianCostFactor = None,
+    fit_size: opts.FitSize = None,
     drop_invalid: opts.DropInvalid = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
@@ -121,7 +122,7 @@ def simplify(
     config = opts.method_config(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
         lambda_app=lambda_app, cost=cost, operator=operator, pass_fraction=pass_fraction,
-        median_cost_factor=median_cost_factor,
+        median_cost_factor=median_cost_factor, fit_size=fit_size,
     )
     config.validate()  # before anything is started or read
     refine_config = None
@@ -318,12 +319,14 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
     a file that appeared at an output's path since it was checked stays, and the write fails."""
     from ..io import save_splats
     from ..pipeline import simplify_progressively
+    from ..refinement.size_fit import size_fit_for
 
     writer = writer or _Writer(background=False)
     stages = {} if stages is None else stages
     stages.setdefault("download", 0.0)
     on_pass = lambda r: (passes.append(r), progress(r))  # noqa: E731
-    for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass):
+    size_fit = size_fit_for(on_device, config)
+    for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass, finish=size_fit):
         reached = time.perf_counter()
         report = None
         if refine_config is not None:
@@ -340,6 +343,8 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
                 writer.submit(lambda host=host, path=paths[budget]: save_splats(host, path, fmt, on_loss=notes, overwrite=overwrite))
             written.append({"path": str(paths[budget].resolve()), "budget": budget.label, "count": result.count,
                             "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
+            if size_fit is not None and size_fit.applies(result.count):
+                written[-1]["size_factor"] = round(size_fit.factors[result.count], 6)
             if report is not None:
                 written[-1]["refine"] = report.to_json()
         smaller = [t for t in budgets_for_target if t < target]

@@ -49,6 +49,7 @@ def batch_command(
     operator: opts.Operator = None,
     pass_fraction: opts.PassFraction = None,
     median_cost_factor: opts.MedianCostFactor = None,
+    fit_size: opts.FitSize = None,
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing the scene.")] = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
@@ -68,7 +69,7 @@ def batch_command(
     config = opts.method_config(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
         lambda_app=lambda_app, cost=cost, operator=operator, pass_fraction=pass_fraction,
-        median_cost_factor=median_cost_factor,
+        median_cost_factor=median_cost_factor, fit_size=fit_size,
     )
     config.validate()
     budgets = parse_budgets(ratio, count) if ratio is not None or count is not None else None

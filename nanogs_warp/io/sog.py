@@ -158,7 +158,7 @@ def read_bundled(path: Path) -> dict[str, np.ndarray]:
         archive = zipfile.ZipFile(path)
     except FileNotFoundError:
         raise InputError(f"{name}: no such file") from None
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as e:  # a directory entry of a zip version zipfile refuses
         raise InputError(f"{name}: not a readable .sog archive ({e})") from None
     with archive:
         members = {i.filename: i for i in archive.infolist()}

@@ -1,0 +1,50 @@
+"""The simplification as the package offers it (``nanogs_warp.simplify``, the command line, ``batch``):
+the pipeline's progressive merge (``nanogs_warp.pipeline``), each output then fitted for size
+(``size_fit``) where the configuration asks for it, as the default does."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+
+import warp as wp
+
+from ..config import SimplifyConfig
+from ..pipeline import PassReport
+from ..pipeline import simplify as simplify_merged
+from ..pipeline import simplify_progressively as merged_progressively
+from ..splats import SplatSet
+from ..timing import StageClock
+from .size_fit import size_fit_for
+
+
+def simplify_progressively(
+    splats: SplatSet,
+    targets: Sequence[int],
+    config: SimplifyConfig = SimplifyConfig(),
+    on_pass: Callable[[PassReport], None] | None = None,
+    clock: StageClock | None = None,
+) -> Iterator[tuple[int, SplatSet]]:
+    """Yields (target, splats) for each target count, largest first, from one progressive merge
+    (``pipeline.simplify_progressively``), each output fitted for size when ``config.fit_size``."""
+    return merged_progressively(splats, targets, config, on_pass, clock, finish=size_fit_for(splats, config))
+
+
+def simplify(
+    splats: SplatSet,
+    ratio: float | str | Sequence[float | str] | None = None,
+    count: int | Sequence[int] | None = None,
+    device=None,
+    config: SimplifyConfig = SimplifyConfig(),
+    *,
+    ratios: Sequence[float | str] | None = None,
+    counts: Sequence[int] | None = None,
+) -> SplatSet | list[SplatSet]:
+    """``pipeline.simplify`` (budgets, devices and errors as documented there), each output fitted
+    for size when ``config.fit_size``."""
+    if isinstance(device, str):
+        from ..device import resolve_device
+
+        device = resolve_device(device)
+    on_device = splats.to(wp.get_device(device) if device is not None else splats.device)
+    return simplify_merged(on_device, ratio, count, None, config, ratios=ratios, counts=counts,
+                           finish=size_fit_for(on_device, config))  # fmt: skip

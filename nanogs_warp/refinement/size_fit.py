@@ -1,0 +1,163 @@
+"""The size fit: a small output's splats all scaled by the one factor whose renders match the input's
+best, at a coarse and at a fine pixel size alike (``SimplifyConfig.fit_size``, on by default).
+
+At 1 % of the input and below, the merged splats of some scenes come out too large (a statue's
+faint halo spread into every merged splat) and the right factor is the scene's, not a constant's
+(docs/quality.md). The fit measures it: the input and the output are rendered from the same
+``VIEWS`` cameras around the scene (``training_cameras``' sampler, its own stream, ``SIZE`` pixels
+square) and from the same cameras zoomed ``ZOOM`` times (pixels that much smaller: most
+splats of a trained scene are smaller than a pixel of the coarse views, where a renderer's
+0.3-pixel blur makes them look larger than they are, and the fine views keep the fit from
+growing splats for that blur alone). A factor's gain is the smaller of its two PSNR changes
+(mean over the views, against factor 1); factors STEP^k, |k| <= MOST_STEPS, are tried outward
+from 1 while the gain rises, and the best one with a positive gain is kept (1 otherwise).
+
+The input is rendered once per run, when the first output to fit is reached. A scene that ``eval``
+would render rescaled or recentred (``eval.units``) is left as it is, and so is one whose renders
+would not fit the device's memory (``render``'s check). CPU and CUDA render the same views to
+within float32 rounding, so they pick the same factor unless two factors' gains are that close.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import replace
+
+import numpy as np
+import warp as wp
+
+from ..config import target_count
+from ..errors import InputError
+from ..eval.cameras import scene_frame
+from ..eval.render import _Rasteriser
+from ..eval.units import FAR_CENTRE, RENDERED_RADIUS
+from ..kernels import splat_size as kernels
+from ..splats import SplatSet
+from .cameras import training_cameras
+
+FIT_BELOW = "0.01"  # outputs of at most target_count(N, FIT_BELOW) splats are fitted (an exact ratio)
+VIEWS = 4
+SIZE = 256
+ZOOM = 4.0
+STEP = 2.0 ** (1.0 / 6.0)
+MOST_STEPS = 3
+CAMERA_STREAM = 0x5CA1E  # the random stream of the fit's cameras (``training_cameras``)
+SPREAD_SAMPLE = 1 << 16  # at most this many centres (every k-th) place the cameras
+
+
+def resized(splats: SplatSet, factor: float) -> SplatSet:
+    """``splats`` with every axis times ``factor`` (log-scales plus log(factor), in float32)."""
+    if factor == 1.0:
+        return splats
+    out = wp.empty_like(splats.log_scales)
+    wp.launch(kernels.resized_log_scales, splats.count, inputs=[splats.log_scales, math.log(factor)], outputs=[out],
+              device=splats.device)  # fmt: skip
+    return replace(splats, log_scales=out)
+
+
+def _render(splats: SplatSet, cameras: list) -> list[np.ndarray]:
+    """One float32 (H, W, 3) image per camera, in order, from one rasteriser (its buffers made once:
+    on a GPU, for a large scene, making them takes longer than a view)."""
+    background = wp.vec3(0.0, 0.0, 0.0)
+    images = [wp.full((1, c.height, c.width, 3), float("nan"), dtype=wp.float32, device=splats.device) for c in cameras]
+    rasteriser = _Rasteriser(splats)
+    try:
+        for camera, image in zip(cameras, images):
+            rasteriser.render_into(camera, background, image, 0)
+    finally:
+        rasteriser.close()
+    return [image.numpy()[0] for image in images]
+
+
+def _psnr(reference: np.ndarray, test: np.ndarray) -> float:
+    """Mean over views of each view's PSNR (images clamped to [0, 1], as ``eval`` compares them)."""
+    values = []
+    for r, t in zip(reference, test):
+        mse = float(np.mean((np.clip(r, 0.0, 1.0).astype(np.float64) - np.clip(t, 0.0, 1.0)) ** 2))
+        values.append(-10.0 * math.log10(max(mse, 1e-12)))
+    return float(np.mean(values))
+
+
+class SizeFit:
+    """Fits the outputs of one run against ``reference`` (the run's input, on the device it runs on)."""
+
+    def __init__(self, reference: SplatSet, seed: int = 0):
+        self.reference = reference
+        self.seed = int(seed)
+        self.largest = target_count(reference.count, FIT_BELOW)
+        self._cameras: list | None = None
+        self._images: tuple[np.ndarray, np.ndarray] | None = None
+        self._skip = False
+        self.factors: dict[int, float] = {}  # count -> factor of each output fitted so far
+
+    def applies(self, count: int) -> bool:
+        return count <= self.largest
+
+    def _prepare(self) -> bool:
+        """Cameras and the input's renders, once; False where the scene is not fitted."""
+        if self._skip:
+            return False
+        if self._images is None:
+            means = self.reference.means.numpy()
+            means = means[:: max(1, len(means) // SPREAD_SAMPLE)]
+            centre, radius = scene_frame(means)
+            far = float(np.max(np.abs(centre))) > FAR_CENTRE * radius
+            if far or not RENDERED_RADIUS[0] <= radius <= RENDERED_RADIUS[1]:
+                self._skip = True
+                return False
+            drawn = training_cameras(means, 4 * VIEWS, SIZE, self.seed, CAMERA_STREAM)  # one in four is SIZE square
+            coarse = [c for c in drawn if c.width == c.height == SIZE][:VIEWS]
+            fine = [dataclasses.replace(c, fx=c.fx * ZOOM, fy=c.fy * ZOOM) for c in coarse]
+            self._cameras = [coarse, fine]
+            try:
+                self._images = tuple(_render(self.reference, cams) for cams in self._cameras)
+            except InputError:  # the renders would not fit the device's memory: no fit
+                self._skip = True
+                return False
+        return True
+
+    def _scores(self, splats: SplatSet) -> tuple[float, float]:
+        return tuple(_psnr(ref, _render(splats, cams)) for ref, cams in zip(self._images, self._cameras))
+
+    def __call__(self, splats: SplatSet) -> SplatSet:
+        """The fitted splat set (``splats`` itself when no factor gains); its factor goes to ``factors``."""
+        fitted, factor = self.fitted(splats)
+        self.factors[splats.count] = factor
+        return fitted
+
+    def fitted(self, splats: SplatSet) -> tuple[SplatSet, float]:
+        """(the fitted splat set, its factor); ``splats`` itself and 1 when no factor gains."""
+        if not self.applies(splats.count) or not self._prepare():
+            return splats, 1.0
+        try:
+            base = self._scores(splats)
+        except InputError:
+            return splats, 1.0
+        scores = {0: 0.0}
+
+        def gain(k: int) -> float:
+            if k not in scores:
+                try:
+                    fitted = self._scores(resized(splats, STEP**k))
+                    scores[k] = min(f - b for f, b in zip(fitted, base))
+                except InputError:
+                    scores[k] = -math.inf
+            return scores[k]
+
+        best = 0
+        for direction in (1, -1):
+            k = direction
+            while abs(k) <= MOST_STEPS and gain(k) > gain(k - direction):
+                if gain(k) > gain(best):
+                    best = k
+                k += direction
+        if best == 0:
+            return splats, 1.0
+        factor = STEP**best
+        return resized(splats, factor), factor
+
+
+def size_fit_for(splats: SplatSet, config) -> SizeFit | None:
+    """The size fit of a run on ``splats`` with ``config`` (a SimplifyConfig), or None without one."""
+    return SizeFit(splats, config.seed) if config.fit_size else None

@@ -1,0 +1,117 @@
+"""The size fit (``refinement/size_fit.py``): the resize kernel against float64, the factor it picks
+for outputs made too large or too small on purpose, the outputs it leaves alone, and the command
+line's report of it."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+from scene_factory import random_splat_arrays
+from typer.testing import CliRunner
+
+from nanogs_warp import SimplifyConfig, simplify
+from nanogs_warp.cli.app import app
+from nanogs_warp.io.ply import save_ply
+from nanogs_warp.kernels import splat_size as kernels
+from nanogs_warp.pipeline import simplify as simplify_merged
+from nanogs_warp.refinement import size_fit
+from nanogs_warp.splats import SplatSet
+
+
+def blob(n: int, seed: int, device, log_scale=(-3.0, -2.0)) -> SplatSet:
+    """A ball of opaque-ish splats of a few sizes: their renders change visibly with their size."""
+    arrays = random_splat_arrays(n, sh_degree=1, seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    arrays["log_scales"] = rng.uniform(*log_scale, size=(n, 3)).astype(np.float32)
+    arrays["opacities"] = rng.uniform(0.0, 3.0, size=n).astype(np.float32)
+    return SplatSet.from_numpy(**arrays, device=device)
+
+
+def test_resized_scales_every_axis_by_the_factor(device, rng):
+    """log-scales plus log(factor) in float32, against a float64 reference; nothing else changes."""
+    arrays = random_splat_arrays(1000, sh_degree=1, seed=4)
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    factor = float(rng.uniform(0.5, 2.0))
+    poisoned = wp.full(splats.count, wp.vec3(float("nan")), dtype=wp.vec3, device=splats.device)
+    wp.launch(kernels.resized_log_scales, splats.count, inputs=[splats.log_scales, math.log(factor)], outputs=[poisoned],
+              device=splats.device)  # fmt: skip
+    expected = arrays["log_scales"].astype(np.float64) + np.float64(np.float32(math.log(factor)))
+    got = poisoned.numpy()
+    assert np.isfinite(got).all()
+    np.testing.assert_array_equal(got, size_fit.resized(splats, factor).log_scales.numpy())
+    out = size_fit.resized(splats, factor)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=4e-7 * np.abs(expected).max())
+    np.testing.assert_array_equal(got, (arrays["log_scales"] + np.float32(math.log(factor))).astype(np.float32))
+    for name in ("means", "rotations", "opacities", "features"):
+        np.testing.assert_array_equal(getattr(out, name).numpy(), getattr(splats, name).numpy())
+    assert size_fit.resized(splats, 1.0) is splats
+
+
+@pytest.mark.parametrize("steps", [3, -2])
+def test_the_fit_undoes_a_wrong_size(device, monkeypatch, steps):
+    """An output that is the input with every axis times STEP^steps is fitted back by STEP^-steps
+    (the fit may look at outputs of any size here)."""
+    monkeypatch.setattr(size_fit, "FIT_BELOW", "1")
+    reference = blob(600, 11, device)
+    wrong = size_fit.resized(reference, size_fit.STEP**steps)
+    fit = size_fit.SizeFit(reference)
+    fitted = fit(wrong)
+    assert fit.factors[wrong.count] == pytest.approx(size_fit.STEP**-steps)
+    np.testing.assert_allclose(fitted.log_scales.numpy(), reference.log_scales.numpy(), atol=2e-6)
+
+
+def test_a_right_size_is_kept(device, monkeypatch):
+    monkeypatch.setattr(size_fit, "FIT_BELOW", "1")
+    reference = blob(600, 12, device)
+    fit = size_fit.SizeFit(reference)
+    assert fit(reference) is reference and fit.factors[reference.count] == 1.0
+
+
+def test_outputs_above_one_percent_and_far_scenes_are_left_alone(device):
+    reference = blob(1000, 13, device)
+    fit = size_fit.SizeFit(reference)
+    assert fit.largest == 10 and fit.applies(10) and not fit.applies(11)
+    big = size_fit.resized(reference, 2.0)
+    assert fit(big) is big and fit.factors[1000] == 1.0
+    # a scene far from the origin for its size is rendered recentred by eval: not fitted
+    arrays = random_splat_arrays(1000, seed=14)
+    arrays["means"] = (arrays["means"].astype(np.float64) + 1e9).astype(np.float32)
+    far = SplatSet.from_numpy(**arrays, device=device)
+    small = size_fit.resized(simplify_merged(far, count=5), 1.5)
+    assert size_fit.SizeFit(far)(small) is small
+
+
+def test_simplify_fits_by_default_and_only_there(device):
+    """``nanogs_warp.simplify`` is the merge, then the fit of the outputs at or below 1 %; the paper
+    and fast presets and fit_size=False are the merge alone."""
+    splats = blob(3000, 15, device, log_scale=(-4.0, -2.5))
+    fitted = simplify(splats, ratio=[0.1, 0.01, 0.005])
+    merged = simplify_merged(splats, ratio=[0.1, 0.01, 0.005])
+    np.testing.assert_array_equal(fitted[0].log_scales.numpy(), merged[0].log_scales.numpy())  # above 1 %
+    for f, m in zip(fitted[1:], merged[1:]):
+        ratio = np.exp(f.log_scales.numpy().astype(np.float64) - m.log_scales.numpy())
+        assert np.allclose(ratio, ratio.flat[0], rtol=1e-5)  # one factor for every axis of every splat
+        assert any(size_fit.STEP**k == pytest.approx(ratio.flat[0], rel=1e-5) for k in range(-3, 4))
+        for name in ("means", "rotations", "opacities", "features"):
+            np.testing.assert_array_equal(getattr(f, name).numpy(), getattr(m, name).numpy())
+    unfitted = simplify(splats, ratio=0.01, config=SimplifyConfig(fit_size=False))
+    np.testing.assert_array_equal(unfitted.log_scales.numpy(), simplify_merged(splats, ratio=0.01).log_scales.numpy())
+    assert not SimplifyConfig.paper().fit_size and not SimplifyConfig.preset("fast").fit_size
+
+
+def test_cli_reports_the_factor(tmp_path):
+    splats = blob(3000, 16, "cpu", log_scale=(-4.0, -2.5))
+    source = tmp_path / "blob.ply"
+    save_ply(splats, source)
+    runner = CliRunner()
+    result = runner.invoke(app, ["simplify", str(source), "-o", str(tmp_path / "o.ply"), "--ratio", "0.1,0.01", "--device", "cpu", "--json"])
+    assert result.exit_code == 0, result.output
+    outputs = json.loads(result.stdout)["outputs"]
+    assert "size_factor" not in outputs[0] and outputs[1]["size_factor"] > 0
+    assert json.loads(result.stdout)["settings"]["fit_size"] is True
+    result = runner.invoke(app, ["simplify", str(source), "-o", str(tmp_path / "n.ply"), "--ratio", "0.01", "--device", "cpu", "--json",
+                                 "--no-fit-size"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "size_factor" not in json.loads(result.stdout)["outputs"][0]
