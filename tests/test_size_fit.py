@@ -83,6 +83,20 @@ def test_outputs_above_one_percent_and_far_scenes_are_left_alone(device):
     assert size_fit.SizeFit(far)(small) is small
 
 
+def test_huge_splats_are_not_fitted(device, monkeypatch):
+    """Splats that each cover every tile of a view would make the fit's renders take as long as
+    N x tiles entries: past ENTRIES_PER_SPLAT a splat the output is left as it is."""
+    monkeypatch.setattr(size_fit, "FIT_BELOW", "1")
+    reference = blob(500, 17, device, log_scale=(2.0, 3.0))
+    wrong = size_fit.resized(reference, size_fit.STEP**2)
+    monkeypatch.setattr(size_fit, "MIN_ENTRIES", 0)
+    assert size_fit.SizeFit(reference)(wrong) is wrong
+    monkeypatch.setattr(size_fit, "MIN_ENTRIES", 1 << 22)  # the same scene within the limit: fitted
+    fit = size_fit.SizeFit(reference)
+    fit(wrong)
+    assert fit.factors[500] < 1
+
+
 def test_simplify_fits_by_default_and_only_there(device):
     """``nanogs_warp.simplify`` is the merge, then the fit of the outputs at or below 1 %; the paper
     and fast presets and fit_size=False are the merge alone."""

@@ -79,8 +79,10 @@ def _check_camera(camera: Camera) -> None:
 class _Rasteriser:
     """Buffers for one splat set on one device, reused across views (entry buffers grow as needed)."""
 
-    def __init__(self, splats: SplatSet, workers: int | None = None, method: str | None = None):
+    def __init__(self, splats: SplatSet, workers: int | None = None, method: str | None = None,
+                 max_entries: int | None = None):  # fmt: skip
         self.splats = splats
+        self.max_entries = max_entries  # a view needing more (tile, splat) entries raises InputError
         self.device = splats.device
         self.n = splats.count
         self.degree = splats.sh_degree
@@ -167,6 +169,8 @@ class _Rasteriser:
         else:  # the int32 running sum may have wrapped: the total in int64, on the host
             count = int(self.touched.numpy().sum(dtype=np.int64))
         limit = min(INDEX_LIMIT, max(self.capacity, entry_memory(self.device) // self.entry_bytes))  # what it holds, or can
+        if self.max_entries is not None:
+            limit = min(limit, self.max_entries)
         if count > limit:
             raise InputError(
                 f"a {p.width}x{p.height} view of these {self.n:,} splats covers {count:,} (tile, splat) pairs "

@@ -14,7 +14,8 @@ from 1 while the gain rises, and the best one with a positive gain is kept (1 ot
 
 The input is rendered once per run, when the first output to fit is reached. A scene that ``eval``
 would render rescaled or recentred (``eval.units``) is left as it is, and so is one whose renders
-would not fit the device's memory (``render``'s check). CPU and CUDA render the same views to
+would not fit the device's memory (``render``'s check) or would need more (tile, splat) entries
+than ENTRIES_PER_SPLAT a splat and MIN_ENTRIES more. CPU and CUDA render the same views to
 within float32 rounding, so they pick the same factor unless two factors' gains are that close.
 """
 
@@ -44,6 +45,10 @@ STEP = 2.0 ** (1.0 / 6.0)
 MOST_STEPS = 3
 CAMERA_STREAM = 0x5CA1E  # the random stream of the fit's cameras (``training_cameras``)
 SPREAD_SAMPLE = 1 << 16  # at most this many centres (every k-th) place the cameras
+# A view needing more (tile, splat) entries than this (a file of huge splats: each covers every
+# tile) is not rendered, and the output is not fitted: the fit's time stays near a few passes'.
+ENTRIES_PER_SPLAT = 16
+MIN_ENTRIES = 1 << 22
 
 
 def resized(splats: SplatSet, factor: float) -> SplatSet:
@@ -61,7 +66,7 @@ def _render(splats: SplatSet, cameras: list) -> list[np.ndarray]:
     on a GPU, for a large scene, making them takes longer than a view)."""
     background = wp.vec3(0.0, 0.0, 0.0)
     images = [wp.full((1, c.height, c.width, 3), float("nan"), dtype=wp.float32, device=splats.device) for c in cameras]
-    rasteriser = _Rasteriser(splats)
+    rasteriser = _Rasteriser(splats, max_entries=ENTRIES_PER_SPLAT * splats.count + MIN_ENTRIES)
     try:
         for camera, image in zip(cameras, images):
             rasteriser.render_into(camera, background, image, 0)
