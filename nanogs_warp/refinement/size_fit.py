@@ -104,8 +104,7 @@ class SizeFit:
         if self._skip:
             return False
         if self._images is None:
-            means = self.reference.means.numpy()
-            means = means[:: max(1, len(means) // SPREAD_SAMPLE)]
+            means = self.reference.means[:: max(1, self.reference.count // SPREAD_SAMPLE)].numpy()  # a strided copy
             centre, radius = scene_frame(means)
             far = float(np.max(np.abs(centre))) > FAR_CENTRE * radius
             if far or not RENDERED_RADIUS[0] <= radius <= RENDERED_RADIUS[1]:
