@@ -121,8 +121,19 @@ class SizeFit:
                 return False
         return True
 
-    def _scores(self, splats: SplatSet) -> tuple[float, float]:
-        return tuple(_psnr(ref, _render(splats, cams)) for ref, cams in zip(self._images, self._cameras))
+    def _scores(self, splats: SplatSet, base: tuple[float, float] | None = None, floor: float = -math.inf) -> tuple[float, ...]:
+        """PSNR of ``splats`` against the input in each view set, the fine views first. With ``base``
+        (the output's own scores), the gains over it instead; once a set's gain is at most ``floor``
+        the other is not rendered (their smaller one cannot exceed ``floor`` then)."""
+        scores = []
+        for k in (1, 0):
+            value = _psnr(self._images[k], _render(splats, self._cameras[k]))
+            if base is not None:
+                value -= base[k]
+                if value <= floor:
+                    return (value,)
+            scores.append(value)
+        return tuple(reversed(scores))
 
     def __call__(self, splats: SplatSet) -> SplatSet:
         """The fitted splat set (``splats`` itself when no factor gains); its factor goes to ``factors``."""
@@ -138,24 +149,25 @@ class SizeFit:
             base = self._scores(splats)
         except InputError:
             return splats, 1.0
-        scores = {0: 0.0}
 
-        def gain(k: int) -> float:
-            if k not in scores:
-                try:
-                    fitted = self._scores(resized(splats, STEP**k))
-                    scores[k] = min(f - b for f, b in zip(fitted, base))
-                except InputError:
-                    scores[k] = -math.inf
-            return scores[k]
+        def gain(k: int, floor: float) -> float:
+            """The gain of STEP^k (the smaller of the two sets'), or a value at most ``floor`` once it
+            is known not to exceed ``floor``."""
+            try:
+                return min(self._scores(resized(splats, STEP**k), base, floor))
+            except InputError:
+                return -math.inf
 
-        best = 0
+        best, best_gain = 0, 0.0
         for direction in (1, -1):
-            k = direction
-            while abs(k) <= MOST_STEPS and gain(k) > gain(k - direction):
-                if gain(k) > gain(best):
-                    best = k
-                k += direction
+            k, previous = direction, 0.0
+            while abs(k) <= MOST_STEPS:
+                g = gain(k, previous)
+                if not g > previous:  # the gain stopped rising
+                    break
+                if g > best_gain:
+                    best, best_gain = k, g
+                k, previous = k + direction, g
         if best == 0:
             return splats, 1.0
         factor = STEP**best
