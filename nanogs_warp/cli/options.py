@@ -42,5 +42,5 @@ def method_config(preset: str, **options):
 
     return SimplifyConfig.preset(preset, **{name: value for name, value in options.items() if value is not None})
 Refine = Annotated[bool, typer.Option("--refine", help=f"Refine each output toward the input's appearance ({RefineConfig.steps} steps of Adam on renders from training cameras; the count is kept).")]
-RefineSteps = Annotated[Optional[int], typer.Option(help=f"Refinement steps (implies --refine) [default: {RefineConfig.steps}].", show_default=False, metavar="STEPS")]
-RefineSize = Annotated[int, typer.Option(help="Longest side in pixels of the training views of refinement.", metavar="PIXELS")]
+RefineSteps = Annotated[Optional[int], typer.Option("--refine-steps", help=f"Refinement steps (implies --refine) [default: {RefineConfig.steps}].", show_default=False, metavar="STEPS")]
+RefineSize = Annotated[int, typer.Option("--refine-size", help="Longest side in pixels of the training views of refinement.", metavar="PIXELS")]
