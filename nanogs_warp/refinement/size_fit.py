@@ -115,7 +115,8 @@ class SizeFit:
             fine = [dataclasses.replace(c, fx=c.fx * ZOOM, fy=c.fy * ZOOM) for c in coarse]
             self._cameras = [coarse, fine]
             try:
-                self._images = tuple(_render(self.reference, cams) for cams in self._cameras)
+                images = _render(self.reference, coarse + fine)  # one rasteriser for the input's eight views
+                self._images = (images[: len(coarse)], images[len(coarse) :])
             except InputError:  # the renders would not fit the device's memory: no fit
                 self._skip = True
                 return False
