@@ -230,9 +230,11 @@ def render(splats: SplatSet, camera: Camera, background=(0.0, 0.0, 0.0)) -> wp.a
     return image.reshape((camera.height, camera.width, 3))
 
 
-def render_views(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0.0, 0.0)) -> np.ndarray:
+def render_views(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0.0, 0.0),
+                 max_entries: int | None = None) -> np.ndarray:  # fmt: skip
     """Renders every camera (all of one image size) into one device array and copies it to the host
-    once: float32 (V, H, W, 3)."""
+    once: float32 (V, H, W, 3). A view needing more than ``max_entries`` (tile, splat) entries (or
+    more than the device holds) raises InputError."""
     cameras = list(cameras)
     if not cameras:
         raise InputError("no cameras to render")
@@ -243,7 +245,7 @@ def render_views(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0
         raise InputError(f"render_views needs cameras of one image size, got {sorted(sizes)}")
     (width, height), bg = sizes.pop(), _background(background)
     images = wp.full((len(cameras), height, width, 3), float("nan"), dtype=wp.float32, device=splats.device)
-    rasteriser = _Rasteriser(splats)
+    rasteriser = _Rasteriser(splats, max_entries=max_entries)
     try:
         for view, camera in enumerate(cameras):
             rasteriser.render_into(camera, bg, images, view)

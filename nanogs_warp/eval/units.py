@@ -22,11 +22,22 @@ RENDERED_RADIUS = (2.0**-40, 2.0**40)
 FAR_CENTRE = 2.0**12
 
 
+def far_from_origin(centre: np.ndarray, radius: float) -> bool:
+    """Whether a scene of this ``scene_frame`` lies more than FAR_CENTRE orbit radii from the origin
+    (and is rendered recentred)."""
+    return float(np.max(np.abs(centre))) > FAR_CENTRE * radius
+
+
+def in_rendered_units(radius: float) -> bool:
+    """Whether a scene of this orbit radius is rendered in its own units (inside RENDERED_RADIUS)."""
+    return RENDERED_RADIUS[0] <= radius <= RENDERED_RADIUS[1]
+
+
 def render_offset(reference: SplatSet) -> np.ndarray | None:
     """None, or the reference's centre (``scene_frame``) where it lies more than FAR_CENTRE orbit
     radii from the origin: the point ``eval`` and the refinement then render every scene around."""
     centre, radius = scene_frame(reference.means.numpy())
-    return centre if float(np.max(np.abs(centre))) > FAR_CENTRE * radius else None
+    return centre if far_from_origin(centre, radius) else None
 
 
 def render_units(reference: SplatSet) -> float:
@@ -34,7 +45,7 @@ def render_units(reference: SplatSet) -> float:
     power of two that brings it to [1/2, 1): the scale at which ``evaluate`` renders every scene
     and the refinement optimises."""
     _, radius = scene_frame(reference.means.numpy())
-    if RENDERED_RADIUS[0] <= radius <= RENDERED_RADIUS[1]:
+    if in_rendered_units(radius):
         return 1.0
     return math.ldexp(1.0, -math.frexp(radius)[1])
 

@@ -31,8 +31,8 @@ import warp as wp
 from ..config import target_count
 from ..errors import InputError
 from ..eval.cameras import scene_frame
-from ..eval.render import _Rasteriser
-from ..eval.units import FAR_CENTRE, RENDERED_RADIUS
+from ..eval.render import render_views
+from ..eval.units import far_from_origin, in_rendered_units
 from ..kernels import splat_size as kernels
 from ..splats import SplatSet
 from .cameras import training_cameras
@@ -61,22 +61,15 @@ def resized(splats: SplatSet, factor: float) -> SplatSet:
     return replace(splats, log_scales=out)
 
 
-def _render(splats: SplatSet, cameras: list) -> list[np.ndarray]:
-    """One float32 (H, W, 3) image per camera, in order, from one rasteriser (its buffers made once:
-    on a GPU, for a large scene, making them takes longer than a view)."""
-    background = wp.vec3(0.0, 0.0, 0.0)
-    images = [wp.full((1, c.height, c.width, 3), float("nan"), dtype=wp.float32, device=splats.device) for c in cameras]
-    rasteriser = _Rasteriser(splats, max_entries=ENTRIES_PER_SPLAT * splats.count + MIN_ENTRIES)
-    try:
-        for camera, image in zip(cameras, images):
-            rasteriser.render_into(camera, background, image, 0)
-    finally:
-        rasteriser.close()
-    return [image.numpy()[0] for image in images]
+def _render(splats: SplatSet, cameras: list) -> np.ndarray:
+    """``render_views`` (one rasteriser for every view) within the fit's entry limit."""
+    return render_views(splats, cameras, max_entries=ENTRIES_PER_SPLAT * splats.count + MIN_ENTRIES)
 
 
 def _psnr(reference: np.ndarray, test: np.ndarray) -> float:
-    """Mean over views of each view's PSNR (images clamped to [0, 1], as ``eval`` compares them)."""
+    """Mean over views of each view's PSNR (images clamped to [0, 1], as ``eval`` compares them),
+    each view's error at least 1e-12: unlike ``metrics.psnr`` never infinite, so that a view both
+    renders black in (outside the scene) leaves the gains to the others instead of making them NaN."""
     values = []
     for r, t in zip(reference, test):
         mse = float(np.mean((np.clip(r, 0.0, 1.0).astype(np.float64) - np.clip(t, 0.0, 1.0)) ** 2))
@@ -106,8 +99,7 @@ class SizeFit:
         if self._images is None:
             means = self.reference.means[:: max(1, self.reference.count // SPREAD_SAMPLE)].numpy()  # a strided copy
             centre, radius = scene_frame(means)
-            far = float(np.max(np.abs(centre))) > FAR_CENTRE * radius
-            if far or not RENDERED_RADIUS[0] <= radius <= RENDERED_RADIUS[1]:
+            if far_from_origin(centre, radius) or not in_rendered_units(radius):
                 self._skip = True
                 return False
             drawn = training_cameras(means, 4 * VIEWS, SIZE, self.seed, CAMERA_STREAM)  # one in four is SIZE square
