@@ -330,6 +330,241 @@ def composite(
     image[view, py, px, 2] = c[2]
 
 
+@wp.func
+def pixel_of(tile: int, local: int, tiles_x: int):
+    """Pixel (x, y) of slot ``local`` (row-major) of 16x16 tile ``tile``."""
+    return wp.vec2i((tile - (tile / tiles_x) * tiles_x) * TILE + local - (local / TILE) * TILE, (tile / tiles_x) * TILE + local / TILE)
+
+
+@wp.func
+def entry_alpha(
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_box: wp.array(dtype=wp.vec4),
+    k: int,
+    fpx: float,
+    fpy: float,
+):
+    """Entry k's alpha at pixel (fpx, fpy) as ``composite`` computes it, or 0 where it skips the
+    entry (outside its reach box, power > 0, alpha < 1/255)."""
+    bx = e_box[k]
+    if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
+        return 0.0
+    p = e_xy[k]
+    co = e_conic_opacity[k]
+    dx = p[0] - fpx
+    dy = p[1] - fpy
+    power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
+    if power > 0.0:
+        return 0.0
+    alpha = wp.min(ALPHA_MAX, co[3] * wp.exp(power))
+    if alpha < ALPHA_MIN:
+        return 0.0
+    return alpha
+
+
+# Compositing a tile's entries in chunks of at most ``chunk`` entries, one CUDA block per (chunk, tile),
+# so that a tile holding far more entries than the others (a dense cluster seen end-on) is composited
+# by many blocks instead of one. Front-to-back compositing splits at any entry: with the chunk's own
+# transmittance T_j and colour C_j (each from T = 1), the pixel's colour is sum_j T_<j C_j, and the
+# stop rule (T (1 - alpha) < 1e-4) is kept by starting each chunk at the transmittance before it:
+#   chunk_counts, chunk_ranges   the chunks of each tile (an inclusive scan of the counts between)
+#   chunk_transmittance          T_j of every chunk but a tile's last (0 where it falls below 1e-4)
+#   chunk_prefix                 per pixel, the transmittance before each chunk (0 once stopped)
+#   composite_chunks             each chunk composited from that transmittance, as ``composite`` does
+#   composite_merge              the chunks' colours summed in order, then the background
+# A tile of one chunk takes exactly ``composite``'s arithmetic, so its pixels are ``composite``'s bits.
+
+
+@wp.kernel
+def chunk_counts(
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    chunk: int,
+    first: int,
+    counts: wp.array(dtype=wp.int32),
+):
+    """Chunks of at most ``chunk`` entries in each tile's range."""
+    t = first + wp.tid()
+    counts[t] = (tile_end[t] - tile_start[t] + chunk - 1) / chunk
+
+
+@wp.kernel
+def chunk_ranges(
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32),
+    chunk_ends: wp.array(dtype=wp.int32),
+    chunk: int,
+    first: int,
+    chunk_tile: wp.array(dtype=wp.int32),
+    chunk_first: wp.array(dtype=wp.int32),
+    chunk_last: wp.array(dtype=wp.int32),
+):
+    """Each tile's chunks, in entry order, at its slots [chunk_ends[t] - counts[t], chunk_ends[t])."""
+    t = first + wp.tid()
+    c = chunk_ends[t] - counts[t]
+    k = tile_start[t]
+    end = tile_end[t]
+    while k < end:
+        chunk_tile[c] = t
+        chunk_first[c] = k
+        chunk_last[c] = wp.min(k + chunk, end)
+        c += 1
+        k += chunk
+
+
+@wp.kernel
+def chunk_transmittance(
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_box: wp.array(dtype=wp.vec4),
+    tile_end: wp.array(dtype=wp.int32),
+    chunk_ends: wp.array(dtype=wp.int32),
+    chunk_tile: wp.array(dtype=wp.int32),
+    chunk_first: wp.array(dtype=wp.int32),
+    chunk_last: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
+    tiles_x: int,
+    tiles: int,
+    first: int,
+    transmittance: wp.array(dtype=float),
+):
+    """Per (chunk, pixel): the product of (1 - alpha) over the chunk's entries, 0 once it falls below
+    1e-4 (the pixel stops in this chunk, whatever came before). A tile's last chunk is skipped:
+    nothing follows it; so are the threads beyond the last chunk (launched for a bound on the count)."""
+    tid = first + wp.tid()
+    c = tid / TILE_PIXELS
+    if c >= chunk_ends[tiles - 1]:
+        return
+    if chunk_last[c] == tile_end[chunk_tile[c]]:
+        return
+    pixel = pixel_of(chunk_tile[c], tid - c * TILE_PIXELS, tiles_x)
+    fpx = float(pixel[0])
+    fpy = float(pixel[1])
+    t = float(1.0)
+    if pixel[0] < width and pixel[1] < height:
+        for k in range(chunk_first[c], chunk_last[c]):
+            alpha = entry_alpha(e_xy, e_conic_opacity, e_box, k, fpx, fpy)
+            if alpha > 0.0:
+                t = t * (1.0 - alpha)
+                if t < T_MIN:
+                    t = 0.0
+                    break
+    transmittance[tid] = t
+
+
+@wp.kernel
+def chunk_prefix(
+    counts: wp.array(dtype=wp.int32),
+    chunk_ends: wp.array(dtype=wp.int32),
+    first: int,
+    transmittance: wp.array(dtype=float),
+):
+    """Per pixel of each tile, in place over its chunks in order: each chunk's own transmittance
+    becomes the pixel's transmittance before the chunk, 0 for the chunks after the one it stops in."""
+    tid = first + wp.tid()
+    tile = tid / TILE_PIXELS
+    local = tid - tile * TILE_PIXELS
+    before = float(1.0)
+    last = chunk_ends[tile] - 1
+    for c in range(chunk_ends[tile] - counts[tile], chunk_ends[tile]):
+        slot = c * TILE_PIXELS + local
+        own = float(0.0)
+        if c < last:  # the last chunk's own transmittance is not computed, nor needed
+            own = transmittance[slot]
+        transmittance[slot] = before
+        before = before * own
+        if before < T_MIN:
+            before = 0.0
+
+
+@wp.kernel
+def composite_chunks(
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    chunk_ends: wp.array(dtype=wp.int32),
+    chunk_tile: wp.array(dtype=wp.int32),
+    chunk_first: wp.array(dtype=wp.int32),
+    chunk_last: wp.array(dtype=wp.int32),
+    before: wp.array(dtype=float),
+    width: int,
+    height: int,
+    tiles_x: int,
+    tiles: int,
+    first: int,
+    colour: wp.array(dtype=wp.vec4),
+):
+    """Per (chunk, pixel): ``composite``'s loop over the chunk's entries from the transmittance before
+    it; (colour, transmittance after), the transmittance negated where the pixel stopped here."""
+    tid = first + wp.tid()
+    c = tid / TILE_PIXELS
+    if c >= chunk_ends[tiles - 1]:
+        return
+    pixel = pixel_of(chunk_tile[c], tid - c * TILE_PIXELS, tiles_x)
+    transmittance = before[tid]
+    if pixel[0] >= width or pixel[1] >= height or transmittance == 0.0:
+        colour[tid] = wp.vec4(0.0, 0.0, 0.0, -1.0)
+        return
+    fpx = float(pixel[0])
+    fpy = float(pixel[1])
+    rgb = wp.vec3(0.0, 0.0, 0.0)
+    stopped = float(1.0)
+    for k in range(chunk_first[c], chunk_last[c]):
+        alpha = entry_alpha(e_xy, e_conic_opacity, e_box, k, fpx, fpy)
+        if alpha == 0.0:
+            continue
+        test_t = transmittance * (1.0 - alpha)
+        if test_t < T_MIN:
+            stopped = -1.0
+            break
+        rgb = rgb + e_rgb[k] * (alpha * transmittance)
+        transmittance = test_t
+    colour[tid] = wp.vec4(rgb[0], rgb[1], rgb[2], stopped * transmittance)
+
+
+@wp.kernel
+def composite_merge(
+    colour: wp.array(dtype=wp.vec4),
+    before: wp.array(dtype=float),
+    counts: wp.array(dtype=wp.int32),
+    chunk_ends: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
+    tiles_x: int,
+    background: wp.vec3,
+    view: int,
+    first: int,
+    image: wp.array4d(dtype=float),
+):
+    """Per pixel: its tile's chunk colours summed in order up to the chunk it stopped in, plus the
+    background times the transmittance left."""
+    tid = first + wp.tid()
+    tile = tid / TILE_PIXELS
+    local = tid - tile * TILE_PIXELS
+    pixel = pixel_of(tile, local, tiles_x)
+    if pixel[0] >= width or pixel[1] >= height:
+        return
+    c = wp.vec3(0.0, 0.0, 0.0)
+    transmittance = float(1.0)
+    for k in range(chunk_ends[tile] - counts[tile], chunk_ends[tile]):
+        slot = k * TILE_PIXELS + local
+        if before[slot] == 0.0:
+            break
+        v = colour[slot]
+        c = c + wp.vec3(v[0], v[1], v[2])
+        transmittance = wp.abs(v[3])
+        if v[3] < 0.0:
+            break
+    c = c + background * transmittance
+    image[view, pixel[1], pixel[0], 0] = c[0]
+    image[view, pixel[1], pixel[0], 1] = c[1]
+    image[view, pixel[1], pixel[0], 2] = c[2]
+
+
 @wp.kernel
 def composite_tiles(
     e_xy: wp.array(dtype=wp.vec2),

@@ -2,8 +2,10 @@
 
 Per view: ``project`` (one thread per splat: cull, EWA 2D covariance, SH colour, tile rectangle),
 an inclusive scan of tile counts, ``emit_entries`` (one (tile, depth) key per covered tile), a stable
-radix sort of the keys, ``gather_entries`` (entry-ordered splat data and per-tile ranges) and
-``composite`` (one thread per pixel). The conventions are documented in ``kernels/render.py``.
+radix sort of the keys, ``gather_entries`` (entry-ordered splat data and per-tile ranges) and the
+composite: on a GPU one thread per pixel and chunk of its tile's entries, the chunks merged in order
+(``composite_chunks``, ``composite_merge``); on the CPU one thread per tile (``composite_tiles``). The
+conventions are documented in ``kernels/render.py``.
 Views are rendered into one device array and copied to the host once per ``render_views`` call.
 
 On the CPU a launch runs on one core, so the splat-, entry- and pixel-parallel kernels are launched
@@ -30,6 +32,11 @@ TILE = 16
 # second buffer), then its 2D mean, conic and opacity, colour and box.
 ENTRY_BYTES = 2 * 8 + 2 * 4 + 8 + 16 + 12 + 16
 INDEX_LIMIT = 2**31 - 1  # entries are indexed with int32
+# On the GPU a tile's entries are composited in chunks of at most this many, one block each
+# (``kernels/render.py``, ``chunk_counts`` to ``composite_merge``): a tile whose list is far longer
+# than the others' (a dense cluster seen end-on: 600k entries in one tile of a 6M-splat scene at
+# 256 x 256) no longer keeps one block walking it while the rest of the GPU waits.
+CHUNK_ENTRIES = 2048
 
 
 def entry_memory(device) -> int:
@@ -80,8 +87,9 @@ class _Rasteriser:
     """Buffers for one splat set on one device, reused across views (entry buffers grow as needed)."""
 
     def __init__(self, splats: SplatSet, workers: int | None = None, method: str | None = None,
-                 max_entries: int | None = None):  # fmt: skip
+                 max_entries: int | None = None, chunk: int = CHUNK_ENTRIES):  # fmt: skip
         self.splats = splats
+        self.chunk = int(chunk)  # entries a chunk of a tile's list holds ("pixels" method)
         self.max_entries = max_entries  # a view needing more (tile, splat) entries raises InputError
         self.device = splats.device
         self.n = splats.count
@@ -105,8 +113,10 @@ class _Rasteriser:
         self.touched = wp.empty(n, dtype=wp.int32, device=d)
         self.ends = wp.empty(n, dtype=wp.int32, device=d)
         self.capacity = 0
+        self.chunk_capacity = 0
         self.entry_bytes = ENTRY_BYTES  # what an entry takes in this rasteriser's buffers
         self.tile_start = self.tile_end = None
+        self.counts = None
         wp.load_module(kernels, device=d)
 
     def close(self) -> None:
@@ -207,8 +217,40 @@ class _Rasteriser:
         if self.method == "tiles":
             self._launch(kernels.composite_tiles, tiles, inputs, [self.transmittance, self.colour, self.done, image])
         else:
-            self._launch(kernels.composite, tiles * kernels.TILE_PIXELS, inputs, [image])
+            self._composite_in_chunks(p, tiles, count, e_xy, e_co, e_rgb, e_box, background, view, image)
 
+    def _composite_in_chunks(self, p, tiles: int, count: int, e_xy, e_co, e_rgb, e_box, background: wp.vec3,
+                             view: int, image: wp.array) -> None:  # fmt: skip
+        """``composite``'s image, each tile's entries split into chunks of at most ``self.chunk``
+        composited in parallel and then merged (``kernels/render.py``)."""
+        if self.counts is None or self.counts.shape[0] != tiles:
+            self.counts = wp.empty(tiles, dtype=wp.int32, device=self.device)
+            self.chunk_ends = wp.empty(tiles, dtype=wp.int32, device=self.device)
+        pixels = kernels.TILE_PIXELS
+        self._launch(kernels.chunk_counts, tiles, [self.tile_start, self.tile_end, self.chunk], [self.counts])
+        wp.utils.array_scan(self.counts, self.chunk_ends, inclusive=True)
+        # launched for a bound on the chunk count (a tile of n entries has at most n / chunk + 1), so
+        # that the count is never read back: the threads beyond the last chunk return at once
+        chunks = count // self.chunk + tiles
+        if chunks > self.chunk_capacity or self.chunk_capacity == 0:
+            self.chunk_capacity = max(chunks, int(self.chunk_capacity * 1.5), 64)
+            c, d = self.chunk_capacity, self.device
+            self.chunk_tile = wp.empty(c, dtype=wp.int32, device=d)
+            self.chunk_first = wp.empty(c, dtype=wp.int32, device=d)
+            self.chunk_last = wp.empty(c, dtype=wp.int32, device=d)
+            self.chunk_before = wp.empty(c * pixels, dtype=wp.float32, device=d)
+            self.chunk_colour = wp.empty(c * pixels, dtype=wp.vec4, device=d)
+        self._launch(kernels.chunk_ranges, tiles, [self.tile_start, self.tile_end, self.counts, self.chunk_ends, self.chunk],
+                     [self.chunk_tile, self.chunk_first, self.chunk_last])  # fmt: skip
+        ranges = [self.chunk_ends, self.chunk_tile, self.chunk_first, self.chunk_last]
+        size = [p.width, p.height, p.tiles_x]
+        self._launch(kernels.chunk_transmittance, chunks * pixels, [e_xy, e_co, e_box, self.tile_end, *ranges, *size, tiles],
+                     [self.chunk_before])  # fmt: skip
+        self._launch(kernels.chunk_prefix, tiles * pixels, [self.counts, self.chunk_ends], [self.chunk_before])
+        self._launch(kernels.composite_chunks, chunks * pixels,
+                     [e_xy, e_co, e_rgb, e_box, *ranges, self.chunk_before, *size, tiles], [self.chunk_colour])  # fmt: skip
+        self._launch(kernels.composite_merge, tiles * pixels,
+                     [self.chunk_colour, self.chunk_before, self.counts, self.chunk_ends, *size, background, view], [image])  # fmt: skip
 
 def _background(background) -> wp.vec3:
     values = [float(v) for v in background]

@@ -2,7 +2,9 @@
 and the backward pass (``kernels/render_grad.py``) from dL/dimage to every splat parameter.
 
 The forward launches ``eval/render.py``'s kernels in the same order on the same data, so the image is the
-renderer's, bit for bit; the only addition is a numbering of the emitted entries, so that after the
+renderer's, bit for bit (on a GPU, where a tile holds more than ``CHUNK_ENTRIES`` entries, the renderer
+composites it in chunks and the two differ by float32 rounding; the backward replays this forward's
+single walk, ``composite``); the only addition is a numbering of the emitted entries, so that after the
 sort each splat's entries can be found in emit order. Gradients are summed in a fixed order (per
 entry over the tile's pixels in row order, per splat over its entries in emit order, per view in the
 order views are back-propagated), so a rerun on the same device gives the same bytes.
