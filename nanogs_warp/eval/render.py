@@ -222,11 +222,19 @@ class _Rasteriser:
     def _composite_in_chunks(self, p, tiles: int, count: int, e_xy, e_co, e_rgb, e_box, background: wp.vec3,
                              view: int, image: wp.array) -> None:  # fmt: skip
         """``composite``'s image, each tile's entries split into chunks of at most ``self.chunk``
-        composited in parallel and then merged (``kernels/render.py``)."""
+        composited in parallel and then merged (``kernels/render.py``); ``composite`` itself where
+        no tile holds more (six launches fewer, which is most of a small scene's view)."""
         if self.counts is None or self.counts.shape[0] != tiles:
             self.counts = wp.empty(tiles, dtype=wp.int32, device=self.device)
             self.chunk_ends = wp.empty(tiles, dtype=wp.int32, device=self.device)
+            self.longest = wp.empty(1, dtype=wp.int32, device=self.device)
         pixels = kernels.TILE_PIXELS
+        self.longest.zero_()
+        self._launch(kernels.longest_tile, tiles, [self.tile_start, self.tile_end], [self.longest])
+        if int(self.longest.numpy()[0]) <= self.chunk:  # every tile is one chunk: the one walk, the same bits
+            inputs = [e_xy, e_co, e_rgb, e_box, self.tile_start, self.tile_end, p.width, p.height, p.tiles_x, background, view]
+            self._launch(kernels.composite, tiles * pixels, inputs, [image])
+            return
         self._launch(kernels.chunk_counts, tiles, [self.tile_start, self.tile_end, self.chunk], [self.counts])
         wp.utils.array_scan(self.counts, self.chunk_ends, inclusive=True)
         # launched for a bound on the chunk count (a tile of n entries has at most n / chunk + 1), so

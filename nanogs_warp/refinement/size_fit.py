@@ -66,13 +66,18 @@ def _render(splats: SplatSet, cameras: list) -> np.ndarray:
     return render_views(splats, cameras, max_entries=ENTRIES_PER_SPLAT * splats.count + MIN_ENTRIES)
 
 
+def _clamped(images: np.ndarray) -> np.ndarray:
+    """Images clamped to [0, 1], as ``eval`` compares them, in float64."""
+    return np.clip(images, 0.0, 1.0).astype(np.float64)
+
+
 def _psnr(reference: np.ndarray, test: np.ndarray) -> float:
-    """Mean over views of each view's PSNR (images clamped to [0, 1], as ``eval`` compares them),
-    each view's error at least 1e-12: unlike ``metrics.psnr`` never infinite, so that a view both
-    renders black in (outside the scene) leaves the gains to the others instead of making them NaN."""
+    """Mean over views of each view's PSNR (``reference`` already ``_clamped``), each view's error at
+    least 1e-12: unlike ``metrics.psnr`` never infinite, so that a view both renders black in (outside
+    the scene) leaves the gains to the others instead of making them NaN."""
     values = []
-    for r, t in zip(reference, test):
-        mse = float(np.mean((np.clip(r, 0.0, 1.0).astype(np.float64) - np.clip(t, 0.0, 1.0)) ** 2))
+    for r, t in zip(reference, _clamped(test)):
+        mse = float(np.mean(np.square(r - t, out=t)))
         values.append(-10.0 * math.log10(max(mse, 1e-12)))
     return float(np.mean(values))
 
@@ -108,7 +113,7 @@ class SizeFit:
             self._cameras = [coarse, fine]
             try:
                 images = _render(self.reference, coarse + fine)  # one rasteriser for the input's eight views
-                self._images = (images[: len(coarse)], images[len(coarse) :])
+                self._images = (_clamped(images[: len(coarse)]), _clamped(images[len(coarse) :]))
             except InputError:  # the renders would not fit the device's memory: no fit
                 self._skip = True
                 return False
