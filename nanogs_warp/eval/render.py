@@ -90,6 +90,8 @@ class _Rasteriser:
                  max_entries: int | None = None, chunk: int = CHUNK_ENTRIES):  # fmt: skip
         self.splats = splats
         self.chunk = int(chunk)  # entries a chunk of a tile's list holds ("pixels" method)
+        if self.chunk < 1:
+            raise ValueError(f"a chunk holds at least one entry, got {chunk}")
         self.max_entries = max_entries  # a view needing more (tile, splat) entries raises InputError
         self.device = splats.device
         self.n = splats.count
@@ -259,6 +261,7 @@ class _Rasteriser:
                      [e_xy, e_co, e_rgb, e_box, *ranges, self.chunk_before, *size, tiles], [self.chunk_colour])  # fmt: skip
         self._launch(kernels.composite_merge, tiles * pixels,
                      [self.chunk_colour, self.chunk_before, self.counts, self.chunk_ends, *size, background, view], [image])  # fmt: skip
+
 
 def _background(background) -> wp.vec3:
     values = [float(v) for v in background]
