@@ -107,7 +107,7 @@ def test_simplify_fits_by_default_and_only_there(device):
     for f, m in zip(fitted[1:], merged[1:]):
         ratio = np.exp(f.log_scales.numpy().astype(np.float64) - m.log_scales.numpy())
         assert np.allclose(ratio, ratio.flat[0], rtol=1e-5)  # one factor for every axis of every splat
-        assert any(size_fit.STEP**k == pytest.approx(ratio.flat[0], rel=1e-5) for k in range(-3, 4))
+        assert any(size_fit.STEP**k == pytest.approx(ratio.flat[0], rel=1e-5) for k in range(-size_fit.MOST_STEPS, size_fit.MOST_STEPS + 1))
         for name in ("means", "rotations", "opacities", "features"):
             np.testing.assert_array_equal(getattr(f, name).numpy(), getattr(m, name).numpy())
     unfitted = simplify(splats, ratio=0.01, config=SimplifyConfig(fit_size=False))

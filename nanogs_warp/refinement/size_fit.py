@@ -41,8 +41,8 @@ FIT_BELOW = "0.01"  # outputs of at most target_count(N, FIT_BELOW) splats are f
 VIEWS = 4
 SIZE = 256
 ZOOM = 4.0
-STEP = 2.0 ** (1.0 / 6.0)
-MOST_STEPS = 3
+STEP = 2.0 ** (1.0 / 12.0)
+MOST_STEPS = 6
 CAMERA_STREAM = 0x5CA1E  # the random stream of the fit's cameras (``training_cameras``)
 SPREAD_SAMPLE = 1 << 16  # at most this many centres (every k-th) place the cameras
 # A view needing more (tile, splat) entries than this (a file of huge splats: each covers every
