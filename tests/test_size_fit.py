@@ -1,4 +1,4 @@
-"""The size fit (``refinement/size_fit.py``): the resize kernel against float64, the factor it picks
+"""The size fit (``refinement/size_fit.py``): its kernels against float64, the factor it picks
 for outputs made too large or too small on purpose, the outputs it leaves alone, and the command
 line's report of it."""
 
@@ -47,6 +47,27 @@ def test_resized_scales_every_axis_by_the_factor(device, rng):
     for name in ("means", "rotations", "opacities", "features"):
         np.testing.assert_array_equal(getattr(out, name).numpy(), getattr(splats, name).numpy())
     assert size_fit.resized(splats, 1.0) is splats
+
+
+def test_squared_error_rows_and_psnr_against_float64(device, rng):
+    """The per-row squared error of two clamped images (``squared_error_rows``, rows poisoned first)
+    and the fit's mean PSNR over views, against numpy in float64; a view both render black in (and
+    one rendered identically) counts at the 1e-12 floor instead of being infinite."""
+    views, height, width = 3, 17, 23
+    reference = rng.uniform(-0.3, 1.3, size=(views, height, width, 3)).astype(np.float32)
+    test = (reference + rng.normal(0.0, 0.05, size=reference.shape)).astype(np.float32)
+    test[2] = reference[2]  # identical view: error 0, at the floor
+    rows = wp.full((views, height), float("nan"), dtype=wp.float64, device=device)
+    a, b = (wp.array(x, dtype=wp.float32, device=device) for x in (reference, test))
+    wp.launch(kernels.squared_error_rows, (views, height), inputs=[a, b], outputs=[rows], device=device)
+    diff = np.clip(test, 0, 1).astype(np.float64) - np.clip(reference, 0, 1).astype(np.float64)
+    expected_rows = (diff**2).sum(axis=(2, 3))
+    got = rows.numpy()
+    assert np.isfinite(got).all()
+    np.testing.assert_allclose(got, expected_rows, rtol=1e-12, atol=0)
+    mse = np.maximum((diff**2).mean(axis=(1, 2, 3)), 1e-12)
+    assert size_fit._psnr(a, b) == pytest.approx(float(np.mean(-10.0 * np.log10(mse))), rel=1e-12)
+    assert mse[2] == 1e-12 and np.isfinite(size_fit._psnr(a, b))
 
 
 @pytest.mark.parametrize("steps", [3, -2])

@@ -294,6 +294,12 @@ def render_views(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0
     """Renders every camera (all of one image size) into one device array and copies it to the host
     once: float32 (V, H, W, 3). A view needing more than ``max_entries`` (tile, splat) entries (or
     more than the device holds) raises InputError."""
+    return render_views_on_device(splats, cameras, background, max_entries).numpy()
+
+
+def render_views_on_device(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0.0, 0.0),
+                           max_entries: int | None = None) -> wp.array:  # fmt: skip
+    """``render_views``, the images left on the splats' device: a float32 ``wp.array`` (V, H, W, 3)."""
     cameras = list(cameras)
     if not cameras:
         raise InputError("no cameras to render")
@@ -310,4 +316,4 @@ def render_views(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0
             rasteriser.render_into(camera, bg, images, view)
     finally:
         rasteriser.close()
-    return images.numpy()
+    return images

@@ -31,7 +31,7 @@ import warp as wp
 from ..config import target_count
 from ..errors import InputError
 from ..eval.cameras import scene_frame
-from ..eval.render import render_views
+from ..eval.render import render_views_on_device
 from ..eval.units import far_from_origin, in_rendered_units
 from ..kernels import splat_size as kernels
 from ..splats import SplatSet
@@ -61,25 +61,22 @@ def resized(splats: SplatSet, factor: float) -> SplatSet:
     return replace(splats, log_scales=out)
 
 
-def _render(splats: SplatSet, cameras: list) -> np.ndarray:
-    """``render_views`` (one rasteriser for every view) within the fit's entry limit."""
-    return render_views(splats, cameras, max_entries=ENTRIES_PER_SPLAT * splats.count + MIN_ENTRIES)
+def _render(splats: SplatSet, cameras: list) -> wp.array:
+    """``render_views_on_device`` (one rasteriser for every view) within the fit's entry limit."""
+    return render_views_on_device(splats, cameras, max_entries=ENTRIES_PER_SPLAT * splats.count + MIN_ENTRIES)
 
 
-def _clamped(images: np.ndarray) -> np.ndarray:
-    """Images clamped to [0, 1], as ``eval`` compares them, in float64."""
-    return np.clip(images, 0.0, 1.0).astype(np.float64)
-
-
-def _psnr(reference: np.ndarray, test: np.ndarray) -> float:
-    """Mean over views of each view's PSNR (``reference`` already ``_clamped``), each view's error at
-    least 1e-12: unlike ``metrics.psnr`` never infinite, so that a view both renders black in (outside
-    the scene) leaves the gains to the others instead of making them NaN."""
-    values = []
-    for r, t in zip(reference, _clamped(test)):
-        mse = float(np.mean(np.square(r - t, out=t)))
-        values.append(-10.0 * math.log10(max(mse, 1e-12)))
-    return float(np.mean(values))
+def _psnr(reference: wp.array, test: wp.array) -> float:
+    """Mean over views of each view's PSNR (both images clamped to [0, 1], as ``eval`` compares
+    them), each view's error at least 1e-12: unlike ``metrics.psnr`` never infinite, so that a view
+    both render black in (outside the scene) leaves the gains to the others instead of making them
+    NaN. The squared errors are summed on the device, row by row in pixel order (the same sums on
+    every device), and only the per-row sums come to the host."""
+    views, height, width = test.shape[0], test.shape[1], test.shape[2]
+    rows = wp.empty((views, height), dtype=wp.float64, device=test.device)
+    wp.launch(kernels.squared_error_rows, (views, height), inputs=[reference, test], outputs=[rows], device=test.device)
+    mse = rows.numpy().sum(axis=1) / float(height * width * 3)
+    return float(np.mean([-10.0 * math.log10(max(float(m), 1e-12)) for m in mse]))
 
 
 class SizeFit:
@@ -90,7 +87,7 @@ class SizeFit:
         self.seed = int(seed)
         self.largest = target_count(reference.count, FIT_BELOW)
         self._cameras: list | None = None
-        self._images: tuple[np.ndarray, np.ndarray] | None = None
+        self._images: tuple[wp.array, wp.array] | None = None  # the input's coarse and fine views, on its device
         self._skip = False
         self.factors: dict[int, float] = {}  # count -> factor of each output fitted so far
 
@@ -113,7 +110,7 @@ class SizeFit:
             self._cameras = [coarse, fine]
             try:
                 images = _render(self.reference, coarse + fine)  # one rasteriser for the input's eight views
-                self._images = (_clamped(images[: len(coarse)]), _clamped(images[len(coarse) :]))
+                self._images = (images[: len(coarse)], images[len(coarse) :])
             except InputError:  # the renders would not fit the device's memory: no fit
                 self._skip = True
                 return False
