@@ -368,21 +368,13 @@ def entry_alpha(
 # by many blocks instead of one. Front-to-back compositing splits at any entry: with the chunk's own
 # transmittance T_j and colour C_j (each from T = 1), the pixel's colour is sum_j T_<j C_j, and the
 # stop rule (T (1 - alpha) < 1e-4) is kept by starting each chunk at the transmittance before it:
-#   longest_tile                 whether any tile needs more than one chunk (else ``composite`` does)
-#   chunk_counts, chunk_ranges   the chunks of each tile (an inclusive scan of the counts between)
+#   chunk_counts, chunk_ranges   the chunks of each tile (and whether any tile needs more than one:
+#                                else ``composite`` does) (an inclusive scan of the counts between)
 #   chunk_transmittance          T_j of every chunk but a tile's last (0 where it falls below 1e-4)
 #   chunk_prefix                 per pixel, the transmittance before each chunk (0 once stopped)
 #   composite_chunks             each chunk composited from that transmittance, as ``composite`` does
 #   composite_merge              the chunks' colours summed in order, then the background
 # A tile of one chunk takes exactly ``composite``'s arithmetic, so its pixels are ``composite``'s bits.
-
-
-@wp.kernel
-def longest_tile(tile_start: wp.array(dtype=wp.int32), tile_end: wp.array(dtype=wp.int32), first: int,
-                 longest: wp.array(dtype=wp.int32)):  # fmt: skip
-    """The most entries any tile holds (``longest`` zeroed before)."""
-    t = first + wp.tid()
-    wp.atomic_max(longest, 0, tile_end[t] - tile_start[t])
 
 
 @wp.kernel
@@ -392,10 +384,14 @@ def chunk_counts(
     chunk: int,
     first: int,
     counts: wp.array(dtype=wp.int32),
+    longest: wp.array(dtype=wp.int32),
 ):
-    """Chunks of at most ``chunk`` entries in each tile's range."""
+    """Chunks of at most ``chunk`` entries in each tile's range, and the most entries any tile
+    holds (``longest`` zeroed before)."""
     t = first + wp.tid()
-    counts[t] = (tile_end[t] - tile_start[t] + chunk - 1) / chunk
+    n = tile_end[t] - tile_start[t]
+    counts[t] = (n + chunk - 1) / chunk
+    wp.atomic_max(longest, 0, n)
 
 
 @wp.kernel

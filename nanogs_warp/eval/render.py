@@ -225,25 +225,25 @@ class _Rasteriser:
         if self.method == "tiles":
             self._launch(kernels.composite_tiles, tiles, inputs, [self.transmittance, self.colour, self.done, image])
         else:
-            self._composite_in_chunks(p, tiles, count, e_xy, e_co, e_rgb, e_box, background, view, image)
+            self._composite_in_chunks(p, tiles, count, inputs, image)
 
-    def _composite_in_chunks(self, p, tiles: int, count: int, e_xy, e_co, e_rgb, e_box, background: wp.vec3,
-                             view: int, image: wp.array) -> None:  # fmt: skip
+    def _composite_in_chunks(self, p, tiles: int, count: int, inputs: list, image: wp.array) -> None:
         """``composite``'s image, each tile's entries split into chunks of at most ``self.chunk``
         composited in parallel and then merged (``kernels/render.py``); ``composite`` itself where
-        no tile holds more (six launches fewer, which is most of a small scene's view)."""
+        no tile holds more (five launches fewer, which is most of a small scene's view). ``inputs``:
+        ``composite``'s arguments before the first thread's index."""
         if self.counts is None or self.counts.shape[0] != tiles:
             self.counts = wp.empty(tiles, dtype=wp.int32, device=self.device)
             self.chunk_ends = wp.empty(tiles, dtype=wp.int32, device=self.device)
             self.longest = wp.empty(1, dtype=wp.int32, device=self.device)
         pixels = kernels.TILE_PIXELS
         self.longest.zero_()
-        self._launch(kernels.longest_tile, tiles, [self.tile_start, self.tile_end], [self.longest])
+        self._launch(kernels.chunk_counts, tiles, [self.tile_start, self.tile_end, self.chunk], [self.counts, self.longest])
         if int(self.longest.numpy()[0]) <= self.chunk:  # every tile is one chunk: the one walk, the same bits
-            inputs = [e_xy, e_co, e_rgb, e_box, self.tile_start, self.tile_end, p.width, p.height, p.tiles_x, background, view]
             self._launch(kernels.composite, tiles * pixels, inputs, [image])
             return
-        self._launch(kernels.chunk_counts, tiles, [self.tile_start, self.tile_end, self.chunk], [self.counts])
+        e_xy, e_co, e_rgb, e_box = inputs[:4]
+        background, view = inputs[-2:]
         wp.utils.array_scan(self.counts, self.chunk_ends, inclusive=True)
         # launched for a bound on the chunk count (a tile of n entries has at most n / chunk + 1), so
         # that the count is never read back: the threads beyond the last chunk return at once
