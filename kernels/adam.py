@@ -10,7 +10,9 @@ c1 = 1 - beta1^t and c2 = 1 - beta2^t, and a learning rate per column of the par
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from .options import FORWARD_ONLY
+
+wp.set_module_options(FORWARD_ONLY)
 
 
 @wp.kernel

@@ -2,9 +2,10 @@
 
 import warp as wp
 
+from .options import PORTABLE
 from .splat_math import Splats
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 
 @wp.kernel

@@ -3,6 +3,7 @@
 import warp as wp
 
 from .merge import log_area_mass
+from .options import PORTABLE
 from .portable_math import exp64, log64, normal_from_uniforms
 from .splat_math import (
     LOG_2PI,
@@ -17,7 +18,7 @@ from .splat_math import (
     to_vec3d,
 )
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 # Finite stand-in for costs that cannot be evaluated (a degenerate merged covariance): such an edge
 # sorts after every real one.

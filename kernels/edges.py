@@ -27,8 +27,9 @@ from typing import Any
 import warp as wp
 
 from .knn import INEXACT, neighbour_key, squared_distance
+from .options import PORTABLE
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 MAX_K = wp.constant(32)  # foreign entries of a row are bits of a uint32
 # Part (b) is insertion-sorted up to this length, heap-sorted beyond it (a point listed by many rows)

@@ -9,9 +9,10 @@ one 3 x 3 change of basis per splat serves all three views.
 
 import warp as wp
 
+from .options import PORTABLE
 from .portable_math import exp64
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 PI = wp.constant(3.141592653589793)
 TWO_PI = wp.constant(6.283185307179586)

@@ -44,10 +44,11 @@ import warp as wp
 from .cost import UNMERGEABLE, finite_cost
 from .field import pair_view_overlaps
 from .merge import coverage_merged, coverage_terms, mpmm_merged
+from .options import PORTABLE
 from .portable_math import SMALLEST_NORMAL, exp64, log64, scale_by_power_of_two, sigmoid64
 from .splat_math import Splats, covariance, symmetric_eigen, to_vec3d
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 SH_C0 = wp.constant(0.28209479177387814)
 

@@ -24,7 +24,9 @@ from typing import Any
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from .options import FORWARD_ONLY
+
+wp.set_module_options(FORWARD_ONLY)
 
 SSIM_C1 = wp.constant(0.0001)
 SSIM_C2 = wp.constant(0.0009)

@@ -47,7 +47,9 @@ result is the same on every device.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
+from .options import PORTABLE
+
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 KMAX = wp.constant(32)
 GRID_BITS = wp.constant(21)  # bits per axis of the Morton code

@@ -18,10 +18,11 @@ included; else j's). Operators differ in their weights and in the merged opacity
 import warp as wp
 
 from .field import field_opacity, pair_view_overlaps
+from .options import PORTABLE
 from .portable_math import exp64, log64, pow64, sigmoid64
 from .splat_math import Splats, covariance, first_weight, log_mass, log_sigmoid, moment_match, quaternion_from_frame, symmetric_eigen, to_vec3d
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 # Written values stay finite: |logit| <= 16.1 keeps sigmoid(logit) < 1 in float32, and scales
 # below exp(-30) are not distinguishable from zero in any renderer. A merged opacity stays at or

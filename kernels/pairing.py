@@ -20,7 +20,9 @@ many pairs cost at most a factor times the median pair's cost.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
+from .options import PORTABLE
+
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 NO_CLAIM = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
 SIGN_BIT = wp.constant(wp.uint32(0x80000000))

@@ -17,7 +17,9 @@ re-implements them in numpy, operation for operation.
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})
+from .options import PORTABLE
+
+wp.set_module_options(PORTABLE)
 
 # exp: FDLIBM e_exp.c
 EXP_OVERFLOW = wp.constant(wp.float64(7.09782712893383973096e02))  # above: +inf

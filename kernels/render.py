@@ -26,7 +26,9 @@ Conventions (shared with ``tests/reference_render.py``):
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+from .options import FORWARD_ONLY
+
+wp.set_module_options(FORWARD_ONLY)
 
 TILE = wp.constant(16)
 TILE_PIXELS = wp.constant(256)

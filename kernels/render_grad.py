@@ -27,6 +27,7 @@ entries after the sort (``number_slots``, ``order_entries``) and the two backwar
 
 import warp as wp
 
+from .options import FORWARD_ONLY
 from .render import (
     ALPHA_MAX,
     ALPHA_MIN,
@@ -53,7 +54,7 @@ from .render import (
     sh_to_rgb,
 )
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options(FORWARD_ONLY)
 
 
 @wp.kernel

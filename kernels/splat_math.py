@@ -22,9 +22,10 @@ identical splats merge into themselves. Splats that are never merged keep their 
 
 import warp as wp
 
+from .options import PORTABLE
 from .portable_math import exp64, log64
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 LOG_2PI = wp.constant(1.8378770664093453)
 RIDGE = wp.constant(wp.float64(1.0e-10))  # variance floor, relative to the trace (module docstring)

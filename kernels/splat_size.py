@@ -3,7 +3,9 @@ factor), and how far a render is from the input's."""
 
 import warp as wp
 
-wp.set_module_options({"enable_backward": False, "fuse_fp": False})  # the same bits on every device: portable_math.py
+from .options import PORTABLE
+
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 
 @wp.kernel

@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from .shipped_kernels import SHIPPED_ARCHS
+
 CACHE_VARIABLE = "NANOGS_WARP_CACHE"
 
 # The kernel modules each command launches (their Warp helpers come with them).
@@ -38,8 +40,8 @@ def simplify_modules(config=None) -> tuple[str, ...]:
     return tuple(m for m in SIMPLIFY_MODULES if m not in optional) + (cost,) + prune + fit
 
 
-# GPU architectures compiled by `warmup` on a machine without a GPU (Turing to Hopper).
-DEFAULT_ARCHS = (75, 80, 86, 89, 90)
+# GPU architectures compiled by `warmup` on a machine without a GPU: the shipped ones (Turing to Blackwell).
+DEFAULT_ARCHS = SHIPPED_ARCHS
 
 
 def cache_dir_from_environment() -> str | None:
@@ -81,19 +83,30 @@ def missing_modules(modules: list, device) -> list:
     """Those of ``modules`` that the kernel cache holds no binary of for ``device``."""
     import warp as wp
 
-    from warp._src.context import _resolve_launch_block_dim  # the block size a launch would use
+    from .shipped_kernels import cache_entry
 
     root = Path(wp.config.kernel_cache_dir)
     missing = []
     for module in modules:
         try:
-            block_dim = _resolve_launch_block_dim(device, None if device.is_cpu else module.options["block_dim"])
-            name = module._get_compile_output_name(device, block_dim=block_dim)
-            present = (root / module.get_module_identifier(block_dim) / name).exists()
+            folder, binary = cache_entry(module, device)
+            present = (root / folder / binary).exists()
         except Exception:  # noqa: BLE001 - a Warp internal changed: say nothing rather than fail
             present = True
         if not present:
             missing.append(module)
+    return missing
+
+
+def missing_after_shipped(modules: list, device) -> list:
+    """Those of ``modules`` that must be compiled for ``device``: neither in the kernel cache nor
+    shipped in the package for it (the shipped ones are copied into the cache here)."""
+    from .shipped_kernels import install_shipped
+
+    missing = missing_modules(modules, device)
+    if missing:
+        installed = install_shipped(missing, device)
+        missing = [m for m in missing if m not in installed]
     return missing
 
 
@@ -105,7 +118,7 @@ def load_kernels(device, names=SIMPLIFY_MODULES, announce: bool = True) -> float
 
     started = time.perf_counter()
     modules = warp_modules(names)
-    missing = missing_modules(modules, device)
+    missing = missing_after_shipped(modules, device)
     if missing and announce:
         print(f"nanogs-warp: compiling {len(missing)} kernel module(s) for {device} (once; they are kept in "
               f"{wp.config.kernel_cache_dir}; 'nanogs-warp warmup' does this ahead of time)", file=sys.stderr)  # fmt: skip
@@ -116,9 +129,10 @@ def load_kernels(device, names=SIMPLIFY_MODULES, announce: bool = True) -> float
 
 def warmup(devices: list, archs: list[int], names=ALL_MODULES) -> list[tuple[str, int, float]]:
     """Compiles every kernel module for each Warp device in ``devices`` (as the commands will load
-    them there) and, with no GPU needed, for each CUDA architecture in ``archs``, both as the CUBIN
-    and as the PTX that Warp picks on that GPU with an older or a newer driver. Returns (target,
-    modules compiled, seconds) per target."""
+    them there; the shipped binaries are copied instead where they serve) and, with no GPU needed,
+    for each CUDA architecture in ``archs``, both as the CUBIN and as the PTX that Warp picks on
+    that GPU with an older or a newer driver (PTX for an older architecture, ``default_ptx_arch``,
+    which serves every later one). Returns (target, binaries compiled, seconds) per target."""
     from concurrent.futures import ThreadPoolExecutor
 
     import warp as wp
@@ -127,14 +141,17 @@ def warmup(devices: list, archs: list[int], names=ALL_MODULES) -> list[tuple[str
     report = []
     for device in devices:
         started = time.perf_counter()
-        missing = len(missing_modules(modules, device))
+        missing = len(missing_after_shipped(modules, device))
         _force_load(modules, [device], missing)
         report.append((str(device), missing, time.perf_counter() - started))
+    from warp._src.context import runtime
+
+    ptx_archs = {arch: min(arch, wp.config.ptx_target_arch or runtime.default_ptx_arch) for arch in archs}
     for arch in archs:
         started = time.perf_counter()
-        jobs = [(m, ptx) for m in modules for ptx in (False, True)]
+        jobs = [(m, arch, False) for m in modules] + [(m, ptx_archs[arch], True) for m in modules]
         with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-            list(pool.map(lambda job: wp.compile_aot_module(job[0], arch=arch, use_ptx=job[1]), jobs))
+            list(pool.map(lambda job: wp.compile_aot_module(job[0], arch=job[1], use_ptx=job[2]), jobs))
         report.append((f"sm_{arch}", len(jobs), time.perf_counter() - started))
     return report
 

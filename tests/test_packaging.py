@@ -26,6 +26,7 @@ def test_licence_is_the_full_apache_2_text():
 def test_package_data_ships_the_sample_its_credit_and_py_typed():
     assert '"nanogs_warp" = ["py.typed"]' in PYPROJECT
     assert '"nanogs_warp.data" = ["*.ply", "CREDITS.md"]' in PYPROJECT
+    assert '"nanogs_warp.compiled" = ["*/*.tar.xz"]' in PYPROJECT  # the shipped kernels (shipped_kernels.py)
     package = ROOT / "nanogs_warp"
     assert (package / "py.typed").is_file()
     credits = (package / "data" / "CREDITS.md").read_text(encoding="utf-8")
@@ -63,14 +64,15 @@ def test_readme_first_command_runs_outside_the_source_tree(tmp_path):
 
 def test_the_wheel_lists_every_subpackage():
     """setuptools is given the packages by name: each folder of the package with an __init__.py,
-    and the kernels folder as nanogs_warp.kernels, so that none is missing from a wheel."""
+    the kernels folder as nanogs_warp.kernels, and the shipped compiled kernels' folder (data
+    only, nanogs_warp.compiled), so that none is missing from a wheel."""
     import tomllib
 
     listed = set(tomllib.loads(PYPROJECT)["tool"]["setuptools"]["packages"])
     package = ROOT / "nanogs_warp"
     folders = {".".join(("nanogs_warp", *p.parent.relative_to(package).parts)) for p in package.rglob("__init__.py")}
     assert {"nanogs_warp.io", "nanogs_warp.eval", "nanogs_warp.refinement", "nanogs_warp.batch", "nanogs_warp.cli"} <= folders
-    assert listed == folders | {"nanogs_warp.kernels"}
+    assert listed == folders | {"nanogs_warp.kernels", "nanogs_warp.compiled"}
 
 
 def test_the_console_script_and_python_m_run_the_command():

@@ -474,7 +474,7 @@ app.command("batch", epilog=examples(
 ))(user_errors(batch_command))  # fmt: skip
 app.command("warmup", epilog=examples(
     "nanogs-warp warmup                      # every kernel for this machine's devices",
-    "nanogs-warp warmup --device cpu --arch 75,80,86,89,90 --cache-dir /opt/nanogs-kernels",
+    "nanogs-warp warmup --device cpu --arch 75,80,86,89,90,100,120 --cache-dir /opt/nanogs-kernels",
 ))(user_errors(warmup_command))  # fmt: skip
 
 
