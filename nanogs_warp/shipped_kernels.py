@@ -71,42 +71,53 @@ def cache_entry(module, device) -> tuple[str, str]:
 
 def install_shipped(modules: list, device, root: Path | None = None) -> list:
     """Copies the shipped binaries of ``modules`` for ``device`` (a Warp device) into the kernel
-    cache ``root`` (default: Warp's). Returns the modules installed; the others are left to Warp to
-    compile (none shipped for this device, platform, Warp version or source, or an archive that
-    cannot be read)."""
+    cache ``root`` (default: Warp's), one module per thread (the decompression runs outside the
+    interpreter). Returns the modules installed; the others are left to Warp to compile (none
+    shipped for this device, platform, Warp version or source, or an archive that cannot be read)."""
     import warp as wp
 
-    if os.environ.get(SWITCH_VARIABLE, "").strip() == "0":
+    if os.environ.get(SWITCH_VARIABLE, "").strip() == "0" or not modules:
         return []
     root = Path(wp.config.kernel_cache_dir if root is None else root)
-    folder_of_archives = shipped_dir()
-    installed = []
-    for module in modules:
-        try:
-            folder, binary = cache_entry(module, device)
-        except Exception:  # noqa: BLE001 - a device Warp cannot compile for (it says so itself), or a changed Warp internal
-            continue
-        try:
-            archive = folder_of_archives / archive_name(module)
-            if not archive.is_file():
-                continue
-            with tarfile.open(archive, "r:xz") as tar:
-                files = {m.name: m for m in tar.getmembers() if m.isfile()}
-                wanted = [f"{folder}/{folder}.meta", f"{folder}/{binary}"]  # the meta first: a binary is never without it
-                if not all(name in files for name in wanted):
-                    continue
-                contents = [tar.extractfile(files[name]).read() for name in wanted]
-        except (OSError, tarfile.TarError, lzma.LZMAError, EOFError):
-            continue
-        try:
-            target = root / folder
-            target.mkdir(parents=True, exist_ok=True)
-            for name, data in zip(wanted, contents):
-                _write_new(target / name.split("/", 1)[1], data)
-        except OSError:  # a cache that cannot take it (full, read-only): Warp compiles, and says why if it cannot
-            continue
-        installed.append(module)
-    return installed
+    archives = shipped_dir()
+    workers = min(len(modules), os.cpu_count() or 1)
+    if workers > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(workers, thread_name_prefix="nanogs-kernels") as pool:
+            done = list(pool.map(lambda m: _install(m, device, root, archives), modules))
+    else:
+        done = [_install(m, device, root, archives) for m in modules]
+    return [m for m, ok in zip(modules, done) if ok]
+
+
+def _install(module, device, root: Path, archives: Path) -> bool:
+    """Copies ``module``'s shipped binary for ``device`` and its metadata into the cache ``root``;
+    False where there is none to copy, or the cache cannot take it."""
+    try:
+        folder, binary = cache_entry(module, device)
+    except Exception:  # noqa: BLE001 - a device Warp cannot compile for (it says so itself), or a changed Warp internal
+        return False
+    wanted = [f"{folder}/{folder}.meta", f"{folder}/{binary}"]  # the meta first: a binary is never without it
+    try:
+        archive = archives / archive_name(module)
+        if not archive.is_file():
+            return False
+        with tarfile.open(archive, "r:xz") as tar:
+            files = {m.name: m for m in tar.getmembers() if m.isfile()}
+            if not all(name in files for name in wanted):
+                return False
+            contents = [tar.extractfile(files[name]).read() for name in wanted]
+    except (OSError, tarfile.TarError, lzma.LZMAError, EOFError):
+        return False
+    try:
+        target = root / folder
+        target.mkdir(parents=True, exist_ok=True)
+        for name, data in zip(wanted, contents):
+            _write_new(target / name.split("/", 1)[1], data)
+    except OSError:  # a cache that cannot take it (full, read-only): Warp compiles, and says why if it cannot
+        return False
+    return True
 
 
 def _write_new(path: Path, data: bytes) -> None:
