@@ -36,8 +36,8 @@ def main() -> int:
 
     modules = warp_modules(ALL_MODULES)
     out_dir = shipped_dir()
-    stale = stale_archives(modules)
     if args.check:
+        stale = stale_archives(modules)
         for module, why in stale:
             print(f"{archive_name(module)}: {why}")
         print(f"{len(modules) - len(stale)} of {len(modules)} archives current in {out_dir}")
