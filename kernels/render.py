@@ -36,6 +36,10 @@ LOW_PASS = wp.constant(0.3)
 ALPHA_MIN = wp.constant(1.0 / 255.0)
 ALPHA_MAX = wp.constant(0.99)
 T_MIN = wp.constant(1.0e-4)
+# composite_tiles skips the exp where power < log(ALPHA_MIN / opacity) - FAINT_MARGIN: there the
+# float32 alpha is below ALPHA_MIN by ~1e-3 relative, far beyond the exp's and log's rounding, so
+# the skipped pixels are exactly those the alpha test would skip.
+FAINT_MARGIN = wp.constant(1.0e-3)
 
 SH_C0 = wp.constant(0.28209479177387814)
 SH_C1 = wp.constant(0.4886025119029199)
@@ -624,6 +628,7 @@ def composite_tiles(
         p = e_xy[k]
         co = e_conic_opacity[k]
         rgb = e_rgb[k]
+        faint = wp.log(ALPHA_MIN / co[3]) - FAINT_MARGIN  # below this power alpha < ALPHA_MIN: no exp needed
         for py in range(gy0, gy1 + 1):
             row = base + (py - y_lo) * TILE - x_lo
             dy = p[1] - float(py)
@@ -633,7 +638,7 @@ def composite_tiles(
                     continue
                 dx = p[0] - float(px)
                 power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
-                if power > 0.0:
+                if power > 0.0 or power < faint:
                     continue
                 alpha = wp.min(ALPHA_MAX, co[3] * wp.exp(power))
                 if alpha < ALPHA_MIN:
