@@ -49,6 +49,16 @@ RATIOS = (0.1, 0.01, 0.001)
 PAPER = dataclasses.asdict(SimplifyConfig.paper())  # every setting, so --define can change any of them
 
 
+def _setting(default, value: str, parser, definition: str):
+    """``value`` as the type of the paper's ``default`` for that key; booleans from 0 / 1 / true /
+    false (``bool("0")`` would be True)."""
+    if isinstance(default, bool):
+        if value.lower() not in ("0", "1", "true", "false"):
+            parser.error(f"--define {definition!r}: {value!r} is not 0, 1, true or false")
+        return value.lower() in ("1", "true")
+    return type(default)(value)
+
+
 def nanogs(**changes) -> dict:
     """A NanoGS configuration: the paper's settings with ``changes``."""
     return {"kind": "nanogs", **PAPER, **changes}
@@ -275,7 +285,7 @@ def main(argv=None) -> int:
                     continue
                 if key not in PAPER:
                     parser.error(f"--define {definition!r}: unknown key {key!r}")
-                changes[key] = None if value == "None" else type(PAPER[key])(value)
+                changes[key] = None if value == "None" else _setting(PAPER[key], value, parser, definition)
             if cost_params:
                 base = COSTS[changes.get("cost", "idiv")]
                 cost_name = changes.get("cost", "idiv") + "(" + ",".join(f"{k}={v}" for k, v in sorted(cost_params.items())) + ")"
