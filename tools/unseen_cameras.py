@@ -34,19 +34,19 @@ sys.path.insert(0, str(Path(__file__).parent))
 from refine_quality import closeup_cameras  # noqa: E402  (this folder's)
 
 from nanogs_warp.device import init_warp, resolve_device  # noqa: E402
-from nanogs_warp.eval.cameras import Camera, fibonacci_directions, near_plane, orbit_cameras, parse_up, scene_frame  # noqa: E402
+from nanogs_warp.eval.cameras import Camera, fibonacci_directions, near_plane, orbit_cameras, parse_up  # noqa: E402
 from nanogs_warp.eval.evaluate import evaluate  # noqa: E402
 from nanogs_warp.io.ply import load_ply  # noqa: E402
+from nanogs_warp.refinement.cameras import scene_spread  # noqa: E402
 
-ORBIT_DISTANCE = 2.2  # eval's orbit radius, in 90th-percentile radii (``scene_frame``'s radius)
-TIGHT_DISTANCE = 1.5
+TIGHT_DISTANCE = 1.5  # in 90th-percentile radii (eval's orbit: 2.2)
 TIGHT_FOV_DEG = 40.0
 TIGHT_SKIP = 3  # the tight views take Fibonacci directions 3.. of 19, not the orbit's 16
 
 
 def tight_cameras(means: np.ndarray, views: int = 16, size: int = 256, up: str = "-y") -> list[Camera]:
-    centre, orbit_radius = scene_frame(means)
-    radius = orbit_radius / ORBIT_DISTANCE * TIGHT_DISTANCE
+    centre, p90, _ = scene_spread(means)
+    radius = TIGHT_DISTANCE * p90
     up_vector = parse_up(up)
     focal = 0.5 * size / math.tan(math.radians(TIGHT_FOV_DEG) / 2.0)
     directions = fibonacci_directions(views + TIGHT_SKIP, up_vector)[TIGHT_SKIP:]
