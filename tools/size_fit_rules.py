@@ -16,7 +16,7 @@ It prints, per rule and camera set, the mean and the worst change over the unfit
 cell's chosen step, and leave-one-scene-out choices among the rules (by the mean plus the worst
 cell, on the orbit alone and on all four sets).
 
-    python tools/size_fit_rules.py SCENES/*.ply -o fit_rules.jsonl       # about 25 min on 2 cores, 12 scenes
+    python tools/size_fit_rules.py SCENES/*.ply -o fit_rules.jsonl       # about 20 min on 2 cores, 12 scenes
     python tools/size_fit_rules.py --table fit_rules.jsonl               # the tables again, no rendering
 """
 
