@@ -83,6 +83,27 @@ def test_the_fit_undoes_a_wrong_size(device, monkeypatch, steps):
     np.testing.assert_allclose(fitted.log_scales.numpy(), reference.log_scales.numpy(), atol=2e-6)
 
 
+def test_the_fit_takes_the_factor_its_rule_names(device, monkeypatch):
+    """``fitted`` (which stops rendering early) chooses what its rule says of ``view_gains`` (which
+    renders every factor): outward from 1 while the smaller gain rises, the best positive one."""
+    monkeypatch.setattr(size_fit, "FIT_BELOW", "1")
+    reference = blob(600, 14, device)
+    fit = size_fit.SizeFit(reference)
+    # the input grown (the fit shrinks it back), a sparser set (grown), one of larger splats (kept)
+    for output in (size_fit.resized(reference, size_fit.STEP**3), blob(300, 15, device), blob(300, 16, device, (-2.6, -1.6))):
+        ks = range(-size_fit.MOST_STEPS, size_fit.MOST_STEPS + 1)
+        gains = dict(zip(ks, fit.view_gains(output, [size_fit.STEP**k for k in ks])))
+        assert gains[0] == (0.0, 0.0)
+        best, best_gain = 0, 0.0
+        for direction in (1, -1):
+            k, previous = direction, 0.0
+            while abs(k) <= size_fit.MOST_STEPS and min(gains[k]) > previous:
+                if min(gains[k]) > best_gain:
+                    best, best_gain = k, min(gains[k])
+                k, previous = k + direction, min(gains[k])
+        assert fit.fitted(output)[1] == pytest.approx(size_fit.STEP**best, rel=1e-12)
+
+
 def test_a_right_size_is_kept(device, monkeypatch):
     monkeypatch.setattr(size_fit, "FIT_BELOW", "1")
     reference = blob(600, 12, device)

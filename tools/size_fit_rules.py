@@ -64,11 +64,10 @@ def measure(paths: list[Path], out_path: Path, device) -> None:
             fit = size_fit.SizeFit(splats, config.seed)
             sets = {"orbit": orbit_cameras(splats), **camera_sets(splats)}
             for target, output in simplify_progressively(splats, targets, config):
-                if not fit.applies(output.count) or not fit._prepare():
+                gains = fit.view_gains(output, [size_fit.STEP**k for k in steps]) if fit.applies(output.count) else None
+                if gains is None:
                     continue
-                base = fit._scores(output)
                 resized = [size_fit.resized(output, size_fit.STEP**k) for k in steps]
-                gains = [fit._scores(r, base) if k else (0.0, 0.0) for k, r in zip(steps, resized)]
                 psnr = {name: [t["psnr"]["mean"] for t in evaluate(splats, resized, cameras, device)["tests"]]
                         for name, cameras in sets.items()}  # fmt: skip
                 for n, k in enumerate(steps):

@@ -130,6 +130,15 @@ class SizeFit:
             scores.append(value)
         return tuple(reversed(scores))
 
+    def view_gains(self, splats: SplatSet, factors) -> list[tuple[float, float]] | None:
+        """For each of ``factors``, the PSNR gains (coarse views, fine views) of ``splats`` resized by it
+        over ``splats`` itself: what ``fitted`` compares, each factor rendered in full. None where the
+        scene is not fitted. For studies of the rule (``tools/size_fit_rules.py``)."""
+        if not self._prepare():
+            return None
+        base = self._scores(splats)
+        return [(0.0, 0.0) if f == 1.0 else self._scores(resized(splats, f), base) for f in factors]
+
     def __call__(self, splats: SplatSet) -> SplatSet:
         """The fitted splat set (``splats`` itself when no factor gains); its factor goes to ``factors``."""
         fitted, factor = self.fitted(splats)
