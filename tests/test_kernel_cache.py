@@ -26,8 +26,8 @@ def test_import_is_quiet_and_loads_no_warp():
     assert result.returncode == 0 and result.stdout.split() == ["False", "0.1.0"] and result.stderr == ""
 
 
-def test_info_does_not_import_warp():
-    """Nor pydantic, which typer 0.29 and later import to validate options (pyproject pins below it)."""
+def test_info_imports_neither_warp_nor_pydantic():
+    """pydantic: typer 0.29 and later import it to validate options (pyproject.toml pins typer below)."""
     code = ("import sys\nfrom nanogs_warp.cli.app import app\nsys.argv = ['nanogs-warp', 'info', %r]\n"
             "try:\n    app()\nexcept SystemExit:\n    pass\nprint('warp' in sys.modules, 'pydantic' in sys.modules)") % SAMPLE  # fmt: skip
     result = python(code)
