@@ -6,7 +6,8 @@ of the two. This measures that choice against others: for each scene, each fitte
 1 % of the input) and each factor STEP^k, |k| <= MOST_STEPS, it records the fit's two gains for
 the unfitted output and the output's PSNR on ``eval``'s orbit and on ``tools/unseen_cameras.py``'s
 three sets (close-ups, the orbit at 512 x 512, a tight orbit). Each rule below is then replayed
-exactly as the fit searches (outward from factor 1 while the gain rises, the best positive gain):
+through the fit's own search (``size_fit.best_step``: outward from factor 1 while the gain rises,
+the best positive gain):
 
 - ``min``: the smaller of the two gains (the fit's rule);
 - ``mean``: their mean; ``coarse-2:1``: two parts coarse, one part fine;
@@ -79,18 +80,8 @@ def measure(paths: list[Path], out_path: Path, device) -> None:
 
 
 def chosen_step(cell: dict[int, dict], gain) -> int:
-    """The step the fit's search takes with ``gain(coarse, fine)`` (``SizeFit.fitted``)."""
-    best, best_gain = 0, 0.0
-    for direction in (1, -1):
-        k, previous = direction, 0.0
-        while abs(k) <= size_fit.MOST_STEPS:
-            g = gain(cell[k]["coarse"], cell[k]["fine"])
-            if not g > previous:
-                break
-            if g > best_gain:
-                best, best_gain = k, g
-            k, previous = k + direction, g
-    return best
+    """The step the fit's own search (``size_fit.best_step``) takes with ``gain(coarse, fine)``."""
+    return size_fit.best_step(lambda k, floor: gain(cell[k]["coarse"], cell[k]["fine"]))
 
 
 def changes(cells: dict, keys: list, rule: str) -> dict[str, list[float]]:

@@ -162,20 +162,28 @@ class SizeFit:
             except InputError:
                 return -math.inf
 
-        best, best_gain = 0, 0.0
-        for direction in (1, -1):
-            k, previous = direction, 0.0
-            while abs(k) <= MOST_STEPS:
-                g = gain(k, previous)
-                if not g > previous:  # the gain stopped rising
-                    break
-                if g > best_gain:
-                    best, best_gain = k, g
-                k, previous = k + direction, g
+        best = best_step(gain)
         if best == 0:
             return splats, 1.0
         factor = STEP**best
         return resized(splats, factor), factor
+
+
+def best_step(gain) -> int:
+    """The fit's search: steps k = 1, 2, ... and then -1, -2, ... (|k| <= MOST_STEPS), each way while
+    ``gain(k, previous)`` rises; the k of the largest positive gain, 0 when none is. ``gain(k, floor)``
+    may return any value at most ``floor`` once it knows the gain cannot exceed it."""
+    best, best_gain = 0, 0.0
+    for direction in (1, -1):
+        k, previous = direction, 0.0
+        while abs(k) <= MOST_STEPS:
+            g = gain(k, previous)
+            if not g > previous:  # the gain stopped rising
+                break
+            if g > best_gain:
+                best, best_gain = k, g
+            k, previous = k + direction, g
+    return best
 
 
 def size_fit_for(splats: SplatSet, config) -> SizeFit | None:
