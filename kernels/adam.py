@@ -10,9 +10,9 @@ c1 = 1 - beta1^t and c2 = 1 - beta2^t, and a learning rate per column of the par
 
 import warp as wp
 
-from .options import FORWARD_ONLY
+from .options import PORTABLE
 
-wp.set_module_options(FORWARD_ONLY)
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 
 @wp.kernel

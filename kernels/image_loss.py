@@ -24,9 +24,9 @@ from typing import Any
 
 import warp as wp
 
-from .options import FORWARD_ONLY
+from .options import PORTABLE
 
-wp.set_module_options(FORWARD_ONLY)
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 SSIM_C1 = wp.constant(0.0001)
 SSIM_C2 = wp.constant(0.0009)

@@ -66,6 +66,20 @@ COS_C6 = wp.constant(wp.float64(-1.13596475577881948265e-11))
 TWO_PI64 = wp.constant(wp.float64(6.283185307179586))
 RANDN_OFFSET = wp.constant(wp.float64(2.9802322387695312e-08))  # 2^-25: log's argument stays in (0, 1)
 
+# expf in float32: FDLIBM's reduction with float32 constants (FreeBSD msun's e_expf.c), Cephes' polynomial
+EXP32_OVERFLOW = wp.constant(wp.float32(88.7216796875))  # above: +inf
+EXP32_UNDERFLOW = wp.constant(wp.float32(-103.97208404541016))  # below: 0
+LN2_HI32 = wp.constant(wp.float32(0.693145751953125))  # 15 significant bits: k LN2_HI32 is exact for |k| < 2^9
+LN2_LO32 = wp.constant(wp.float32(1.428606765330187e-06))
+INV_LN2_32 = wp.constant(wp.float32(1.4426950216293335))
+EXP32_P0 = wp.constant(wp.float32(1.9875691500e-4))
+EXP32_P1 = wp.constant(wp.float32(1.3981999507e-3))
+EXP32_P2 = wp.constant(wp.float32(8.3333337680e-3))
+EXP32_P3 = wp.constant(wp.float32(4.1665795894e-2))
+EXP32_P4 = wp.constant(wp.float32(1.6666665459e-1))
+EXP32_P5 = wp.constant(wp.float32(5.0000001201e-1))
+TWO_M100_32 = wp.constant(wp.float32(7.888609052210118e-31))  # 2^-100
+
 
 @wp.func
 def scale_by_power_of_two(y: wp.float64, k: int):
@@ -194,6 +208,48 @@ def sigmoid64(x: wp.float64):
 
 
 @wp.func
+def exp32(x: float):
+    """e^x in float32, less than 1 ulp from the exact value; +inf above 88.72, 0 below -103.97, NaN
+    for NaN: x = k ln2 + r, |r| <= ln2 / 2 (``exp64``'s reduction in float32), e^r by a degree-7
+    polynomial (Cephes' expf, no division), then k added to the exponent field. The renderer's
+    per-pixel exponential: the same bits on every device without paying for float64."""
+    if not (x == x):
+        return x
+    if x > EXP32_OVERFLOW:
+        return float(wp.inf)
+    if x < EXP32_UNDERFLOW:
+        return float(0.0)
+    half = float(0.5)
+    if x < float(0.0):
+        half = float(-0.5)
+    k = int(INV_LN2_32 * x + half)  # truncation: round to nearest
+    t = float(k)
+    r = (x - t * LN2_HI32) - t * LN2_LO32  # t LN2_HI32 is exact
+    p = EXP32_P0 * r + EXP32_P1
+    p = p * r + EXP32_P2
+    p = p * r + EXP32_P3
+    p = p * r + EXP32_P4
+    p = p * r + EXP32_P5
+    y = (p * (r * r) + r) + float(1.0)  # in [0.70, 1.42]
+    if k >= -125:
+        return wp.cast(wp.cast(y, wp.int32) + (k << 23), float)
+    return wp.cast(wp.cast(y, wp.int32) + ((k + 100) << 23), float) * TWO_M100_32  # subnormal: one rounding
+
+
+@wp.func
+def log32(x: float):
+    """Natural log in float32: ``log64`` rounded to float32 (the renderer takes a few per splat, not
+    per pixel)."""
+    return float(log64(wp.float64(x)))
+
+
+@wp.func
+def sigmoid32(x: float):
+    """1 / (1 + e^-x) in float32."""
+    return float(1.0) / (float(1.0) + exp32(-x))
+
+
+@wp.func
 def _sin_kernel(x: wp.float64):
     # sin x for |x| <= pi/4
     z = x * x
@@ -248,7 +304,8 @@ def normal_from_uniforms(u1: float, u2: float):
 @wp.kernel
 def evaluate(function: int, x: wp.array(dtype=wp.float64), y: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
     """out = f(x) (or f(x, y)) for f numbered 0 exp64, 1 log64, 2 pow64, 3 sigmoid64, 4 cos_two_pi,
-    5 normal_from_uniforms (x, y read as float32): tests and tools call the functions through this."""
+    5 normal_from_uniforms (x, y read as float32), 6 exp32, 7 log32, 8 sigmoid32 (x read as float32):
+    tests and tools call the functions through this."""
     t = wp.tid()
     v = x[t]
     r = wp.float64(0.0)
@@ -262,6 +319,12 @@ def evaluate(function: int, x: wp.array(dtype=wp.float64), y: wp.array(dtype=wp.
         r = sigmoid64(v)
     elif function == 4:
         r = cos_two_pi(v)
+    elif function == 6:
+        r = wp.float64(exp32(wp.float32(v)))
+    elif function == 7:
+        r = wp.float64(log32(wp.float32(v)))
+    elif function == 8:
+        r = wp.float64(sigmoid32(wp.float32(v)))
     else:
         r = normal_from_uniforms(wp.float32(v), wp.float32(y[t]))
     out[t] = r

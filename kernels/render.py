@@ -22,13 +22,19 @@ Conventions (shared with ``tests/reference_render.py``):
 - Compositing, per pixel in depth order: alpha = min(0.99, opacity exp(-d^T conic d / 2)); skip
   alpha < 1/255; stop before accumulating when T (1 - alpha) < 1e-4; C += rgb alpha T, T *= 1 - alpha;
   finally C + T background.
+- The same bits on every device: float32 arithmetic that no compiler fuses (``PORTABLE``) and the
+  portable ``exp32``, ``log32`` and ``sigmoid32`` (``portable_math.py``). A tile whose list is
+  longer than the renderer's chunk is composited in chunks (the GPU's ``composite_chunks``) with
+  the chunks' own arithmetic on every device (``composite_tiles`` replays it on the CPU), so the
+  CPU's images are the GPU's to the bit.
 """
 
 import warp as wp
 
-from .options import FORWARD_ONLY
+from .options import PORTABLE
+from .portable_math import exp32, log32, sigmoid32
 
-wp.set_module_options(FORWARD_ONLY)
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 TILE = wp.constant(16)
 TILE_PIXELS = wp.constant(256)
@@ -119,6 +125,40 @@ def sh_to_rgb(features: wp.array2d(dtype=float), i: int, degree: int, d: wp.vec3
     return wp.vec3(wp.max(c[0], 0.0), wp.max(c[1], 0.0), wp.max(c[2], 0.0))
 
 
+@wp.func
+def scaled_columns(r: wp.mat33, scale: wp.vec3):
+    """R diag(scale): column k of R times scale k, one product an entry."""
+    m = wp.mat33()
+    for a in range(3):
+        for k in range(3):
+            m[a, k] = r[a, k] * scale[k]
+    return m
+
+
+@wp.func
+def matrix_product(a: wp.mat33, b: wp.mat33):
+    """A B with entry (i, j) = (a_i0 b_0j + a_i1 b_1j) + a_i2 b_2j. Written out because Warp's matrix
+    product calls fma(): correctly rounded everywhere, but a library call per term on a CPU without
+    FMA in its baseline, and an instruction that the PTX check of the portable modules refuses."""
+    m = wp.mat33()
+    for i in range(3):
+        for j in range(3):
+            m[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+    return m
+
+
+@wp.func
+def gram(m: wp.mat33):
+    """M M^T, exactly symmetric: entry (a, b) = (m_a0 m_b0 + m_a1 m_b1) + m_a2 m_b2 (see ``matrix_product``)."""
+    g = wp.mat33()
+    for a in range(3):
+        for b in range(a, 3):
+            v = m[a, 0] * m[b, 0] + m[a, 1] * m[b, 1] + m[a, 2] * m[b, 2]
+            g[a, b] = v
+            g[b, a] = v
+    return g
+
+
 @wp.kernel
 def project(
     means: wp.array(dtype=wp.vec3),
@@ -151,8 +191,8 @@ def project(
         return
     r = wp.quat_to_matrix(q / qn)
     s = log_scales[i]
-    m = r * wp.diag(wp.vec3(wp.exp(s[0]), wp.exp(s[1]), wp.exp(s[2])))
-    sigma = m * wp.transpose(m)
+    m = scaled_columns(r, wp.vec3(exp32(s[0]), exp32(s[1]), exp32(s[2])))
+    sigma = gram(m)
 
     # EWA: Jacobian of the perspective projection at the (FOV-clamped) view-space mean.
     tx = wp.clamp(t[0] / z, -cam.lim_x, cam.lim_x) * z
@@ -175,13 +215,13 @@ def project(
     px = cam.fx * t[0] / z + cam.cx - 0.5
     py = cam.fy * t[1] / z + cam.cy - 0.5
     conic = wp.vec3(c / det, -b / det, a / det)
-    opacity = 1.0 / (1.0 + wp.exp(-opacities[i]))
+    opacity = sigmoid32(opacities[i])
 
     # Where alpha >= 1/255 can hold: opacity * exp(power) >= 1/255, i.e. d^T conic d <= 2 ln(255 opacity),
     # an ellipse of half-widths sqrt(2 ln(255 opacity) conic_yy / det(conic)) in x, likewise in y.
     # Widened by 1% + 1 px, so float32 rounding of the per-pixel test cannot matter, this box only
     # lets pixels and tiles skip splats that cannot reach them: the image is that of INRIA's rule.
-    reach = wp.log(255.0 * opacity)
+    reach = log32(255.0 * opacity)
     if reach <= 0.0:
         return  # opacity < 1/255: alpha < 1/255 at every pixel
     ca = wp.float64(conic[0])
@@ -322,7 +362,7 @@ def composite(
         power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
         if power > 0.0:
             continue
-        alpha = wp.min(ALPHA_MAX, co[3] * wp.exp(power))
+        alpha = wp.min(ALPHA_MAX, co[3] * exp32(power))
         if alpha < ALPHA_MIN:
             continue
         test_t = transmittance * (1.0 - alpha)
@@ -363,7 +403,7 @@ def entry_alpha(
     power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
     if power > 0.0:
         return 0.0
-    alpha = wp.min(ALPHA_MAX, co[3] * wp.exp(power))
+    alpha = wp.min(ALPHA_MAX, co[3] * exp32(power))
     if alpha < ALPHA_MIN:
         return 0.0
     return alpha
@@ -589,16 +629,22 @@ def composite_tiles(
     tiles_x: int,
     background: wp.vec3,
     view: int,
+    chunk: int,
     first: int,
     transmittance: wp.array(dtype=float),
     colour: wp.array(dtype=wp.vec3),
     done: wp.array(dtype=wp.int32),
+    chunk_state: wp.array(dtype=wp.vec2),
+    total: wp.array(dtype=wp.vec3),
     image: wp.array4d(dtype=float),
 ):
     """``composite`` for the CPU: one thread per tile, splat-major, visiting only the pixels inside each
     entry's reach box; per-pixel state in the tile's 256 slots of ``transmittance``, ``colour`` and
     ``done``. Each pixel sees the same entries in the same order with the same float32 arithmetic as
-    in ``composite``, so the images are identical."""
+    in ``composite``, so the images are identical. A tile of more than ``chunk`` entries is composited
+    as ``chunk_transmittance`` to ``composite_merge`` do it on the GPU, chunk by chunk, with their
+    arithmetic (per pixel in ``chunk_state``: the transmittance before the chunk and the chunk's own,
+    and in ``total`` the colour of the chunks before): the same bits as the GPU's chunked image."""
     tile = first + wp.tid()
     base = tile * TILE_PIXELS
     x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
@@ -609,52 +655,97 @@ def composite_tiles(
         transmittance[base + s] = 1.0
         colour[base + s] = wp.vec3(0.0, 0.0, 0.0)
         done[base + s] = 0
+        chunk_state[base + s] = wp.vec2(1.0, 1.0)
+        total[base + s] = wp.vec3(0.0, 0.0, 0.0)
     remaining = (x_hi - x_lo) * (y_hi - y_lo)
     fx_lo = float(x_lo)
     fx_hi = float(x_hi - 1)
     fy_lo = float(y_lo)
     fy_hi = float(y_hi - 1)
-    for k in range(tile_start[tile], tile_end[tile]):
-        if remaining == 0:
-            break
-        bx = e_box[k]
-        # pixels px with bx[0] <= px <= bx[1] (and likewise y) inside this tile
-        gx0 = int(wp.ceil(wp.clamp(bx[0], fx_lo, fx_hi + 1.0)))
-        gx1 = int(wp.floor(wp.clamp(bx[1], fx_lo - 1.0, fx_hi)))
-        gy0 = int(wp.ceil(wp.clamp(bx[2], fy_lo, fy_hi + 1.0)))
-        gy1 = int(wp.floor(wp.clamp(bx[3], fy_lo - 1.0, fy_hi)))
-        if gx1 < gx0 or gy1 < gy0:
-            continue
-        p = e_xy[k]
-        co = e_conic_opacity[k]
-        rgb = e_rgb[k]
-        faint = wp.log(ALPHA_MIN / co[3]) - FAINT_MARGIN  # below this power alpha < ALPHA_MIN: no exp needed
-        for py in range(gy0, gy1 + 1):
-            row = base + (py - y_lo) * TILE - x_lo
-            dy = p[1] - float(py)
-            for px in range(gx0, gx1 + 1):
-                slot = row + px
-                if done[slot] != 0:
-                    continue
-                dx = p[0] - float(px)
-                power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
-                if power > 0.0 or power < faint:
-                    continue
-                alpha = wp.min(ALPHA_MAX, co[3] * wp.exp(power))
-                if alpha < ALPHA_MIN:
-                    continue
-                t = transmittance[slot]
-                test_t = t * (1.0 - alpha)
-                if test_t < T_MIN:
-                    done[slot] = 1
-                    remaining -= 1
-                    continue
-                colour[slot] = colour[slot] + rgb * (alpha * t)
-                transmittance[slot] = test_t
+    start = tile_start[tile]
+    end = tile_end[tile]
+    chunked = end - start > chunk  # else one chunk: ``composite``'s one walk
+    chunk_first = start
+    while chunk_first < end and remaining > 0:
+        chunk_last = end
+        if chunked:
+            chunk_last = wp.min(chunk_first + chunk, end)
+        last = chunk_last == end
+        for k in range(chunk_first, chunk_last):
+            if remaining == 0:
+                break
+            bx = e_box[k]
+            # pixels px with bx[0] <= px <= bx[1] (and likewise y) inside this tile
+            gx0 = int(wp.ceil(wp.clamp(bx[0], fx_lo, fx_hi + 1.0)))
+            gx1 = int(wp.floor(wp.clamp(bx[1], fx_lo - 1.0, fx_hi)))
+            gy0 = int(wp.ceil(wp.clamp(bx[2], fy_lo, fy_hi + 1.0)))
+            gy1 = int(wp.floor(wp.clamp(bx[3], fy_lo - 1.0, fy_hi)))
+            if gx1 < gx0 or gy1 < gy0:
+                continue
+            p = e_xy[k]
+            co = e_conic_opacity[k]
+            rgb = e_rgb[k]
+            faint = log32(ALPHA_MIN / co[3]) - FAINT_MARGIN  # below this power alpha < ALPHA_MIN: no exp needed
+            for py in range(gy0, gy1 + 1):
+                row = base + (py - y_lo) * TILE - x_lo
+                dy = p[1] - float(py)
+                for px in range(gx0, gx1 + 1):
+                    slot = row + px
+                    if done[slot] != 0:
+                        continue
+                    dx = p[0] - float(px)
+                    power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
+                    if power > 0.0 or power < faint:
+                        continue
+                    alpha = wp.min(ALPHA_MAX, co[3] * exp32(power))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    if chunked and not last:  # chunk_transmittance: the chunk's own, from 1
+                        state = chunk_state[slot]
+                        if state[1] > 0.0:
+                            own = state[1] * (1.0 - alpha)
+                            if own < T_MIN:
+                                own = 0.0
+                            chunk_state[slot] = wp.vec2(state[0], own)
+                    t = transmittance[slot]
+                    test_t = t * (1.0 - alpha)
+                    if test_t < T_MIN:
+                        done[slot] = 1  # stopped: in a chunked tile the merge stops at this chunk
+                        remaining -= 1
+                        continue
+                    colour[slot] = colour[slot] + rgb * (alpha * t)
+                    transmittance[slot] = test_t
+        if chunked:
+            # composite_merge adds the chunk's colour; chunk_prefix gives the next chunk's start
+            for py in range(y_lo, y_hi):
+                for px in range(x_lo, x_hi):
+                    slot = base + (py - y_lo) * TILE + px - x_lo
+                    if done[slot] == 2:
+                        continue
+                    total[slot] = total[slot] + colour[slot]
+                    if done[slot] == 1:
+                        done[slot] = 2
+                        continue
+                    if not last:
+                        state = chunk_state[slot]
+                        before = state[0] * state[1]
+                        if before < T_MIN:
+                            before = 0.0
+                        if before == 0.0:  # the merge stops before the next chunk
+                            done[slot] = 2
+                            remaining -= 1
+                        else:
+                            chunk_state[slot] = wp.vec2(before, 1.0)
+                            transmittance[slot] = before
+                            colour[slot] = wp.vec3(0.0, 0.0, 0.0)
+        chunk_first = chunk_last
     for py in range(y_lo, y_hi):
         for px in range(x_lo, x_hi):
             slot = base + (py - y_lo) * TILE + px - x_lo
-            c = colour[slot] + background * transmittance[slot]
+            c = colour[slot]
+            if chunked:
+                c = total[slot]
+            c = c + background * transmittance[slot]
             image[view, py, px, 0] = c[0]
             image[view, py, px, 1] = c[1]
             image[view, py, px, 2] = c[2]

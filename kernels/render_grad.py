@@ -27,7 +27,8 @@ entries after the sort (``number_slots``, ``order_entries``) and the two backwar
 
 import warp as wp
 
-from .options import FORWARD_ONLY
+from .options import PORTABLE
+from .portable_math import exp32, sigmoid32
 from .render import (
     ALPHA_MAX,
     ALPHA_MIN,
@@ -51,10 +52,13 @@ from .render import (
     TILE_PIXELS,
     CameraParams,
     _sh_coef,
+    gram,
+    matrix_product,
+    scaled_columns,
     sh_to_rgb,
 )
 
-wp.set_module_options(FORWARD_ONLY)
+wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
 
 @wp.kernel
@@ -159,7 +163,7 @@ def composite_backward(
                 power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
                 if power > 0.0:
                     continue
-                gauss = wp.exp(power)
+                gauss = exp32(power)
                 raw = co[3] * gauss
                 alpha = wp.min(ALPHA_MAX, raw)
                 if alpha < ALPHA_MIN:
@@ -373,9 +377,9 @@ def splat_backward(
     qu = q / qn
     r = wp.quat_to_matrix(qu)
     s = log_scales[i]
-    scale = wp.vec3(wp.exp(s[0]), wp.exp(s[1]), wp.exp(s[2]))
-    m = r * wp.diag(scale)
-    sigma = m * wp.transpose(m)
+    scale = wp.vec3(exp32(s[0]), exp32(s[1]), exp32(s[2]))
+    m = scaled_columns(r, scale)
+    sigma = gram(m)
     rx = t[0] / z
     ry = t[1] / z
     tx = wp.clamp(rx, -cam.lim_x, cam.lim_x) * z
@@ -391,7 +395,7 @@ def splat_backward(
     b = wp.dot(u, sv)
     c = wp.dot(v, sv) + LOW_PASS
     det = a * c - b * b
-    opacity = 1.0 / (1.0 + wp.exp(-opacities[i]))
+    opacity = sigmoid32(opacities[i])
 
     # Conic (A, B, C) = (c, -b, a) / det:
     # dA/d(a, b, c) = (-c^2, 2bc, -b^2)/det^2, dB = (bc, -det - 2b^2, ab)/det^2, dC = (-b^2, 2ab, -a^2)/det^2.
@@ -430,8 +434,8 @@ def splat_backward(
     g_mean = wt * gt  # t = W mean + translation
 
     # Sigma = M M^T, M = R diag(s): dL/dM = (G + G^T) M, dL/ds_k = dM[:, k].R[:, k], dL/dR[:, k] = dM[:, k] s_k.
-    gm = (g_sigma + wp.transpose(g_sigma)) * m
-    g_r = gm * wp.diag(scale)
+    gm = matrix_product(g_sigma + wp.transpose(g_sigma), m)
+    g_r = scaled_columns(gm, scale)
     g_scale = wp.vec3(0.0, 0.0, 0.0)
     for col in range(3):
         g_scale[col] = (gm[0, col] * r[0, col] + gm[1, col] * r[1, col] + gm[2, col] * r[2, col]) * scale[col]

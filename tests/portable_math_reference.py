@@ -182,6 +182,56 @@ def sigmoid64(x) -> np.ndarray:
     return 1.0 / (1.0 + exp64(-_f(x)))
 
 
+EXP32_OVERFLOW = np.float32(88.7216796875)
+EXP32_UNDERFLOW = np.float32(-103.97208404541016)
+LN2_HI32 = np.float32(0.693145751953125)
+LN2_LO32 = np.float32(1.428606765330187e-06)
+INV_LN2_32 = np.float32(1.4426950216293335)
+EXP32_P = [np.float32(v) for v in (1.9875691500e-4, 1.3981999507e-3, 8.3333337680e-3, 4.1665795894e-2, 1.6666665459e-1, 5.0000001201e-1)]
+TWO_M100_32 = np.float32(2.0**-100)
+
+
+def exp32(x) -> np.ndarray:
+    """``exp32``: every operation in float32, as the kernel's."""
+    x = np.asarray(x, dtype=np.float32).copy()
+    f = np.float32
+    out = np.empty_like(x)
+    with np.errstate(all="ignore"):
+        nan = np.isnan(x)
+        over = x > EXP32_OVERFLOW
+        under = x < EXP32_UNDERFLOW
+        rest = ~nan & ~over & ~under
+        out[nan] = x[nan]
+        out[over] = np.inf
+        out[under] = 0.0
+        x = x[rest]
+        half = np.where(x < f(0.0), f(-0.5), f(0.5)).astype(np.float32)
+        k = np.trunc(INV_LN2_32 * x + half).astype(np.int32)
+        t = k.astype(np.float32)
+        r = (x - t * LN2_HI32) - t * LN2_LO32
+        p = EXP32_P[0] * r + EXP32_P[1]
+        for c in EXP32_P[2:]:
+            p = p * r + c
+        y = ((p * (r * r) + r) + f(1.0)).astype(np.float32)
+        bits = y.view(np.int32)
+        normal = k >= -125
+        y[normal] = (bits[normal] + (k[normal] << 23)).astype(np.int32).view(np.float32)
+        sub = ~normal
+        y[sub] = (bits[sub] + ((k[sub] + 100) << 23)).astype(np.int32).view(np.float32) * TWO_M100_32
+        out[rest] = y
+    return out
+
+
+def log32(x) -> np.ndarray:
+    return log64(np.asarray(x, dtype=np.float32).astype(np.float64)).astype(np.float32)
+
+
+def sigmoid32(x) -> np.ndarray:
+    x = np.asarray(x, dtype=np.float32)
+    with np.errstate(over="ignore"):
+        return np.float32(1.0) / (np.float32(1.0) + exp32(-x))
+
+
 def _sin_kernel(x):
     z = x * x
     v = z * x

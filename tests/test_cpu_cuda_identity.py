@@ -81,3 +81,45 @@ def test_random_scene_is_off_lattice_and_simplifies_on_cpu():
     results = outputs(arrays, "cpu", CONFIGS["default"], [0.3, 0.05])
     assert [len(r["means"]) for r in results] == [600, 100]
     assert all(np.all(np.isfinite(r["means"])) for r in results)
+
+
+@pytest.mark.skipif(not HAS_CUDA, reason="compares the CPU with a CUDA GPU (needs Warp's CPU compiler too)")
+@pytest.mark.parametrize("chunk", [5, 2048])
+def test_renders_same_on_cpu_and_cuda(chunk):
+    """The renderer (the size fit's and refinement's images, ``eval``'s): the same bits on both
+    devices, with tiles long enough to be composited in chunks (``chunk`` 5) and in one walk."""
+    from nanogs_warp.eval.render import _Rasteriser
+    from nanogs_warp.refinement.cameras import training_cameras
+
+    arrays = random_scene(3000, 3, 21)
+    cameras = training_cameras(arrays["means"], 6, 48, seed=2)
+    images = []
+    for device in ("cpu", "cuda:0"):
+        splats = SplatSet.from_numpy(**arrays, device=device)
+        rasteriser = _Rasteriser(splats, chunk=chunk)
+        image = wp.full((len(cameras), 48, 48, 3), float("nan"), dtype=wp.float32, device=device)
+        for view, camera in enumerate(cameras):
+            if (camera.width, camera.height) == (48, 48):
+                rasteriser.render_into(camera, wp.vec3(0.1, 0.2, 0.3), image, view)
+        rasteriser.close()
+        images.append(image.numpy())
+    assert images[0].tobytes() == images[1].tobytes()
+    assert np.isfinite(images[0]).sum() >= 48 * 48 * 3  # at least one square view was drawn
+
+
+@pytest.mark.skipif(not HAS_CUDA, reason="compares the CPU with a CUDA GPU (needs Warp's CPU compiler too)")
+def test_size_fit_and_refinement_same_on_cpu_and_cuda():
+    """The default's size fit (renders of the input, a factor chosen by their PSNR) and refinement
+    (renders, the hand-written backward, Adam): the same bytes on both devices."""
+    from nanogs_warp import refine
+    from nanogs_warp.refinement.simplify import simplify as fitted_simplify
+
+    arrays = random_scene(4000, 1, 23)
+    results = []
+    for device in ("cpu", "cuda:0"):
+        splats = SplatSet.from_numpy(**arrays, device=device)
+        small = fitted_simplify(splats, ratio=[0.01, 0.005])
+        results.append([s.to_numpy() for s in small] + [refine(small[0], splats, steps=12, size=48).to_numpy()])
+    for a, b in zip(*results):
+        for key in a:
+            assert a[key].tobytes() == b[key].tobytes(), f"{key} differs"

@@ -10,12 +10,13 @@ import pytest
 import warp as wp
 
 import nanogs_warp.kernels
-from nanogs_warp.kernel_cache import SIMPLIFY_MODULES
+from nanogs_warp.kernel_cache import ALL_MODULES
 
 KERNEL_MODULES = sorted(m.name for m in pkgutil.iter_modules(nanogs_warp.kernels.__path__))
-# Kernel files whose results must be the same bits on every device (the simplification pipeline),
-# and the files of device functions that they compile in.
-PORTABLE_MODULES = sorted(SIMPLIFY_MODULES + ("splat_math", "field", "portable_math"))
+# Kernel files whose results must be the same bits on every device: every one (the simplification
+# pipeline, the renderer of the size fit, eval and refinement, refinement's backward, loss and
+# optimiser), and the files of device functions that they compile in.
+PORTABLE_MODULES = sorted(set(ALL_MODULES + ("splat_math", "field", "portable_math")))
 
 
 @pytest.mark.parametrize("name", KERNEL_MODULES)

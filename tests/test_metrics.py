@@ -132,7 +132,7 @@ def test_evaluate_identical_and_degraded_scenes(device, rng, tmp_path):
     assert [p.name for p in paths] == ["view_000.png", "view_001.png", "view_002.png", "contact_sheet.png"]
     strip = read_png(paths[0])
     assert strip.shape == (32, 3 * 32 + 4, 3)
-    np.testing.assert_array_equal(strip[:, :32], np.round(images["reference"][0] * 255).astype(np.uint8))
+    np.testing.assert_array_equal(strip[:, :32], np.round(images["reference"][0].astype(np.float64) * 255).astype(np.uint8))  # in float64, as written
     diff = np.clip(np.abs(images["tests"][1][0].astype(np.float64) - images["reference"][0]) * 4, 0, 1)
     np.testing.assert_array_equal(strip[:, 68:], np.round(diff * 255).astype(np.uint8))
     assert read_png(paths[-1]).shape == (2 * 32 + 4, 2 * 100 + 4, 3)  # 3 strips on a 2 x 2 grid

@@ -6,6 +6,8 @@ same bits on the CPU and on CUDA:
 - bit for bit against ``portable_math_reference``, a numpy re-implementation in the same operation
   order: any fused multiply-add, reordering or library call in the device's build of the kernels
   changes bits here (on the CPU always, on the GPU where there is one);
+- the float32 ``exp32`` (the renderer's per-pixel exponential) within 1 ulp of float32 over its
+  whole range, and bit for bit against its numpy re-implementation;
 - the common random samples of the idiv cost, bit for bit against a numpy re-implementation of
   Warp's PCG generator and the portable Box-Muller transform.
 """
@@ -19,7 +21,7 @@ import warp as wp
 from nanogs_warp.kernels import cost as cost_kernels
 from nanogs_warp.kernels import portable_math as pm
 
-EXP, LOG, POW, SIGMOID, COS_TWO_PI, NORMAL = range(6)
+EXP, LOG, POW, SIGMOID, COS_TWO_PI, NORMAL, EXP32, LOG32, SIGMOID32 = range(9)
 
 
 def evaluate(function, x, y=None, device="cpu"):
@@ -170,6 +172,63 @@ def test_bit_for_bit_as_the_numpy_reference(device, rng):
     assert same_bits(evaluate(COS_TWO_PI, u, device=device), ref.cos_two_pi(u))
     u1, u2 = rng.integers(0, 2**24, (2, 50_000)) / 2**24
     assert same_bits(evaluate(NORMAL, u1, u2, device=device), ref.normal_from_uniforms(u1, u2))
+
+
+def exp32_inputs(rng, n):
+    every = rng.integers(0, 2**32, size=n, dtype=np.uint64).astype(np.uint32).view(np.float32)  # any float32
+    return np.concatenate([
+        every[np.isfinite(every)],
+        rng.uniform(-104.0, 88.73, n),  # the whole finite range, subnormal results included
+        rng.uniform(-1.1, 1.1, n),  # the reduction's branches: k = 0, k = +-1
+        rng.normal(scale=1e-4, size=n // 4),
+        rng.uniform(-104.0, -87.0, n // 4),
+        rng.uniform(-12.0, 0.0, n),  # the renderer's powers
+        rng.uniform(-20.0, 5.0, n),  # log-scales
+    ]).astype(np.float32)  # fmt: skip
+
+
+def ulps32(a, b):
+    """Distance in float32 units in the last place (equal infinities: 0)."""
+    ai = np.asarray(a, np.float32).view(np.int32).astype(np.int64)
+    bi = np.asarray(b, np.float32).view(np.int32).astype(np.int64)
+    ai = np.where(ai < 0, -(2**31) - ai, ai)
+    bi = np.where(bi < 0, -(2**31) - bi, bi)
+    return np.abs(ai - bi)
+
+
+def test_exp32_within_one_ulp(rng):
+    x = exp32_inputs(rng, 100_000)
+    got = evaluate(EXP32, x).astype(np.float32)
+    with np.errstate(over="ignore"):
+        exact = np.exp(x.astype(np.float64))  # float64: the exact value to far below a float32 ulp
+        rounded = exact.astype(np.float32)
+    finite = np.isfinite(rounded) & (x <= 88.7216796875)
+    assert finite.sum() > 300_000
+    assert np.max(ulps32(got[finite], rounded[finite])) <= 1
+    assert np.all(np.abs(got[finite].astype(np.float64) - exact[finite]) <= np.spacing(rounded[finite]).astype(np.float64))
+
+
+def test_exp32_special_values():
+    x = np.array([0.0, -0.0, 1e-30, -1e-30, 88.7216796875, 88.7217, 89.0, np.inf, -103.97, -104.0, -np.inf, np.nan, 1.0, -1.0, 0.5])
+    got = evaluate(EXP32, x).astype(np.float32)
+    assert got[0] == 1.0 and got[1] == 1.0 and got[2] == 1.0 and got[3] == 1.0
+    assert np.isfinite(got[4]) and ulps32(got[4], np.float32(3.3988806e38)) <= 1  # the largest finite result
+    assert got[5] == np.inf and got[6] == np.inf and got[7] == np.inf
+    assert got[8] <= 1.5e-45 and got[9] == 0.0 and got[10] == 0.0  # e^-103.97 = 7e-46: half the least subnormal
+    assert np.isnan(got[11])
+    assert ulps32(got[12:], np.exp(x[12:]).astype(np.float32)).max() <= 1
+
+
+def test_float32_functions_bit_for_bit_as_the_numpy_reference(device, rng):
+    """``exp32`` (the renderer's per-pixel exponential), ``log32`` and ``sigmoid32``: the same bits
+    as their numpy re-implementation in float32, on every device."""
+    x = exp32_inputs(rng, 50_000)
+    assert same_bits(evaluate(EXP32, x, device=device), ref.exp32(x).astype(np.float64))
+    y = np.abs(exp32_inputs(rng, 20_000))
+    y = y[y > 0]
+    assert same_bits(evaluate(LOG32, y, device=device), ref.log32(y).astype(np.float64))
+    s = rng.uniform(-40, 40, 50_000).astype(np.float32)
+    assert same_bits(evaluate(SIGMOID32, s, device=device), ref.sigmoid32(s).astype(np.float64))
 
 
 def _pcg(state):

@@ -4,8 +4,9 @@ Per view: ``project`` (one thread per splat: cull, EWA 2D covariance, SH colour,
 an inclusive scan of tile counts, ``emit_entries`` (one (tile, depth) key per covered tile), a stable
 radix sort of the keys, ``gather_entries`` (entry-ordered splat data and per-tile ranges) and the
 composite: on a GPU one thread per pixel and chunk of its tile's entries, the chunks merged in order
-(``composite_chunks``, ``composite_merge``); on the CPU one thread per tile (``composite_tiles``). The
-conventions are documented in ``kernels/render.py``.
+(``composite_chunks``, ``composite_merge``); on the CPU one thread per tile (``composite_tiles``),
+with the chunks' arithmetic, so that every device renders the same bits. The conventions are
+documented in ``kernels/render.py``.
 Views are rendered into one device array and copied to the host once per ``render_views`` call.
 
 On the CPU a launch runs on one core, so the splat-, entry- and pixel-parallel kernels are launched
@@ -37,6 +38,7 @@ INDEX_LIMIT = 2**31 - 1  # entries are indexed with int32
 # than the others' (a dense cluster seen end-on: 600k entries in one tile of a 6M-splat scene at
 # 256 x 256) no longer keeps one block walking it while the rest of the GPU waits.
 CHUNK_ENTRIES = 2048
+ONE_WALK = 2**31 - 1  # a chunk no tile exceeds: every tile composited in one walk
 # On the CPU a launch is cut into this many chunks per worker thread (``_Rasteriser._launch``):
 # guitar's and playbot's eight size-fit views 0.46-0.54 -> 0.40 s and 0.87-1.09 -> 0.84-0.85 s on two
 # cores against one chunk per worker, the same images.
@@ -170,6 +172,8 @@ class _Rasteriser:
                 self.transmittance = wp.empty(pixels, dtype=wp.float32, device=self.device)
                 self.colour = wp.empty(pixels, dtype=wp.vec3, device=self.device)
                 self.done = wp.empty(pixels, dtype=wp.int32, device=self.device)
+                self.chunk_state = wp.empty(pixels, dtype=wp.vec2, device=self.device)
+                self.total = wp.empty(pixels, dtype=wp.vec3, device=self.device)
         else:
             self.tile_start.zero_()
             self.tile_end.zero_()
@@ -223,9 +227,15 @@ class _Rasteriser:
         inputs = [e_xy, e_co, e_rgb, e_box, self.tile_start, self.tile_end]
         inputs += [p.width, p.height, p.tiles_x, background, view]
         if self.method == "tiles":
-            self._launch(kernels.composite_tiles, tiles, inputs, [self.transmittance, self.colour, self.done, image])
+            self._composite_tiles(tiles, inputs, self.chunk, image)
         else:
             self._composite_in_chunks(p, tiles, count, inputs, image)
+
+    def _composite_tiles(self, tiles: int, inputs: list, chunk: int, image: wp.array) -> None:
+        """``composite_tiles`` (the CPU's composite, one thread per tile), each tile of more than
+        ``chunk`` entries composited in chunks with the GPU's arithmetic."""
+        scratch = [self.transmittance, self.colour, self.done, self.chunk_state, self.total, image]
+        self._launch(kernels.composite_tiles, tiles, [*inputs, chunk], scratch)
 
     def _composite_in_chunks(self, p, tiles: int, count: int, inputs: list, image: wp.array) -> None:
         """``composite``'s image, each tile's entries split into chunks of at most ``self.chunk``

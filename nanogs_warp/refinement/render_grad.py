@@ -2,12 +2,13 @@
 and the backward pass (``kernels/render_grad.py``) from dL/dimage to every splat parameter.
 
 The forward launches ``eval/render.py``'s kernels in the same order on the same data, so the image is the
-renderer's, bit for bit (on a GPU, where a tile holds more than ``CHUNK_ENTRIES`` entries, the renderer
+renderer's, bit for bit (where a tile holds more than ``CHUNK_ENTRIES`` entries, the renderer
 composites it in chunks and the two differ by float32 rounding; the backward replays this forward's
-single walk, ``composite``); the only addition is a numbering of the emitted entries, so that after the
+single walk, ``composite``, which every device computes alike); the only addition is a numbering of the emitted entries, so that after the
 sort each splat's entries can be found in emit order. Gradients are summed in a fixed order (per
 entry over the tile's pixels in row order, per splat over its entries in emit order, per view in the
-order views are back-propagated), so a rerun on the same device gives the same bytes.
+order views are back-propagated) with the portable float32 arithmetic of ``kernels/render.py``, so
+every device, and every rerun, gives the same bytes.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from ..eval.cameras import Camera
-from ..eval.render import _Rasteriser, camera_params
+from ..eval.render import ONE_WALK, _Rasteriser, camera_params
 from ..kernels import render as kernels
 from ..kernels import render_grad as grad_kernels
 from ..parallel import launch_rows_from
@@ -59,6 +60,9 @@ GRAD_ENTRY_BYTES = 3 * 4 + 8 + 12 + 4 + 12
 LANE_BYTES = 8 + 12 + 4 + 12
 
 
+LANES = 16  # the backward's threads per tile (each owns every 16th row): a GPU's, and the CPU's too
+
+
 class GradRasteriser(_Rasteriser):
     """Renders one view at a time of a splat set whose parameters may change between views, and
     back-propagates dL/dimage of the last view rendered."""
@@ -66,7 +70,9 @@ class GradRasteriser(_Rasteriser):
     def __init__(self, splats: SplatSet, workers: int | None = None, method: str | None = None, lanes: int | None = None):
         super().__init__(splats, workers, method)
         if lanes is None:
-            lanes = 1 if self.device.is_cpu else 16  # threads per tile in the backward pass
+            # threads per tile in the backward pass, on every device: a lane sums its own rows, so
+            # the lane count fixes the gradients' summation order (the same bits on the CPU and a GPU)
+            lanes = LANES
         if lanes not in (1, 2, 4, 8, 16):
             raise ValueError(f"lanes {lanes}: expected 1, 2, 4, 8 or 16")
         self.lanes = lanes
@@ -133,7 +139,7 @@ class GradRasteriser(_Rasteriser):
         inputs = [e_xy, e_co, e_rgb, e_box, self.tile_start, self.tile_end]
         inputs += [p.width, p.height, p.tiles_x, background, 0]
         if self.method == "tiles":
-            self._launch(kernels.composite_tiles, tiles, inputs, [self.transmittance, self.colour, self.done, image])
+            self._composite_tiles(tiles, inputs, ONE_WALK, image)  # the backward replays one walk
         else:
             self._launch(kernels.composite, tiles * kernels.TILE_PIXELS, inputs, [image])
         self.camera, self.params, self.count, self.tiles = camera, p, count, tiles

@@ -15,8 +15,8 @@ from 1 while the gain rises, and the best one with a positive gain is kept (1 ot
 The input is rendered once per run, when the first output to fit is reached. A scene that ``eval``
 would render rescaled or recentred (``eval.units``) is left as it is, and so is one whose renders
 would not fit the device's memory (``render``'s check) or would need more (tile, splat) entries
-than ENTRIES_PER_SPLAT a splat and MIN_ENTRIES more. CPU and CUDA render the same views to
-within float32 rounding, so they pick the same factor unless two factors' gains are that close.
+than ENTRIES_PER_SPLAT a splat and MIN_ENTRIES more. CPU and CUDA render the same views to the
+bit (``kernels/render.py``) and sum their errors in the same order, so they pick the same factor.
 """
 
 from __future__ import annotations
