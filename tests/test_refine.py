@@ -84,6 +84,32 @@ def test_refine_is_deterministic_and_keeps_the_count(device):
     assert not np.array_equal(a["means"], small.to_numpy()["means"]), "refinement changed nothing"
 
 
+def test_outputs_share_the_original_s_renders(device, monkeypatch):
+    """Two outputs refined with one ``ReferenceViews`` (as a multi-budget run does): the same bytes as
+    each refined alone, with the original rendered once instead of twice; views made for another
+    configuration are refused."""
+    import nanogs_warp.refinement.refine as refine_module
+
+    arrays = _toy_scene(3, device)
+    reference = SplatSet.from_numpy(**arrays, device=device)
+    smalls = simplify(reference, count=[30, 12])
+    config = RefineConfig(steps=8, size=40, reference_views=6)
+    alone = [refine_with_report(small, reference, config)[0].to_numpy() for small in smalls]
+    renders = []
+    original = refine_module._render_views
+    monkeypatch.setattr(refine_module, "_render_views", lambda *a: renders.append(len(a[1])) or original(*a))
+    views = refine_module.ReferenceViews(reference, config)
+    shared = [refine_with_report(small, reference, config, views=views) for small in smalls]
+    assert renders == [6, refine_module.VALIDATION_VIEWS]  # the pool and the held-out views, once
+    assert shared[0][1].seconds_reference > 0.0 and shared[1][1].seconds_reference == 0.0
+    for a, (b, _) in zip(alone, shared):
+        b = b.to_numpy()
+        for key in a:
+            assert a[key].tobytes() == b[key].tobytes(), key
+    with pytest.raises(ValueError, match="another reference scene"):
+        refine_with_report(smalls[0], reference, RefineConfig(steps=9, size=40, reference_views=6), views=views)
+
+
 def test_refine_the_shipped_sample_on_the_cpu():
     reference = load_ply(str(resources.files("nanogs_warp.data") / "plant_crop.ply"), device="cpu")
     small = simplify(reference, ratio=0.02)

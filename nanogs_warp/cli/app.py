@@ -326,12 +326,17 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
     stages.setdefault("download", 0.0)
     on_pass = lambda r: (passes.append(r), progress(r))  # noqa: E731
     size_fit = size_fit_for(on_device, config)
+    views = None  # the input's renders that refinement trains on: made once, shared by every budget
     for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass, finish=size_fit):
         reached = time.perf_counter()
         report = None
         if refine_config is not None:
             progress.done()
-            result, report = _refine(result, on_device, refine_config, progress.enabled)
+            if views is None:
+                from ..refinement.refine import ReferenceViews
+
+                views = ReferenceViews(on_device, refine_config)
+            result, report = _refine(result, on_device, refine_config, progress.enabled, views)
         begun = time.perf_counter()
         host = result.to("cpu")
         stages["download"] += time.perf_counter() - begun
@@ -353,8 +358,9 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
     stages["simplify"] = time.perf_counter() - loaded - stages.get("upload", 0.0) - stages["download"] - in_turn
 
 
-def _refine(result, reference, config: RefineConfig, show_progress: bool):
-    """``result`` refined toward ``reference``, with a progress line on stderr when asked."""
+def _refine(result, reference, config: RefineConfig, show_progress: bool, views=None):
+    """``result`` refined toward ``reference`` (with the shared ``views`` of it), with a progress line
+    on stderr when asked."""
     from ..refinement.refine import refine_with_report
 
     def on_step(step: int, steps: int) -> None:
@@ -362,7 +368,7 @@ def _refine(result, reference, config: RefineConfig, show_progress: bool):
             sys.stderr.write(f"\rrefine {result.count:,} splats: step {step}/{steps}\033[K")
             sys.stderr.flush()
 
-    refined, report = refine_with_report(result, reference, config, on_step=on_step if show_progress else None)
+    refined, report = refine_with_report(result, reference, config, on_step=on_step if show_progress else None, views=views)
     if show_progress:
         sys.stderr.write("\r\033[K")
         sys.stderr.flush()

@@ -98,11 +98,68 @@ def _copy(splats: SplatSet, device) -> SplatSet:
     return splats.clone(device)
 
 
+def _render_views(reference: SplatSet, cameras, device) -> list[wp.array]:
+    """``reference`` rendered from each camera on a black background, one (1, H, W, 3) array each."""
+    rasteriser = _Rasteriser(reference)
+    black = wp.vec3(0.0, 0.0, 0.0)
+    try:
+        targets = []
+        for camera in cameras:
+            image = wp.empty((1, camera.height, camera.width, 3), dtype=wp.float32, device=device)
+            rasteriser.render_into(camera, black, image, 0)
+            targets.append(image)
+    finally:
+        rasteriser.close()
+    return targets
+
+
+class ReferenceViews:
+    """The original's renders that refinement trains on (a pool of training cameras) and chooses its
+    checkpoint by (held-out cameras), for one reference scene and configuration. They depend on
+    nothing else, so every output refined toward the same original in a run can share them: a
+    multi-budget ``simplify --refine`` renders them once instead of once a budget (about 100 MB at
+    the default 128 views of 256 pixels). Rendered on first use."""
+
+    def __init__(self, reference: SplatSet, config: RefineConfig, device=None):
+        self.source, self.config = reference, config
+        self.device = wp.get_device(device if device is not None else reference.device)
+        # a scene in units of ~1e20 or ~1e-20, or far from the origin for its size: optimised
+        # rescaled and recentred (eval/units.py), and handed back where it was
+        self.offset = render_offset(reference)
+        self.scale = render_units(rescaled(reference, 1.0, self.offset))
+        self.reference = rescaled(reference, self.scale, self.offset).to(self.device)
+        self.cameras: list | None = None
+        self.targets: list[wp.array] = []
+        self.held_out: list = []
+        self.held_out_targets: list[wp.array] = []
+
+    def serves(self, reference: SplatSet, config: RefineConfig, device) -> bool:
+        return reference is self.source and config == self.config and wp.get_device(device) == self.device
+
+    def render(self) -> float:
+        """Renders the views unless done before; returns the seconds it took (0 when it had been)."""
+        if self.cameras is not None:
+            return 0.0
+        started = time.perf_counter()
+        c = self.config
+        means = self.reference.means.numpy()
+        pool = max(1, min(c.reference_views, c.steps * c.views_per_step))
+        cameras = training_cameras(means, pool, c.size, c.seed)
+        self.targets = _render_views(self.reference, cameras, self.device)
+        # held-out views, drawn like the training views from another stream
+        self.held_out = training_cameras(means, VALIDATION_VIEWS, c.size, c.seed, VALIDATION_STREAM)
+        self.held_out_targets = _render_views(self.reference, self.held_out, self.device)
+        wp.synchronize_device(self.device)
+        self.cameras = cameras
+        return time.perf_counter() - started
+
+
 class _Refiner:
     def __init__(self, simplified: SplatSet, reference: SplatSet, config: RefineConfig, device):
+        """``simplified`` and ``reference`` as ``ReferenceViews`` rescales them, the reference on ``device``."""
         self.config, self.device = config, device
         self.splats = _copy(simplified, device)
-        self.reference = reference.to(device)
+        self.reference = reference
         _, p90, _ = scene_spread(self.reference.means.numpy())
         self.extent = 2.2 * p90
         self.grads = SplatGradients.zeros_like(self.splats)
@@ -136,19 +193,6 @@ class _Refiner:
                 ImageLoss(height, width, d),
             )
         return self.images[key]
-
-    def render_references(self, cameras) -> list[wp.array]:
-        rasteriser = _Rasteriser(self.reference)
-        black = wp.vec3(0.0, 0.0, 0.0)
-        try:
-            targets = []
-            for camera in cameras:
-                image = wp.empty((1, camera.height, camera.width, 3), dtype=wp.float32, device=self.device)
-                rasteriser.render_into(camera, black, image, 0)
-                targets.append(image)
-        finally:
-            rasteriser.close()
-        return targets
 
     def view_loss(self, camera, target: wp.array, weight: float, backward: bool) -> ImageLoss:
         """Renders ``camera``, compares with ``target``; with ``backward``, adds weight dL/dparams."""
@@ -191,12 +235,18 @@ def refine_with_report(
     device=None,
     on_step: Callable[[int, int], None] | None = None,
     timing: bool = False,
+    views: ReferenceViews | None = None,
 ) -> tuple[SplatSet, RefineReport]:
     """``refine``, also returning what it did. ``on_step(step, steps)`` is called after each step;
-    ``timing`` synchronises the device between phases so that the per-phase seconds are exact."""
+    ``timing`` synchronises the device between phases so that the per-phase seconds are exact.
+    ``views``: the original's renders shared with other refinements toward the same ``reference``
+    with the same ``config`` and ``device`` (``ReferenceViews``; made here when None). The result
+    is the same bytes either way."""
     config = config or RefineConfig()
     config.validate()
     device = wp.get_device(device if device is not None else simplified.device)
+    if views is not None and not views.serves(reference, config, device):
+        raise ValueError("these reference views were made for another reference scene, configuration or device")
     started = time.perf_counter()
     report = RefineReport(steps=config.steps, count=simplified.count)
     if simplified.count == 0 or config.steps == 0:
@@ -204,25 +254,20 @@ def refine_with_report(
         report.seconds = time.perf_counter() - started
         return out, report
 
-    # a scene in units of ~1e20 or ~1e-20, or far from the origin for its size: optimised rescaled
-    # and recentred (eval/units.py), and handed back where it was
-    offset = render_offset(reference)
-    scale = render_units(rescaled(reference, 1.0, offset))
-    refiner = _Refiner(rescaled(simplified, scale, offset), rescaled(reference, scale, offset), config, device)
+    if views is None:
+        views = ReferenceViews(reference, config, device)
+    scale, offset = views.scale, views.offset
+    refiner = _Refiner(rescaled(simplified, scale, offset), views.reference, config, device)
     try:
-        pool = max(1, min(config.reference_views, config.steps * config.views_per_step))
-        cameras = training_cameras(refiner.reference.means.numpy(), pool, config.size, config.seed)
-        targets = refiner.render_references(cameras)
-        wp.synchronize_device(device)
-        report.seconds_reference = time.perf_counter() - started
+        report.seconds_reference = views.render()
+        cameras, targets = views.cameras, views.targets
+        pool = len(cameras)
         report.views = pool
         loss_views = min(LOSS_VIEWS, pool)
         report.loss_before = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
-        # Held-out views, drawn like the training views from another stream: the run returns the
-        # checkpoint (or the input) that renders them best, so a run that overfits its training views
-        # never hands back a scene worse than it started.
-        held_out = training_cameras(refiner.reference.means.numpy(), VALIDATION_VIEWS, config.size, config.seed, VALIDATION_STREAM)
-        held_out_targets = refiner.render_references(held_out)
+        # The held-out views: the run returns the checkpoint (or the input) that renders them best,
+        # so a run that overfits its training views never hands back a scene worse than it started.
+        held_out, held_out_targets = views.held_out, views.held_out_targets
         report.validation_before = report.validation_after = refiner.mean_loss(held_out, held_out_targets)
         best = _copy(refiner.splats, device)
         checkpoints = {max(1, round(f * config.steps)) for f in CHECKPOINTS}
