@@ -665,6 +665,7 @@ def composite_tiles(
     start = tile_start[tile]
     end = tile_end[tile]
     chunked = end - start > chunk  # else one chunk: ``composite``'s one walk
+    # done: 0 compositing, 1 stopped (T (1 - alpha) < T_MIN) in this chunk, 2 finished after a chunk
     chunk_first = start
     while chunk_first < end and remaining > 0:
         chunk_last = end
