@@ -4,9 +4,10 @@ and the backward pass (``kernels/render_grad.py``) from dL/dimage to every splat
 The forward launches ``eval/render.py``'s kernels in the same order on the same data, so the image is the
 renderer's, bit for bit (where a tile holds more than ``CHUNK_ENTRIES`` entries, the renderer
 composites it in chunks and the two differ by float32 rounding; the backward replays this forward's
-single walk, ``composite``, which every device computes alike); the only addition is a numbering of the emitted entries, so that after the
-sort each splat's entries can be found in emit order. Gradients are summed in a fixed order (per
-entry over the tile's pixels in row order, per splat over its entries in emit order, per view in the
+single walk, ``composite``, which every device computes alike); the only addition is a numbering of
+the emitted entries, so that after the sort each splat's entries can be found in emit order.
+Gradients are summed in a fixed order (per entry over each of the tile's ``LANES`` lanes' pixel rows
+in row order, then the lanes in order; per splat over its entries in emit order; per view in the
 order views are back-propagated) with the portable float32 arithmetic of ``kernels/render.py``, so
 every device, and every rerun, gives the same bytes.
 """
