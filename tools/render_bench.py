@@ -13,7 +13,6 @@ the fingerprints of a CPU run and a GPU run of the same scene match.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import json
 import statistics
@@ -27,14 +26,6 @@ from nanogs_warp.eval.cameras import orbit_cameras
 from nanogs_warp.eval.render import render_views_on_device
 from nanogs_warp.io.ply import load_ply
 from nanogs_warp.refinement import size_fit
-from nanogs_warp.refinement.cameras import training_cameras
-
-
-def fit_views(means) -> list:
-    """The size fit's cameras: its coarse views, then the same zoomed ``size_fit.ZOOM`` times."""
-    drawn = training_cameras(means, 4 * size_fit.VIEWS, size_fit.SIZE, 0, size_fit.CAMERA_STREAM)
-    coarse = [c for c in drawn if c.width == c.height == size_fit.SIZE][: size_fit.VIEWS]
-    return coarse + [dataclasses.replace(c, fx=c.fx * size_fit.ZOOM, fy=c.fy * size_fit.ZOOM) for c in coarse]
 
 
 def timed(splats, cameras, repeat: int) -> tuple[list[float], str]:
@@ -61,9 +52,9 @@ def main(argv=None) -> int:
     device = resolve_device(args.device)
     for path in args.scenes:
         splats = load_ply(path).to(device)
-        means = splats.means.numpy()
+        coarse, fine = size_fit.fit_cameras(size_fit.sampled_means(splats))  # the default seed's
         row = {"scene": path.name, "splats": splats.count, "device": str(device), "device_name": device.name}
-        for name, cameras in (("fit_views", fit_views(means)), ("orbit", orbit_cameras(means))):
+        for name, cameras in (("fit_views", coarse + fine), ("orbit", orbit_cameras(splats))):
             times, digest = timed(splats, cameras, args.repeat)
             row[name] = {"views": len(cameras), "median_s": round(statistics.median(times), 4),
                          "fastest_s": round(min(times), 4), "sha256": digest}  # fmt: skip

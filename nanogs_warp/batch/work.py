@@ -125,15 +125,14 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
         for budget in job.budgets:
             by_target.setdefault(budget.target(on_device.count), []).append(budget)
         views = None  # the input's renders that refinement trains on: made once, shared by every budget
-        for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
-            if job.refine_steps > 0:
-                from ..refinement.config import RefineConfig
-                from ..refinement.refine import ReferenceViews, refine_with_report
+        if job.refine_steps > 0:
+            from ..refinement.config import RefineConfig
+            from ..refinement.refine import ReferenceViews, refine_with_report
 
-                config = RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed)
-                if views is None:
-                    views = ReferenceViews(on_device, config)
-                simplified = refine_with_report(simplified, on_device, config, views=views)[0]
+            views = ReferenceViews(on_device, RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed))
+        for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
+            if views is not None:
+                simplified = refine_with_report(simplified, on_device, views.config, views=views)[0]
             # to the host here, so that the writer thread never touches the GPU (and its memory is freed)
             begun = time.perf_counter()
             scene.simplified.append((target, simplified.to("cpu"), by_target[target]))

@@ -327,15 +327,15 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
     on_pass = lambda r: (passes.append(r), progress(r))  # noqa: E731
     size_fit = size_fit_for(on_device, config)
     views = None  # the input's renders that refinement trains on: made once, shared by every budget
+    if refine_config is not None:
+        from ..refinement.refine import ReferenceViews
+
+        views = ReferenceViews(on_device, refine_config)
     for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass, finish=size_fit):
         reached = time.perf_counter()
         report = None
         if refine_config is not None:
             progress.done()
-            if views is None:
-                from ..refinement.refine import ReferenceViews
-
-                views = ReferenceViews(on_device, refine_config)
             result, report = _refine(result, on_device, refine_config, progress.enabled, views)
         begun = time.perf_counter()
         host = result.to("cpu")

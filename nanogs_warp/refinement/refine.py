@@ -118,17 +118,14 @@ class ReferenceViews:
     checkpoint by (held-out cameras), for one reference scene and configuration. They depend on
     nothing else, so every output refined toward the same original in a run can share them: a
     multi-budget ``simplify --refine`` renders them once instead of once a budget (about 100 MB at
-    the default 128 views of 256 pixels). Rendered on first use."""
+    the default 128 views of 256 pixels). Made on first use (``render``), so one can be made for a
+    run before it is known to be needed."""
 
     def __init__(self, reference: SplatSet, config: RefineConfig, device=None):
         self.source, self.config = reference, config
         self.device = wp.get_device(device if device is not None else reference.device)
-        # a scene in units of ~1e20 or ~1e-20, or far from the origin for its size: optimised
-        # rescaled and recentred (eval/units.py), and handed back where it was
-        self.offset = render_offset(reference)
-        self.scale = render_units(rescaled(reference, 1.0, self.offset))
-        self.reference = rescaled(reference, self.scale, self.offset).to(self.device)
-        self.cameras: list | None = None
+        self.cameras: list | None = None  # None until rendered
+        self.scale, self.offset, self.reference = 1.0, None, reference
         self.targets: list[wp.array] = []
         self.held_out: list = []
         self.held_out_targets: list[wp.array] = []
@@ -141,6 +138,11 @@ class ReferenceViews:
         if self.cameras is not None:
             return 0.0
         started = time.perf_counter()
+        # a scene in units of ~1e20 or ~1e-20, or far from the origin for its size: optimised
+        # rescaled and recentred (eval/units.py), and handed back where it was
+        self.offset = render_offset(self.source)
+        self.scale = render_units(rescaled(self.source, 1.0, self.offset))
+        self.reference = rescaled(self.source, self.scale, self.offset).to(self.device)
         c = self.config
         means = self.reference.means.numpy()
         pool = max(1, min(c.reference_views, c.steps * c.views_per_step))
@@ -256,10 +258,9 @@ def refine_with_report(
 
     if views is None:
         views = ReferenceViews(reference, config, device)
-    scale, offset = views.scale, views.offset
-    refiner = _Refiner(rescaled(simplified, scale, offset), views.reference, config, device)
+    report.seconds_reference = views.render()
+    refiner = _Refiner(rescaled(simplified, views.scale, views.offset), views.reference, config, device)
     try:
-        report.seconds_reference = views.render()
         cameras, targets = views.cameras, views.targets
         pool = len(cameras)
         report.views = pool
@@ -310,7 +311,7 @@ def refine_with_report(
             for target, source in zip(refiner.splats.arrays(), best.arrays()):
                 wp.copy(target, source)
         report.loss_after = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
-        out = rescaled(best, 1.0 / scale, None if offset is None else -offset * scale)
+        out = rescaled(best, 1.0 / views.scale, None if views.offset is None else -views.offset * views.scale)
     finally:
         refiner.close()
     wp.synchronize_device(device)

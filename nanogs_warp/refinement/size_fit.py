@@ -51,6 +51,19 @@ ENTRIES_PER_SPLAT = 16
 MIN_ENTRIES = 1 << 22
 
 
+def sampled_means(splats: SplatSet) -> np.ndarray:
+    """The centres that place the fit's cameras: every k-th, at most about SPREAD_SAMPLE (a strided copy)."""
+    return splats.means[:: max(1, splats.count // SPREAD_SAMPLE)].numpy()
+
+
+def fit_cameras(means: np.ndarray, seed: int = 0) -> tuple[list, list]:
+    """The fit's views around ``means`` (``sampled_means``): VIEWS square SIZE-pixel training cameras
+    (``training_cameras``' sampler, stream CAMERA_STREAM), and the same zoomed ZOOM times."""
+    drawn = training_cameras(means, 4 * VIEWS, SIZE, seed, CAMERA_STREAM)  # one in four is SIZE square
+    coarse = [c for c in drawn if c.width == c.height == SIZE][:VIEWS]
+    return coarse, [dataclasses.replace(c, fx=c.fx * ZOOM, fy=c.fy * ZOOM) for c in coarse]
+
+
 def resized(splats: SplatSet, factor: float) -> SplatSet:
     """``splats`` with every axis times ``factor`` (log-scales plus log(factor), in float32)."""
     if factor == 1.0:
@@ -99,14 +112,12 @@ class SizeFit:
         if self._skip:
             return False
         if self._images is None:
-            means = self.reference.means[:: max(1, self.reference.count // SPREAD_SAMPLE)].numpy()  # a strided copy
+            means = sampled_means(self.reference)
             centre, radius = scene_frame(means)
             if far_from_origin(centre, radius) or not in_rendered_units(radius):
                 self._skip = True
                 return False
-            drawn = training_cameras(means, 4 * VIEWS, SIZE, self.seed, CAMERA_STREAM)  # one in four is SIZE square
-            coarse = [c for c in drawn if c.width == c.height == SIZE][:VIEWS]
-            fine = [dataclasses.replace(c, fx=c.fx * ZOOM, fy=c.fy * ZOOM) for c in coarse]
+            coarse, fine = fit_cameras(means, self.seed)
             self._cameras = [coarse, fine]
             try:
                 images = _render(self.reference, coarse + fine)  # one rasteriser for the input's eight views
