@@ -125,7 +125,7 @@ class ReferenceViews:
         self.source, self.config = reference, config
         self.device = wp.get_device(device if device is not None else reference.device)
         self.cameras: list | None = None  # None until rendered
-        self.scale, self.offset, self.reference = 1.0, None, reference
+        self.scale, self.offset, self.reference, self.extent = 1.0, None, reference, 1.0
         self.targets: list[wp.array] = []
         self.held_out: list = []
         self.held_out_targets: list[wp.array] = []
@@ -145,6 +145,8 @@ class ReferenceViews:
         self.reference = rescaled(self.source, self.scale, self.offset).to(self.device)
         c = self.config
         means = self.reference.means.numpy()
+        _, p90, _ = scene_spread(means)
+        self.extent = 2.2 * p90  # the scene's extent, which scales the means' learning rate
         pool = max(1, min(c.reference_views, c.steps * c.views_per_step))
         cameras = training_cameras(means, pool, c.size, c.seed)
         self.targets = _render_views(self.reference, cameras, self.device)
@@ -157,13 +159,12 @@ class ReferenceViews:
 
 
 class _Refiner:
-    def __init__(self, simplified: SplatSet, reference: SplatSet, config: RefineConfig, device):
-        """``simplified`` and ``reference`` as ``ReferenceViews`` rescales them, the reference on ``device``."""
+    def __init__(self, simplified: SplatSet, extent: float, config: RefineConfig, device):
+        """``simplified`` as ``ReferenceViews`` rescales it; ``extent``: the rescaled original's
+        (``ReferenceViews.extent``)."""
         self.config, self.device = config, device
         self.splats = _copy(simplified, device)
-        self.reference = reference
-        _, p90, _ = scene_spread(self.reference.means.numpy())
-        self.extent = 2.2 * p90
+        self.extent = extent
         self.grads = SplatGradients.zeros_like(self.splats)
         self.rasteriser = GradRasteriser(self.splats)
         self.images: dict[tuple[int, int], tuple[wp.array, wp.array, ImageLoss]] = {}
@@ -259,7 +260,7 @@ def refine_with_report(
     if views is None:
         views = ReferenceViews(reference, config, device)
     report.seconds_reference = views.render()
-    refiner = _Refiner(rescaled(simplified, views.scale, views.offset), views.reference, config, device)
+    refiner = _Refiner(rescaled(simplified, views.scale, views.offset), views.extent, config, device)
     try:
         cameras, targets = views.cameras, views.targets
         pool = len(cameras)
