@@ -6,7 +6,8 @@ The forward is ``render.py``'s own (``project``, ``emit_entries``, stable radix 
 entries after the sort (``number_slots``, ``order_entries``) and the two backward stages:
 
 1. ``composite_backward``: one thread per 16x16 tile (or ``lanes`` threads per tile, each owning every
-   lanes-th pixel row, their per-entry sums then added lane by lane in ``sum_lanes``) replays the
+   lanes-th pixel row, their per-entry sums then added lane by lane in ``sum_lanes``; on the CPU
+   ``composite_backward_lanes_in_turn`` does both in one thread per tile, with the same sums) replays the
    tile's compositing front to back with the forward's float32 arithmetic (so every skip and early-termination decision is the forward's),
    keeping per pixel the transmittance T_k and the colour in front C_<=k. With the forward's final pixel
    colour C (background included), the colour behind entry k is B_k = C - C_<=k, and for
@@ -28,10 +29,11 @@ entries after the sort (``number_slots``, ``order_entries``) and the two backwar
 import warp as wp
 
 from .options import PORTABLE
-from .portable_math import exp32, sigmoid32
+from .portable_math import exp32, log32, sigmoid32
 from .render import (
     ALPHA_MAX,
     ALPHA_MIN,
+    FAINT_MARGIN,
     LOW_PASS,
     SH_C0,
     SH_C1,
@@ -84,6 +86,90 @@ def order_entries(
     entry_of_slot[slot] = k
 
 
+@wp.func
+def row_gradients(
+    py: int,
+    gx0: int,
+    gx1: int,
+    row: int,
+    p: wp.vec2,
+    co: wp.vec4,
+    rgb: wp.vec3,
+    faint: float,
+    image: wp.array3d(dtype=float),
+    grad_image: wp.array3d(dtype=float),
+    transmittance: wp.array(dtype=float),
+    front: wp.array(dtype=wp.vec3),
+    done: wp.array(dtype=int),
+    gxy: wp.vec2,
+    gco: wp.vec3,
+    gop: float,
+    grgb: wp.vec3,
+):
+    """An entry's gradients over pixels gx0..gx1 of pixel row py (their state in slots row + px),
+    added to the running sums (gxy, gco, gop, grgb) pixel by pixel; also the number of pixels the
+    entry finished (module docstring). Below the power ``faint`` alpha < ALPHA_MIN: the pixel is
+    skipped without its exp, as ``composite_tiles`` skips it."""
+    finished = int(0)
+    dy = p[1] - float(py)
+    for px in range(gx0, gx1 + 1):
+        slot = row + px
+        if done[slot] != 0:
+            continue
+        dx = p[0] - float(px)
+        power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
+        if power > 0.0 or power < faint:
+            continue
+        gauss = exp32(power)
+        raw = co[3] * gauss
+        alpha = wp.min(ALPHA_MAX, raw)
+        if alpha < ALPHA_MIN:
+            continue
+        t = transmittance[slot]
+        test_t = t * (1.0 - alpha)
+        if test_t < T_MIN:
+            done[slot] = 1
+            finished += 1
+            continue
+        g = wp.vec3(grad_image[py, px, 0], grad_image[py, px, 1], grad_image[py, px, 2])
+        final = wp.vec3(image[py, px, 0], image[py, px, 1], image[py, px, 2])
+        weight = alpha * t
+        grgb = grgb + g * weight
+        in_front = front[slot] + rgb * weight
+        front[slot] = in_front
+        transmittance[slot] = test_t
+        if raw < ALPHA_MAX:
+            # dL/dalpha = T rgb.g - B.g / (1 - alpha), B = C - C_<=k
+            g_alpha = t * wp.dot(rgb, g) - wp.dot(final - in_front, g) / (1.0 - alpha)
+            gop += g_alpha * gauss
+            g_power = g_alpha * alpha
+            gco = gco + g_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
+            gxy = gxy - g_power * wp.vec2(co[0] * dx + co[1] * dy, co[1] * dx + co[2] * dy)
+    return gxy, gco, gop, grgb, finished
+
+
+@wp.func
+def entry_columns(bx: wp.vec4, x_lo: int, x_hi: int, y_lo: int, y_hi: int):
+    """The pixel columns gx0..gx1 and rows gy0..gy1 of the tile [x_lo, x_hi) x [y_lo, y_hi) that an
+    entry's box reaches (empty where it reaches none)."""
+    gx0 = int(wp.ceil(wp.clamp(bx[0], float(x_lo), float(x_hi))))
+    gx1 = int(wp.floor(wp.clamp(bx[1], float(x_lo - 1), float(x_hi - 1))))
+    gy0 = int(wp.ceil(wp.clamp(bx[2], float(y_lo), float(y_hi))))
+    gy1 = int(wp.floor(wp.clamp(bx[3], float(y_lo - 1), float(y_hi - 1))))
+    return gx0, gx1, gy0, gy1
+
+
+@wp.func
+def reset_rows(base: int, lane: int, lanes: int, transmittance: wp.array(dtype=float), front: wp.array(dtype=wp.vec3), done: wp.array(dtype=int)):
+    """Starts the pixel state of the tile's rows lane, lane + lanes, ... (slots from ``base``)."""
+    for r in range(lane, TILE, lanes):
+        for c in range(TILE):
+            slot = base + r * TILE + c
+            transmittance[slot] = 1.0
+            front[slot] = wp.vec3(0.0, 0.0, 0.0)
+            done[slot] = 0
+
+
 @wp.kernel
 def composite_backward(
     first: int,
@@ -120,79 +206,101 @@ def composite_backward(
     y_lo = (tile / tiles_x) * TILE
     x_hi = wp.min(x_lo + TILE, width)
     y_hi = wp.min(y_lo + TILE, height)
+    reset_rows(base, lane, lanes, transmittance, front, done)
     own_rows = int(0)
     for r in range(lane, TILE, lanes):
         if y_lo + r < y_hi:
             own_rows += 1
-        for c in range(TILE):
-            slot = base + r * TILE + c
-            transmittance[slot] = 1.0
-            front[slot] = wp.vec3(0.0, 0.0, 0.0)
-            done[slot] = 0
     remaining = (x_hi - x_lo) * own_rows
-    fx_lo = float(x_lo)
-    fx_hi = float(x_hi - 1)
-    fy_lo = float(y_lo)
-    fy_hi = float(y_hi - 1)
     for k in range(tile_start[tile], tile_end[tile]):
         gxy = wp.vec2(0.0, 0.0)
         gco = wp.vec3(0.0, 0.0, 0.0)
         gop = float(0.0)
         grgb = wp.vec3(0.0, 0.0, 0.0)
-        bx = e_box[k]
-        gx0 = int(wp.ceil(wp.clamp(bx[0], fx_lo, fx_hi + 1.0)))
-        gx1 = int(wp.floor(wp.clamp(bx[1], fx_lo - 1.0, fx_hi)))
-        gy0 = int(wp.ceil(wp.clamp(bx[2], fy_lo, fy_hi + 1.0)))
-        gy1 = int(wp.floor(wp.clamp(bx[3], fy_lo - 1.0, fy_hi)))
-        if remaining == 0:
-            gx1 = gx0 - 1  # the tile is finished: no pixel sees this entry
-        p = e_xy[k]
-        co = e_conic_opacity[k]
-        rgb = e_rgb[k]
-        first_row = gy0 + ((lane - (gy0 - y_lo)) % lanes + lanes) % lanes  # the lane's first row >= gy0
-        for py in range(first_row, gy1 + 1, lanes):
-            if gx1 < gx0:
-                break
-            row = base + (py - y_lo) * TILE - x_lo
-            dy = p[1] - float(py)
-            for px in range(gx0, gx1 + 1):
-                slot = row + px
-                if done[slot] != 0:
-                    continue
-                dx = p[0] - float(px)
-                power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
-                if power > 0.0:
-                    continue
-                gauss = exp32(power)
-                raw = co[3] * gauss
-                alpha = wp.min(ALPHA_MAX, raw)
-                if alpha < ALPHA_MIN:
-                    continue
-                t = transmittance[slot]
-                test_t = t * (1.0 - alpha)
-                if test_t < T_MIN:
-                    done[slot] = 1
-                    remaining -= 1
-                    continue
-                g = wp.vec3(grad_image[py, px, 0], grad_image[py, px, 1], grad_image[py, px, 2])
-                final = wp.vec3(image[py, px, 0], image[py, px, 1], image[py, px, 2])
-                weight = alpha * t
-                grgb = grgb + g * weight
-                in_front = front[slot] + rgb * weight
-                front[slot] = in_front
-                transmittance[slot] = test_t
-                if raw < ALPHA_MAX:
-                    # dL/dalpha = T rgb.g - B.g / (1 - alpha), B = C - C_<=k
-                    g_alpha = t * wp.dot(rgb, g) - wp.dot(final - in_front, g) / (1.0 - alpha)
-                    gop += g_alpha * gauss
-                    g_power = g_alpha * alpha
-                    gco = gco + g_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
-                    gxy = gxy - g_power * wp.vec2(co[0] * dx + co[1] * dy, co[1] * dx + co[2] * dy)
+        gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
+        if remaining > 0 and gx0 <= gx1:  # else the lane is finished, or no pixel of it sees this entry
+            co = e_conic_opacity[k]
+            faint = log32(ALPHA_MIN / co[3]) - FAINT_MARGIN
+            first_row = gy0 + ((lane - (gy0 - y_lo)) % lanes + lanes) % lanes  # the lane's first row >= gy0
+            for py in range(first_row, gy1 + 1, lanes):
+                gxy, gco, gop, grgb, finished = row_gradients(
+                    py, gx0, gx1, base + (py - y_lo) * TILE - x_lo, e_xy[k], co, e_rgb[k], faint,
+                    image, grad_image, transmittance, front, done, gxy, gco, gop, grgb,
+                )
+                remaining -= finished
         out = k * lanes + lane
         g_xy[out] = gxy
         g_conic[out] = gco
         g_opacity[out] = gop
         g_rgb[out] = grgb
+
+
+@wp.kernel
+def composite_backward_lanes_in_turn(
+    first: int,
+    lanes: int,
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
+    tiles_x: int,
+    image: wp.array3d(dtype=float),
+    grad_image: wp.array3d(dtype=float),
+    transmittance: wp.array(dtype=float),
+    front: wp.array(dtype=wp.vec3),
+    done: wp.array(dtype=wp.int32),
+    g_xy: wp.array(dtype=wp.vec2),
+    g_conic: wp.array(dtype=wp.vec3),
+    g_opacity: wp.array(dtype=float),
+    g_rgb: wp.array(dtype=wp.vec3),
+):
+    """``composite_backward`` followed by ``sum_lanes`` in one thread per tile, for the CPU: per entry
+    each lane's sum over its rows, then the lanes' sums added lane 0 first into slot k. The same
+    operations in the same order per sum, so the same bits; one walk of the tile's entries instead
+    of one per lane. (Pixels are independent: the order in which the lanes visit them is free.)"""
+    tile = first + wp.tid()
+    base = tile * TILE_PIXELS
+    x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
+    y_lo = (tile / tiles_x) * TILE
+    x_hi = wp.min(x_lo + TILE, width)
+    y_hi = wp.min(y_lo + TILE, height)
+    reset_rows(base, 0, 1, transmittance, front, done)
+    remaining = (x_hi - x_lo) * (y_hi - y_lo)
+    for k in range(tile_start[tile], tile_end[tile]):
+        sum_xy = wp.vec2(0.0, 0.0)
+        sum_co = wp.vec3(0.0, 0.0, 0.0)
+        sum_op = float(0.0)
+        sum_rgb = wp.vec3(0.0, 0.0, 0.0)
+        gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
+        if remaining > 0 and gx0 <= gx1 and gy0 <= gy1:  # else every lane's sum is 0, and 0 + 0 = 0
+            p = e_xy[k]
+            co = e_conic_opacity[k]
+            rgb = e_rgb[k]
+            faint = log32(ALPHA_MIN / co[3]) - FAINT_MARGIN
+            for lane in range(lanes):
+                gxy = wp.vec2(0.0, 0.0)
+                gco = wp.vec3(0.0, 0.0, 0.0)
+                gop = float(0.0)
+                grgb = wp.vec3(0.0, 0.0, 0.0)
+                first_row = gy0 + ((lane - (gy0 - y_lo)) % lanes + lanes) % lanes
+                for py in range(first_row, gy1 + 1, lanes):
+                    gxy, gco, gop, grgb, finished = row_gradients(
+                        py, gx0, gx1, base + (py - y_lo) * TILE - x_lo, p, co, rgb, faint,
+                        image, grad_image, transmittance, front, done, gxy, gco, gop, grgb,
+                    )
+                    remaining -= finished
+                sum_xy = sum_xy + gxy
+                sum_co = sum_co + gco
+                sum_op = sum_op + gop
+                sum_rgb = sum_rgb + grgb
+        g_xy[k] = sum_xy
+        g_conic[k] = sum_co
+        g_opacity[k] = sum_op
+        g_rgb[k] = sum_rgb
 
 
 @wp.kernel

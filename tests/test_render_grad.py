@@ -27,8 +27,8 @@ def _scene(rng, n, degree, device):
     return SplatSet.from_numpy(**arrays, device=device), camera
 
 
-def _forward_backward(splats, camera, weights, method=None, lanes=None):
-    rasteriser = GradRasteriser(splats, method=method, lanes=lanes)
+def _forward_backward(splats, camera, weights, method=None, lanes=None, lanes_in_turn=None):
+    rasteriser = GradRasteriser(splats, method=method, lanes=lanes, lanes_in_turn=lanes_in_turn)
     h, w = camera.height, camera.width
     image = wp.full((1, h, w, 3), float("nan"), dtype=wp.float32, device=splats.device)
     rasteriser.forward(camera, wp.vec3(0.1, 0.2, 0.3), image)
@@ -115,6 +115,22 @@ def test_lanes_per_tile_give_the_same_gradients(device, rng, lanes):
     for a, b, c in zip(one, many, again):
         assert np.abs(a - b).max() <= 1e-5 * np.abs(a).max()
         assert b.tobytes() == c.tobytes()
+
+
+@pytest.mark.parametrize("lanes", [4, 16])
+def test_lanes_summed_in_turn_give_the_same_bytes(device, rng, lanes):
+    """The CPU's backward (one thread per tile summing its lanes in turn) against the GPU's (a thread
+    per lane, then ``sum_lanes``), on one device: the same bytes, in a view whose edge tiles are
+    partial and whose pixels saturate (early termination)."""
+    camera = random_camera(rng, width=70, height=45)
+    arrays = random_scene(rng, 800, 2, camera_centre=camera.centre, behind=0.1, opacity=(0.3, 1.0), log_scale=(np.log(0.3), 0.3))
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    weights = rng.normal(size=(camera.height, camera.width, 3))
+    threads = [a.numpy().copy() for a in _forward_backward(splats, camera, weights, lanes=lanes, lanes_in_turn=False)[1].arrays()]
+    in_turn = [a.numpy().copy() for a in _forward_backward(splats, camera, weights, lanes=lanes, lanes_in_turn=True)[1].arrays()]
+    assert any(np.abs(a).max() > 0 for a in threads)
+    for a, b in zip(threads, in_turn):
+        assert a.tobytes() == b.tobytes()
 
 
 @pytest.mark.parametrize("lanes", [1, 16])

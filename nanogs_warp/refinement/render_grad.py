@@ -68,7 +68,10 @@ class GradRasteriser(_Rasteriser):
     """Renders one view at a time of a splat set whose parameters may change between views, and
     back-propagates dL/dimage of the last view rendered."""
 
-    def __init__(self, splats: SplatSet, workers: int | None = None, method: str | None = None, lanes: int | None = None):
+    def __init__(
+        self, splats: SplatSet, workers: int | None = None, method: str | None = None, lanes: int | None = None,
+        lanes_in_turn: bool | None = None,
+    ):  # fmt: skip
         super().__init__(splats, workers, method)
         if lanes is None:
             # threads per tile in the backward pass, on every device: a lane sums its own rows, so
@@ -77,7 +80,11 @@ class GradRasteriser(_Rasteriser):
         if lanes not in (1, 2, 4, 8, 16):
             raise ValueError(f"lanes {lanes}: expected 1, 2, 4, 8 or 16")
         self.lanes = lanes
-        self.entry_bytes += GRAD_ENTRY_BYTES + (lanes * LANE_BYTES if lanes > 1 else 0)
+        if lanes_in_turn is None:  # the CPU: one thread per tile sums its lanes in turn, the same sums
+            lanes_in_turn = self.device.is_cpu
+        self.lanes_in_turn = lanes_in_turn and lanes > 1
+        self.lane_buffers = lanes > 1 and not self.lanes_in_turn
+        self.entry_bytes += GRAD_ENTRY_BYTES + (lanes * LANE_BYTES if self.lane_buffers else 0)
         wp.load_module(grad_kernels, device=self.device)
         self.grad_capacity = 0
         self.scratch_pixels = 0
@@ -96,7 +103,7 @@ class GradRasteriser(_Rasteriser):
         self.e_g_conic = wp.empty(c, dtype=wp.vec3, device=d)
         self.e_g_opacity = wp.empty(c, dtype=wp.float32, device=d)
         self.e_g_rgb = wp.empty(c, dtype=wp.vec3, device=d)
-        if self.lanes > 1:
+        if self.lane_buffers:
             lanes = c * self.lanes
             self.lane_xy = wp.empty(lanes, dtype=wp.vec2, device=d)
             self.lane_conic = wp.empty(lanes, dtype=wp.vec3, device=d)
@@ -158,16 +165,14 @@ class GradRasteriser(_Rasteriser):
             self.bw_front = wp.empty(pixels, dtype=wp.vec3, device=d)
             self.bw_done = wp.empty(pixels, dtype=wp.int32, device=d)
         per_entry = [self.e_g_xy, self.e_g_conic, self.e_g_opacity, self.e_g_rgb]
-        per_lane = per_entry if self.lanes == 1 else [self.lane_xy, self.lane_conic, self.lane_opacity, self.lane_rgb]
-        self._rows(
-            grad_kernels.composite_backward,
-            self.tiles * self.lanes,
-            [self.lanes, self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end,
-             p.width, p.height, p.tiles_x, image[0], grad_image[0],
-             self.bw_transmittance, self.bw_front, self.bw_done, *per_lane],
-            8,
-        )  # fmt: skip
-        if self.lanes > 1:
+        per_lane = [self.lane_xy, self.lane_conic, self.lane_opacity, self.lane_rgb] if self.lane_buffers else per_entry
+        inputs = [self.lanes, self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end,
+                  p.width, p.height, p.tiles_x, image[0], grad_image[0], self.bw_transmittance, self.bw_front, self.bw_done]  # fmt: skip
+        if self.lanes_in_turn:
+            self._rows(grad_kernels.composite_backward_lanes_in_turn, self.tiles, [*inputs, *per_entry], 1)
+        else:
+            self._rows(grad_kernels.composite_backward, self.tiles * self.lanes, [*inputs, *per_lane], 8)
+        if self.lane_buffers:
             self._rows(grad_kernels.sum_lanes, self.count, [self.lanes, *per_lane, *per_entry], 16384)
         self._rows(
             grad_kernels.splat_backward,
