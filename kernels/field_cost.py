@@ -43,10 +43,10 @@ import warp as wp
 
 from .cost import UNMERGEABLE, finite_cost
 from .field import pair_view_overlaps
-from .merge import coverage_merged, coverage_terms, mpmm_merged
+from .merge import coverage_moments, coverage_shaped, coverage_terms, mpmm_merged
 from .options import PORTABLE
 from .portable_math import SMALLEST_NORMAL, exp64, log64, scale_by_power_of_two, sigmoid64
-from .splat_math import Splats, covariance, symmetric_eigen, to_vec3d
+from .splat_math import Splats, covariance, jacobi_sweeps, jacobi_sweeps_in_lanes, sorted_frame, to_vec3d
 
 wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.py
 
@@ -58,21 +58,33 @@ COVERAGE = wp.constant(1)
 
 
 @wp.func
-def operator_merged(
-    operator_id: int, i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, a_i: wp.float64, a_j: wp.float64,
-    log_w_i: wp.float64, log_w_j: wp.float64, growth: float,
+def merged_moments(
+    operator_id: int, i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, log_w_i: wp.float64, log_w_j: wp.float64
 ):
-    """The operator's merged splat as (pi, mu_m, eigenvalues, frame, alpha_m) and the overlap sums
-    (own, cross, comp) of the pair and the merged splat over the three views along its axes
-    (``view_overlaps``); ``a_i``, ``a_j``: the pair's opacities, ``log_w_i``, ``log_w_j``: the logs
-    of their coverage weights (``splat_terms``)."""
+    """The operator's pair weight pi, merged mean and covariance (``mpmm_merged``, ``coverage_moments``)
+    and, for MPMM, its opacity logit; ``log_w_i``, ``log_w_j``: the logs of the pair's coverage weights
+    (``splat_terms``)."""
     if operator_id == MPMM:
         pi, mu_m, cov_m, logit_m = mpmm_merged(i, j, src)
-        values, frame = symmetric_eigen(cov_m)
-        alpha_m = sigmoid64(wp.float64(logit_m))
-        own, cross, comp = pair_view_overlaps(frame, values, to_vec3d(src.means[i]), to_vec3d(src.means[j]), mu_m, cov_i, cov_j)
-        return pi, mu_m, values, frame, alpha_m, own, cross, comp
-    return coverage_merged(i, j, src, cov_i, cov_j, a_i, a_j, log_w_i, log_w_j, growth)
+        return pi, mu_m, cov_m, logit_m
+    pi, mu_i, mu_j, mu_m, cov_m = coverage_moments(i, j, src, cov_i, cov_j, log_w_i, log_w_j)
+    return pi, mu_m, cov_m, float(0.0)
+
+
+@wp.func
+def merged_shape(
+    operator_id: int, i: int, j: int, src: Splats, values: wp.vec3d, frame: wp.mat33d, mu_m: wp.vec3d, logit_m: float,
+    cov_i: wp.mat33d, cov_j: wp.mat33d, a_i: wp.float64, a_j: wp.float64, growth: float,
+):  # fmt: skip
+    """The operator's merged splat given its covariance's eigenvalues and frame: (eigenvalues, alpha_m)
+    and the overlap sums (own, cross, comp) of the pair and the merged splat over the three views along
+    its axes (``view_overlaps``); ``a_i``, ``a_j``: the pair's opacities."""
+    mu_i = to_vec3d(src.means[i])
+    mu_j = to_vec3d(src.means[j])
+    if operator_id == MPMM:
+        own, cross, comp = pair_view_overlaps(frame, values, mu_i, mu_j, mu_m, cov_i, cov_j)
+        return values, sigmoid64(wp.float64(logit_m)), own, cross, comp
+    return coverage_shaped(values, frame, mu_i, mu_j, mu_m, cov_i, cov_j, a_i, a_j, growth)
 
 
 @wp.func
@@ -202,6 +214,57 @@ def composited_terms(a_i: wp.float64, a_j: wp.float64, a_m: wp.float64, t: wp.ve
     return -two * a_ij * a_i * t[0] - two * a_ij * a_j * t[1] + a_ij * a_ij * t[2] + two * a_m * a_ij * t[3]
 
 
+@wp.func
+def edge_moments(
+    e: int, edge_i: wp.array(dtype=wp.int32), edge_j: wp.array(dtype=wp.int32), src: Splats,
+    covariances: wp.array(dtype=wp.mat33d), log_weights: wp.array(dtype=wp.float64), operator_id: int,
+):  # fmt: skip
+    """``merged_moments`` of edge e."""
+    i = int(edge_i[e])
+    j = int(edge_j[e])
+    return merged_moments(operator_id, i, j, src, covariances[i], covariances[j], log_weights[i], log_weights[j])
+
+
+@wp.func
+def edge_cost(
+    e: int, diagonal: wp.vec3d, rotation: wp.mat33d, pi: wp.float64, mu_m: wp.vec3d, logit_m: float,
+    edge_i: wp.array(dtype=wp.int32), edge_j: wp.array(dtype=wp.int32), src: Splats,
+    covariances: wp.array(dtype=wp.mat33d), colour_norms: wp.array(dtype=wp.float64), alphas: wp.array(dtype=wp.float64),
+    operator_id: int, growth: float, lambda_geo: float, lambda_app: float, lambda_contrast: float,
+    energy: wp.array(dtype=wp.float64),
+):  # fmt: skip
+    """The field cost of edge e (module docstring) in the unit ``energy[1]`` (``cost_unit`` of
+    E_ref = ``energy[0]``, from ``reference_energy``), given its merged covariance's Jacobi sweeps
+    (``jacobi_sweeps``: diagonal and rotation) and ``edge_moments``; the merged colour
+    c_m = pi c_i + (1 - pi) c_j is linear in the features, so every colour product follows from
+    c_i.c_i, c_i.c_j, c_j.c_j."""
+    i = int(edge_i[e])
+    j = int(edge_j[e])
+    a_i = alphas[i]
+    a_j = alphas[j]
+    values, frame = sorted_frame(diagonal, rotation)
+    values, alpha_m, own, cross, comp = merged_shape(
+        operator_id, i, j, src, values, frame, mu_m, logit_m, covariances[i], covariances[j], a_i, a_j, growth
+    )
+    if not (wp.isfinite(alpha_m) and wp.isfinite(values[0] * values[1] * values[2])):
+        return wp.float32(UNMERGEABLE)
+    one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
+    geo = squared_change(a_i, a_j, alpha_m, own, cross, one, one)
+    geo += composited_terms(a_i, a_j, alpha_m, comp)
+    # colour: the same with the direction-averaged colour products c_x . c_y (c_m = pi c_i + (1 - pi) c_j)
+    pj = wp.float64(1.0) - pi
+    d_ii = colour_norms[i]
+    d_jj = colour_norms[j]
+    d_ij = colour_dot(src.features, i, j)
+    d_im = pi * d_ii + pj * d_ij
+    d_jm = pi * d_ij + pj * d_jj
+    d_mm = pi * d_im + pj * d_jm
+    col = squared_change(a_i, a_j, alpha_m, own, cross, wp.vec3d(d_ii, d_jj, d_mm), wp.vec3d(d_ij, d_im, d_jm))
+    total = wp.float64(lambda_geo) * wp.max(geo, wp.float64(0.0)) + wp.float64(lambda_app) * wp.max(col, wp.float64(0.0))
+    total += wp.float64(lambda_contrast) * energy[0] * base_colour_change(src.features, i, j)
+    return finite_cost(total * energy[1])
+
+
 @wp.kernel
 def field_costs(
     edge_i: wp.array(dtype=wp.int32),
@@ -219,34 +282,63 @@ def field_costs(
     energy: wp.array(dtype=wp.float64),
     costs: wp.array(dtype=float),
 ):
-    """The field cost of each edge (module docstring) in the unit ``energy[1]`` (``cost_unit`` of
-    E_ref = ``energy[0]``, from ``reference_energy``); the merged colour c_m = pi c_i + (1 - pi) c_j
-    is linear in the features, so every colour product follows from c_i.c_i, c_i.c_j, c_j.c_j."""
+    """``edge_cost`` of each edge (a GPU's kernel: one edge a thread)."""
     e = wp.tid()
-    i = int(edge_i[e])
-    j = int(edge_j[e])
-    cov_i = covariances[i]
-    cov_j = covariances[j]
-    a_i = alphas[i]
-    a_j = alphas[j]
-    pi, mu_m, values, frame, alpha_m, own, cross, comp = operator_merged(
-        operator_id, i, j, src, cov_i, cov_j, a_i, a_j, log_weights[i], log_weights[j], growth
-    )
-    if not (wp.isfinite(alpha_m) and wp.isfinite(values[0] * values[1] * values[2])):
-        costs[e] = wp.float32(UNMERGEABLE)
-        return
-    one = wp.vec3d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
-    geo = squared_change(a_i, a_j, alpha_m, own, cross, one, one)
-    geo += composited_terms(a_i, a_j, alpha_m, comp)
-    # colour: the same with the direction-averaged colour products c_x . c_y (c_m = pi c_i + (1 - pi) c_j)
-    pj = wp.float64(1.0) - pi
-    d_ii = colour_norms[i]
-    d_jj = colour_norms[j]
-    d_ij = colour_dot(src.features, i, j)
-    d_im = pi * d_ii + pj * d_ij
-    d_jm = pi * d_ij + pj * d_jj
-    d_mm = pi * d_im + pj * d_jm
-    col = squared_change(a_i, a_j, alpha_m, own, cross, wp.vec3d(d_ii, d_jj, d_mm), wp.vec3d(d_ij, d_im, d_jm))
-    total = wp.float64(lambda_geo) * wp.max(geo, wp.float64(0.0)) + wp.float64(lambda_app) * wp.max(col, wp.float64(0.0))
-    total += wp.float64(lambda_contrast) * energy[0] * base_colour_change(src.features, i, j)
-    costs[e] = finite_cost(total * energy[1])
+    pi, mu_m, cov_m, logit_m = edge_moments(e, edge_i, edge_j, src, covariances, log_weights, operator_id)
+    diagonal, rotation = jacobi_sweeps(cov_m)
+    costs[e] = edge_cost(
+        e, diagonal, rotation, pi, mu_m, logit_m, edge_i, edge_j, src, covariances, colour_norms, alphas,
+        operator_id, growth, lambda_geo, lambda_app, lambda_contrast, energy,
+    )  # fmt: skip
+
+
+@wp.kernel
+def field_costs_in_lanes(
+    first: int,
+    count: int,
+    edge_i: wp.array(dtype=wp.int32),
+    edge_j: wp.array(dtype=wp.int32),
+    src: Splats,
+    covariances: wp.array(dtype=wp.mat33d),
+    colour_norms: wp.array(dtype=wp.float64),
+    alphas: wp.array(dtype=wp.float64),
+    log_weights: wp.array(dtype=wp.float64),
+    operator_id: int,
+    growth: float,
+    lambda_geo: float,
+    lambda_app: float,
+    lambda_contrast: float,
+    energy: wp.array(dtype=wp.float64),
+    costs: wp.array(dtype=float),
+):
+    """``field_costs`` for the CPU: thread t scores edges 4 (first + t) to 4 (first + t) + 3 (of
+    ``count``), their Jacobi sweeps side by side (``jacobi_sweeps_in_lanes``), which a CPU core
+    overlaps; each edge's cost has the same bits as in ``field_costs``."""
+    e0 = 4 * (first + wp.tid())
+    e1 = wp.min(e0 + 1, count - 1)  # past the end: the last edge again, not written
+    e2 = wp.min(e0 + 2, count - 1)
+    e3 = wp.min(e0 + 3, count - 1)
+    pi0, mu0, cov0, logit0 = edge_moments(e0, edge_i, edge_j, src, covariances, log_weights, operator_id)
+    pi1, mu1, cov1, logit1 = edge_moments(e1, edge_i, edge_j, src, covariances, log_weights, operator_id)
+    pi2, mu2, cov2, logit2 = edge_moments(e2, edge_i, edge_j, src, covariances, log_weights, operator_id)
+    pi3, mu3, cov3, logit3 = edge_moments(e3, edge_i, edge_j, src, covariances, log_weights, operator_id)
+    d0, r0, d1, r1, d2, r2, d3, r3 = jacobi_sweeps_in_lanes(cov0, cov1, cov2, cov3)
+    costs[e0] = edge_cost(
+        e0, d0, r0, pi0, mu0, logit0, edge_i, edge_j, src, covariances, colour_norms, alphas,
+        operator_id, growth, lambda_geo, lambda_app, lambda_contrast, energy,
+    )  # fmt: skip
+    if e0 + 1 < count:
+        costs[e1] = edge_cost(
+            e1, d1, r1, pi1, mu1, logit1, edge_i, edge_j, src, covariances, colour_norms, alphas,
+            operator_id, growth, lambda_geo, lambda_app, lambda_contrast, energy,
+        )  # fmt: skip
+    if e0 + 2 < count:
+        costs[e2] = edge_cost(
+            e2, d2, r2, pi2, mu2, logit2, edge_i, edge_j, src, covariances, colour_norms, alphas,
+            operator_id, growth, lambda_geo, lambda_app, lambda_contrast, energy,
+        )  # fmt: skip
+    if e0 + 3 < count:
+        costs[e3] = edge_cost(
+            e3, d3, r3, pi3, mu3, logit3, edge_i, edge_j, src, covariances, colour_norms, alphas,
+            operator_id, growth, lambda_geo, lambda_app, lambda_contrast, energy,
+        )  # fmt: skip

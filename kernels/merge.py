@@ -245,6 +245,38 @@ def area_weighted_moment_matching(
 
 
 @wp.func
+def coverage_moments(
+    i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, log_w_i: wp.float64, log_w_j: wp.float64
+):
+    """The coverage operator's weighted moment match (``coverage_merged``' first step): pi, mu_i,
+    mu_j, mu_m and Sigma_m."""
+    pi = first_weight(log_w_i, log_w_j)
+    mu_i = to_vec3d(src.means[i])
+    mu_j = to_vec3d(src.means[j])
+    mu_m, cov_m = moment_match(pi, mu_i, cov_i, mu_j, cov_j)
+    return pi, mu_i, mu_j, mu_m, cov_m
+
+
+@wp.func
+def coverage_shaped(
+    values: wp.vec3d, frame: wp.mat33d, mu_i: wp.vec3d, mu_j: wp.vec3d, mu_m: wp.vec3d, cov_i: wp.mat33d, cov_j: wp.mat33d,
+    a_i: wp.float64, a_j: wp.float64, growth: float,
+):  # fmt: skip
+    """The rest of ``coverage_merged`` given Sigma_m's eigenvalues and frame: the face plane grown,
+    the opacity fitted; returns (eigenvalues, alpha_m, own, cross, comp)."""
+    c0 = wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0])
+    c1 = wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
+    coverage = a_i * projected_footprint(cov_i, c0, c1) + a_j * projected_footprint(cov_j, c0, c1)
+    ratio = coverage / wp.sqrt(wp.max(values[0] * values[1], wp.float64(1e-300)))
+    if ratio > wp.float64(1.0):
+        grow = pow64(ratio, wp.float64(growth))
+        values = wp.vec3d(values[0] * grow, values[1] * grow, values[2])  # the frame and the order stay
+    own, cross, comp = pair_view_overlaps(frame, values, mu_i, mu_j, mu_m, cov_i, cov_j)
+    alpha = wp.min(field_opacity(a_i, a_j, own, cross), wp.float64(MERGED_ALPHA_MAX))
+    return values, alpha, own, cross, comp
+
+
+@wp.func
 def coverage_merged(
     i: int, j: int, src: Splats, cov_i: wp.mat33d, cov_j: wp.mat33d, a_i: wp.float64, a_j: wp.float64,
     log_w_i: wp.float64, log_w_j: wp.float64, growth: float,
@@ -260,20 +292,9 @@ def coverage_merged(
     own, cross, comp): the overlap sums of ``view_overlaps``, which the field cost reuses.
     The frame comes from the float64 Jacobi sweep, whose arithmetic (and sqrt) rounds alike on every
     device, so CPU and CUDA merges agree bit for bit."""
-    pi = first_weight(log_w_i, log_w_j)
-    mu_i = to_vec3d(src.means[i])
-    mu_j = to_vec3d(src.means[j])
-    mu_m, cov_m = moment_match(pi, mu_i, cov_i, mu_j, cov_j)
+    pi, mu_i, mu_j, mu_m, cov_m = coverage_moments(i, j, src, cov_i, cov_j, log_w_i, log_w_j)
     values, frame = symmetric_eigen(cov_m)
-    c0 = wp.vec3d(frame[0, 0], frame[1, 0], frame[2, 0])
-    c1 = wp.vec3d(frame[0, 1], frame[1, 1], frame[2, 1])
-    coverage = a_i * projected_footprint(cov_i, c0, c1) + a_j * projected_footprint(cov_j, c0, c1)
-    ratio = coverage / wp.sqrt(wp.max(values[0] * values[1], wp.float64(1e-300)))
-    if ratio > wp.float64(1.0):
-        grow = pow64(ratio, wp.float64(growth))
-        values = wp.vec3d(values[0] * grow, values[1] * grow, values[2])  # the frame and the order stay
-    own, cross, comp = pair_view_overlaps(frame, values, mu_i, mu_j, mu_m, cov_i, cov_j)
-    alpha = wp.min(field_opacity(a_i, a_j, own, cross), wp.float64(MERGED_ALPHA_MAX))
+    values, alpha, own, cross, comp = coverage_shaped(values, frame, mu_i, mu_j, mu_m, cov_i, cov_j, a_i, a_j, growth)
     return pi, mu_m, values, frame, alpha, own, cross, comp
 
 

@@ -151,11 +151,9 @@ def moment_match(pi: wp.float64, mu_i: wp.vec3d, cov_i: wp.mat33d, mu_j: wp.vec3
 
 
 @wp.func
-def symmetric_eigen(a: wp.mat33d):
-    """Eigen-decomposition of a symmetric 3x3 matrix by cyclic Jacobi in float64.
-
-    Returns (eigenvalues, eigenvectors as columns) sorted by decreasing eigenvalue, the frame
-    right-handed (det = +1)."""
+def jacobi_sweeps(a: wp.mat33d):
+    """Cyclic Jacobi sweeps of a symmetric 3x3 matrix in float64, until the off-diagonal's square is
+    at most 1e-36 times the diagonal's (at most 12 sweeps): (the diagonal, the accumulated rotation)."""
     v = wp.identity(n=3, dtype=wp.float64)
     one = wp.float64(1.0)
     for _sweep in range(12):
@@ -193,9 +191,16 @@ def symmetric_eigen(a: wp.mat33d):
                     vq = v[row, q]
                     v[row, p] = c * vp - s * vq
                     v[row, q] = s * vp + c * vq
-    e0 = a[0, 0]
-    e1 = a[1, 1]
-    e2 = a[2, 2]
+    return wp.vec3d(a[0, 0], a[1, 1], a[2, 2]), v
+
+
+@wp.func
+def sorted_frame(diagonal: wp.vec3d, v: wp.mat33d):
+    """The eigenvalues ``diagonal`` sorted decreasing with their eigenvectors (the columns of v), the
+    frame made right-handed (det = +1)."""
+    e0 = diagonal[0]
+    e1 = diagonal[1]
+    e2 = diagonal[2]
     c0 = wp.vec3d(v[0, 0], v[1, 0], v[2, 0])
     c1 = wp.vec3d(v[0, 1], v[1, 1], v[2, 1])
     c2 = wp.vec3d(v[0, 2], v[1, 2], v[2, 2])
@@ -217,6 +222,172 @@ def symmetric_eigen(a: wp.mat33d):
         c0[2], c1[2], c2[2],
     )  # fmt: skip
     return wp.vec3d(e0, e1, e2), frame
+
+
+@wp.func
+def symmetric_eigen(a: wp.mat33d):
+    """Eigen-decomposition of a symmetric 3x3 matrix by cyclic Jacobi in float64 (``jacobi_sweeps``).
+
+    Returns (eigenvalues, eigenvectors as columns) sorted by decreasing eigenvalue, the frame
+    right-handed (det = +1)."""
+    diagonal, v = jacobi_sweeps(a)
+    return sorted_frame(diagonal, v)
+
+
+# Four symmetric matrices at once (``jacobi_sweeps_in_lanes``): on a CPU a thread runs one chain of
+# dependent divisions and square roots at a time, and four independent ones fill its pipelines.
+@wp.func
+def lane_select(rotate: wp.vec4i, a: wp.vec4d, b: wp.vec4d):
+    """Per lane: a where ``rotate`` is set, else b."""
+    return wp.vec4d(
+        wp.where(rotate[0] != 0, a[0], b[0]), wp.where(rotate[1] != 0, a[1], b[1]),
+        wp.where(rotate[2] != 0, a[2], b[2]), wp.where(rotate[3] != 0, a[3], b[3]),
+    )  # fmt: skip
+
+
+@wp.func
+def lane_sqrt(a: wp.vec4d):
+    return wp.vec4d(wp.sqrt(a[0]), wp.sqrt(a[1]), wp.sqrt(a[2]), wp.sqrt(a[3]))
+
+
+@wp.func
+def lane_rotation(active: wp.vec4i, app: wp.vec4d, aqq: wp.vec4d, apq: wp.vec4d):
+    """``jacobi_sweeps``' rotation per lane: whether the lane rotates (active, |a_pq| > 1e-300) and
+    its (t, c, s), with the same operations (a lane that does not rotate computes and drops them)."""
+    one = wp.vec4d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
+    rotate = wp.vec4i()
+    t = wp.vec4d()
+    tau = wp.cw_div(aqq - app, wp.float64(2.0) * apq)
+    root = lane_sqrt(one + wp.cw_mul(tau, tau))
+    for lane in range(4):
+        rotate[lane] = wp.where(active[lane] != 0 and wp.abs(apq[lane]) > wp.float64(1e-300), 1, 0)
+        t[lane] = one[lane] / (wp.abs(tau[lane]) + root[lane])
+        if tau[lane] < wp.float64(0.0):
+            t[lane] = -t[lane]
+    c = wp.cw_div(one, lane_sqrt(one + wp.cw_mul(t, t)))
+    return rotate, t, c, wp.cw_mul(t, c)
+
+
+@wp.func
+def lane_rotated(rotate: wp.vec4i, c: wp.vec4d, s: wp.vec4d, x_p: wp.vec4d, x_q: wp.vec4d):
+    """(c x_p - s x_q, s x_p + c x_q) in the lanes that rotate; (x_p, x_q) in the others."""
+    return (
+        lane_select(rotate, wp.cw_mul(c, x_p) - wp.cw_mul(s, x_q), x_p),
+        lane_select(rotate, wp.cw_mul(s, x_p) + wp.cw_mul(c, x_q), x_q),
+    )
+
+
+@wp.func
+def lane_entries(m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d, r: int, c: int):
+    return wp.vec4d(m0[r, c], m1[r, c], m2[r, c], m3[r, c])
+
+
+@wp.func
+def lane_matrix(lane: int, v00: wp.vec4d, v01: wp.vec4d, v02: wp.vec4d, v10: wp.vec4d, v11: wp.vec4d, v12: wp.vec4d,
+                v20: wp.vec4d, v21: wp.vec4d, v22: wp.vec4d):  # fmt: skip
+    return wp.mat33d(
+        v00[lane], v01[lane], v02[lane],
+        v10[lane], v11[lane], v12[lane],
+        v20[lane], v21[lane], v22[lane],
+    )  # fmt: skip
+
+
+@wp.func
+def jacobi_sweeps_in_lanes(m0: wp.mat33d, m1: wp.mat33d, m2: wp.mat33d, m3: wp.mat33d):
+    """``jacobi_sweeps`` of four symmetric matrices, lane by lane the same operations in the same
+    order (so the same bits): each entry of the upper triangle and of the rotation is a vec4d of
+    the four matrices' entries. A lane stops where its own matrix would; the sweeps go on while any
+    lane is active. Returns (diagonal, rotation) of m0, then of m1, m2, m3."""
+    a00 = lane_entries(m0, m1, m2, m3, 0, 0)
+    a01 = lane_entries(m0, m1, m2, m3, 0, 1)
+    a02 = lane_entries(m0, m1, m2, m3, 0, 2)
+    a11 = lane_entries(m0, m1, m2, m3, 1, 1)
+    a12 = lane_entries(m0, m1, m2, m3, 1, 2)
+    a22 = lane_entries(m0, m1, m2, m3, 2, 2)
+    zero = wp.vec4d()
+    one = wp.vec4d(wp.float64(1.0), wp.float64(1.0), wp.float64(1.0), wp.float64(1.0))
+    v00 = one
+    v01 = zero
+    v02 = zero
+    v10 = zero
+    v11 = one
+    v12 = zero
+    v20 = zero
+    v21 = zero
+    v22 = one
+    active = wp.vec4i(1, 1, 1, 1)
+    for _sweep in range(12):
+        off = wp.cw_mul(a01, a01) + wp.cw_mul(a02, a02) + wp.cw_mul(a12, a12)
+        diag = wp.cw_mul(a00, a00) + wp.cw_mul(a11, a11) + wp.cw_mul(a22, a22)
+        for lane in range(4):
+            if off[lane] <= wp.float64(1e-36) * diag[lane]:
+                active[lane] = 0
+        if active[0] + active[1] + active[2] + active[3] == 0:
+            break
+        # plane (0, 1), third axis 2 (each result named first: Warp carries a loop's variables
+        # through plain assignments)
+        rotate, t, c, s = lane_rotation(active, a00, a11, a01)
+        n00 = lane_select(rotate, a00 - wp.cw_mul(t, a01), a00)
+        n11 = lane_select(rotate, a11 + wp.cw_mul(t, a01), a11)
+        n02, n12 = lane_rotated(rotate, c, s, a02, a12)
+        w00, w01 = lane_rotated(rotate, c, s, v00, v01)
+        w10, w11 = lane_rotated(rotate, c, s, v10, v11)
+        w20, w21 = lane_rotated(rotate, c, s, v20, v21)
+        a00 = n00
+        a11 = n11
+        a01 = lane_select(rotate, zero, a01)
+        a02 = n02
+        a12 = n12
+        v00 = w00
+        v01 = w01
+        v10 = w10
+        v11 = w11
+        v20 = w20
+        v21 = w21
+        # plane (0, 2), third axis 1
+        rotate, t, c, s = lane_rotation(active, a00, a22, a02)
+        n00 = lane_select(rotate, a00 - wp.cw_mul(t, a02), a00)
+        n22 = lane_select(rotate, a22 + wp.cw_mul(t, a02), a22)
+        n01, n12 = lane_rotated(rotate, c, s, a01, a12)
+        w00, w02 = lane_rotated(rotate, c, s, v00, v02)
+        w10, w12 = lane_rotated(rotate, c, s, v10, v12)
+        w20, w22 = lane_rotated(rotate, c, s, v20, v22)
+        a00 = n00
+        a22 = n22
+        a02 = lane_select(rotate, zero, a02)
+        a01 = n01
+        a12 = n12
+        v00 = w00
+        v02 = w02
+        v10 = w10
+        v12 = w12
+        v20 = w20
+        v22 = w22
+        # plane (1, 2), third axis 0
+        rotate, t, c, s = lane_rotation(active, a11, a22, a12)
+        n11 = lane_select(rotate, a11 - wp.cw_mul(t, a12), a11)
+        n22 = lane_select(rotate, a22 + wp.cw_mul(t, a12), a22)
+        n01, n02 = lane_rotated(rotate, c, s, a01, a02)
+        w01, w02 = lane_rotated(rotate, c, s, v01, v02)
+        w11, w12 = lane_rotated(rotate, c, s, v11, v12)
+        w21, w22 = lane_rotated(rotate, c, s, v21, v22)
+        a11 = n11
+        a22 = n22
+        a12 = lane_select(rotate, zero, a12)
+        a01 = n01
+        a02 = n02
+        v01 = w01
+        v02 = w02
+        v11 = w11
+        v12 = w12
+        v21 = w21
+        v22 = w22
+    return (
+        wp.vec3d(a00[0], a11[0], a22[0]), lane_matrix(0, v00, v01, v02, v10, v11, v12, v20, v21, v22),
+        wp.vec3d(a00[1], a11[1], a22[1]), lane_matrix(1, v00, v01, v02, v10, v11, v12, v20, v21, v22),
+        wp.vec3d(a00[2], a11[2], a22[2]), lane_matrix(2, v00, v01, v02, v10, v11, v12, v20, v21, v22),
+        wp.vec3d(a00[3], a11[3], a22[3]), lane_matrix(3, v00, v01, v02, v10, v11, v12, v20, v21, v22),
+    )
 
 
 @wp.func

@@ -8,6 +8,7 @@ from scene_factory import in_units, random_splat_arrays
 
 from nanogs_warp.cost import RunnallsCost
 from nanogs_warp.kernels import cost as kernels
+from nanogs_warp.kernels.splat_math import jacobi_sweeps, jacobi_sweeps_in_lanes
 from nanogs_warp.splats import SplatSet
 from nanogs_warp.topology import Edges
 
@@ -382,3 +383,91 @@ def test_field_cost_of_a_far_pair_matches_reference(device):
     want = reference.field_cost(arrays, 0, 1, reference.coverage_merge(arrays, 0, 1)) * cost_unit(arrays)
     assert np.isfinite(got) and want > 0
     np.testing.assert_allclose(got, want, rtol=1e-4)
+
+
+@wp.kernel
+def _sweeps_one(a: wp.array(dtype=wp.mat33d), diagonal: wp.array(dtype=wp.vec3d), rotation: wp.array(dtype=wp.mat33d)):
+    i = wp.tid()
+    d, r = jacobi_sweeps(a[i])
+    diagonal[i] = d
+    rotation[i] = r
+
+
+@wp.kernel
+def _sweeps_in_lanes(a: wp.array(dtype=wp.mat33d), diagonal: wp.array(dtype=wp.vec3d), rotation: wp.array(dtype=wp.mat33d)):
+    g = 4 * wp.tid()
+    d0, r0, d1, r1, d2, r2, d3, r3 = jacobi_sweeps_in_lanes(a[g], a[g + 1], a[g + 2], a[g + 3])
+    diagonal[g] = d0
+    rotation[g] = r0
+    diagonal[g + 1] = d1
+    rotation[g + 1] = r1
+    diagonal[g + 2] = d2
+    rotation[g + 2] = r2
+    diagonal[g + 3] = d3
+    rotation[g + 3] = r3
+
+
+def test_jacobi_sweeps_in_lanes_are_the_scalar_sweeps(device, rng):
+    """Four matrices' sweeps side by side give each the bits of its own sweeps, whatever its lanes'
+    neighbours need: random ones over 300 orders of magnitude, diagonal ones, ones with some zero
+    off-diagonal entries, repeated eigenvalues, rank one plus a floor, and NaN and infinite entries,
+    shuffled across the lanes."""
+    n = 4096
+    q = rng.normal(size=(n, 3, 3))
+    a = q @ np.transpose(q, (0, 2, 1)) * 10.0 ** rng.uniform(-150, 150, size=(n, 1, 1))
+    kinds = rng.integers(0, 6, n)
+    a[kinds == 1] = np.eye(3) * rng.uniform(0.1, 10.0, size=(int((kinds == 1).sum()), 3, 1))
+    zeroed = kinds == 2
+    a[zeroed, 0, 2] = a[zeroed, 2, 0] = 0.0
+    a[kinds == 3] = np.eye(3) * 2.5
+    d = rng.normal(size=(n, 3, 1))
+    a[kinds == 4] = (d @ np.transpose(d, (0, 2, 1)) + 1e-10 * np.eye(3))[kinds == 4]
+    a[kinds == 5, 1, 1] = rng.choice([np.nan, np.inf, -np.inf], int((kinds == 5).sum()))
+    matrices = wp.array(a, dtype=wp.mat33d, device=device)
+    got = []
+    for kernel, threads in ((_sweeps_one, n), (_sweeps_in_lanes, n // 4)):
+        diagonal = wp.full(n, wp.vec3d(np.nan, np.nan, np.nan), dtype=wp.vec3d, device=device)  # poisoned
+        rotation = wp.full(n, wp.mat33d(*([np.nan] * 9)), dtype=wp.mat33d, device=device)
+        wp.launch(kernel, threads, inputs=[matrices, diagonal, rotation], device=device)
+        got.append((diagonal.numpy(), rotation.numpy()))
+    finite = kinds != 5
+    assert np.isfinite(got[0][0][finite]).all() and np.isfinite(got[0][1][finite]).all()
+    assert got[0][0].tobytes() == got[1][0].tobytes()
+    assert got[0][1].tobytes() == got[1][1].tobytes()
+
+
+@pytest.mark.parametrize("operator", ["coverage", "mpmm"])
+def test_field_costs_in_lanes_are_the_field_costs(device, rng, operator):
+    """The CPU's kernel (four edges a thread) gives every edge's cost the bits of the one-edge kernel's,
+    the last group of four only partly filled, over poisoned outputs."""
+    from nanogs_warp.cost import FieldCost, reference_energy
+    from nanogs_warp.kernels import field_cost
+    from nanogs_warp.topology import KnnTopology
+
+    arrays = random_splat_arrays(600, sh_degree=1, seed=int(rng.integers(1 << 30)))
+    arrays["log_scales"][::7] = rng.uniform(-12.0, 1.0, size=(86, 3)).astype(np.float32)  # flat and large ones too
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    edges = KnnTopology(8)(splats)
+    count = edges.count - (edges.count % 4 == 0)  # a partial last group
+    ei, ej = edges.i[:count], edges.j[:count]
+    n = splats.count
+    covariances = wp.empty(n, dtype=wp.mat33d, device=device)
+    colour_norms = wp.empty(n, dtype=wp.float64, device=device)
+    alphas = wp.empty(n, dtype=wp.float64, device=device)
+    log_weights = wp.empty(n, dtype=wp.float64, device=device)
+    wp.launch(
+        field_cost.splat_terms, n, inputs=[splats.rotations, splats.log_scales, splats.opacities, splats.features],
+        outputs=[covariances, colour_norms, alphas, log_weights], device=device,
+    )  # fmt: skip
+    fc = FieldCost(operator=operator)
+    terms = [splats.kernel_view(), covariances, colour_norms, alphas, log_weights, fc.OPERATOR_IDS[operator], fc.growth,
+             fc.lambda_geo, fc.lambda_app, fc.lambda_contrast, reference_energy(splats)]  # fmt: skip
+    one = wp.full(count, np.nan, dtype=float, device=device)  # poisoned
+    wp.launch(field_cost.field_costs, count, inputs=[ei, ej, *terms, one], device=device)
+    lanes = wp.full(count, np.nan, dtype=float, device=device)
+    wp.launch(field_cost.field_costs_in_lanes, -(-count // 4), inputs=[0, count, ei, ej, *terms, lanes], device=device)
+    assert count % 4 != 0 and not np.isnan(one.numpy()).any()
+    assert one.numpy().tobytes() == lanes.numpy().tobytes()
+    if device == "cpu":  # and FieldCost itself uses the lanes there, on two threads
+        whole = FieldCost(operator=operator)(splats, Edges(ei, ej, count), 0)
+        assert whole.numpy().tobytes() == one.numpy().tobytes()
