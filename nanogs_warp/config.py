@@ -92,8 +92,8 @@ class SimplifyConfig:
             raise InputError(f"unknown operator {self.operator!r}; choose one of {', '.join(OPERATOR_NAMES)}")
         if self.cost == "field" and self.operator not in FIELD_COST_OPERATORS:
             raise InputError(f"--cost field scores the mpmm and coverage operators, not {self.operator!r}")
-        if not (0.0 < self.pass_fraction <= 0.5):
-            raise InputError(f"--pass-fraction must be in (0, 0.5], got {self.pass_fraction}")
+        if not (MIN_PASS_FRACTION <= self.pass_fraction <= 0.5):
+            raise InputError(f"--pass-fraction must be in [{MIN_PASS_FRACTION}, 0.5], got {self.pass_fraction}")
         if not (self.median_cost_factor == 0.0 or 1.0 <= self.median_cost_factor < math.inf):
             raise InputError(f"--median-cost-factor must be 0 (no limit) or a finite number >= 1, got {self.median_cost_factor}")
         for name in ("lambda_geo", "lambda_app"):
@@ -108,6 +108,10 @@ COST_NAMES = ("field", "idiv", "mse", "runnalls")
 OPERATOR_NAMES = ("mpmm", "area", "coverage")
 FIELD_COST_OPERATORS = ("mpmm", "coverage")
 MAX_K = 32
+# The smallest pass fraction: about 14 passes a halving of the count (2-3 at the default), so a run
+# stays within a few times the default's time; a smaller one (1e-9: one merge a pass) would run for
+# hours.
+MIN_PASS_FRACTION = 0.05
 
 # Named configurations (``--preset``): the measured default, the previous default (the Runnalls
 # cost and whole matchings: about 3x faster on a CPU, best on the trained captures at the smaller

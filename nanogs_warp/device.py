@@ -16,6 +16,22 @@ from .errors import InputError
 _NO_DRIVER_NOTICE = "Could not find or load the NVIDIA CUDA driver"
 
 
+def available_host_memory() -> int | None:
+    """Bytes of host memory available now (Linux's MemAvailable, page cache included as the kernel
+    counts it; elsewhere the free pages), or None where the system does not say."""
+    try:
+        with open("/proc/meminfo") as info:
+            for line in info:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
 def quiet_warp() -> None:
     """Warp's start-up banner and module-load lines off (on with NANOGS_DEBUG=1), and the kernel
     cache at $NANOGS_WARP_CACHE when that is set and no directory was chosen before."""

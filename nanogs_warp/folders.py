@@ -18,3 +18,15 @@ def writable_folder(path: Path, what: str) -> Path:
     if not os.access(path, os.W_OK):
         raise InputError(f"{what}: the directory is not writable")
     return path
+
+
+def creatable_folder(path: Path, what: str) -> Path:
+    """Checks, without making anything, that ``path`` is a writable folder or could be made as one
+    (its nearest existing ancestor a writable folder); InputError, prefixed ``what``, when not. A
+    command that fails before it writes then leaves no empty folder behind."""
+    existing = next((p for p in (path, *path.parents) if p.exists()), None)
+    if existing is None or not existing.is_dir():
+        raise InputError(f"{what}: cannot create the directory: {existing} is not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"{what}: the directory {existing} is not writable")
+    return path

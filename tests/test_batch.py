@@ -148,6 +148,15 @@ def test_corrupt_scene_fails_alone(scenes, tmp_path):
     assert "failed: bad.ply: " in result.stdout and "6 scenes: 0 done, 4 skipped, 2 failed" in result.stdout
 
 
+def test_quiet_still_names_the_failures(scenes, tmp_path):
+    """-q drops the progress and the table, not the errors: a failed scene is one line on stderr."""
+    (scenes / "bad.ply").write_bytes(b"ply\nnot really")
+    result = run(scenes, "-o", tmp_path / "out", "--ratio", "0.1", "--devices", "cpu", "-q")
+    assert result.exit_code == 1 and result.stdout == ""
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "bad.ply: FAILED" in lines[0], result.stderr
+
+
 def test_two_shards_cover_the_batch_exactly_once(scenes, tmp_path):
     out = tmp_path / "out"
     parts = [run_json(scenes, "-o", out, "--count", "20", "--shard", f"{i}/2") for i in range(2)]

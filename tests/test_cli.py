@@ -96,7 +96,17 @@ BAD = {
     "bad cost": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "0.1", "--cost", "nope"],
     "bad device": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "0.1", "--device", "tpu"],
     "nan values": lambda t, s: ["simplify", nan_scene(t), "-o", t / "o.ply", "--ratio", "0.1"],
+    "pass fraction that would take hours": lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "0.1", "--pass-fraction", "1e-9"],
+    "symbolic link loop": lambda t, s: ["simplify", link_loop(t), "-o", t / "o.ply", "--ratio", "0.1"],
 }
+
+
+def link_loop(folder: Path) -> Path:
+    """a.ply -> b.ply -> a.ply"""
+    (folder / "a.ply").symlink_to(folder / "b.ply")
+    (folder / "b.ply").symlink_to(folder / "a.ply")
+    return folder / "a.ply"
+
 if wp.get_cuda_device_count() == 0:
     BAD["cuda without gpu"] = lambda t, s: ["simplify", s, "-o", t / "o.ply", "--ratio", "0.1", "--device", "cuda"]
 
@@ -256,6 +266,38 @@ def test_output_names_too_long_to_write_are_refused_first(scene, tmp_path):
     assert run("simplify", scene, "-o", tmp_path / ("y" * 233 + ".ply"), "--ratio", "0.5", "--device", "cpu", "-q").exit_code == 0
 
 
+def _failing_write(monkeypatch, module: str, fail_on: int):
+    """Makes ``module``'s ``atomic_write`` fail as a full disk does, at its ``fail_on``-th call."""
+    from nanogs_warp.errors import InputError
+    from nanogs_warp.io import ply_write
+
+    calls = []
+
+    def write(path, write, overwrite=True, outputs=None):
+        calls.append(path)
+        if len(calls) == fail_on:
+            raise InputError(f"{path.name}: cannot write the file: No space left on device")
+        return ply_write.atomic_write(path, write, overwrite, outputs)
+
+    monkeypatch.setattr(f"{module}.atomic_write", write)
+    return calls
+
+
+@pytest.mark.parametrize("output", ["out.ply", "out.sog", "lods/", "lod-meta.json"])
+def test_a_run_that_fails_part_way_leaves_no_output(scene, tmp_path, monkeypatch, output):
+    """Each file is written under a temporary name; the run's files appear together once the last
+    is written. A write that fails at the second file (a full disk) leaves none of them, no
+    temporary file and no folder the run made: one line, exit 2."""
+    module = "nanogs_warp.io.ply" if output.endswith(("ply", "/")) else "nanogs_warp.io"
+    calls = _failing_write(monkeypatch, module, fail_on=2)
+    result = run("simplify", scene, "-o", tmp_path / output, "--ratio", "0.1,0.01", "--device", "cpu")
+    assert result.exit_code == 2 and "No space left on device" in result.stderr
+    assert len(calls) == 2 and sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
+    monkeypatch.undo()
+    result = run("simplify", scene, "-o", tmp_path / output, "--ratio", "0.1,0.01", "--device", "cpu", "-q")
+    assert result.exit_code == 0, result.output
+
+
 def test_without_overwrite_a_file_that_appears_meanwhile_is_kept(scene, tmp_path, monkeypatch):
     """The check that an output does not exist comes before the work; a file put there meanwhile
     (another run writing the same name) used to be replaced by the final rename. Now the write fails
@@ -266,9 +308,9 @@ def test_without_overwrite_a_file_that_appears_meanwhile_is_kept(scene, tmp_path
     out = tmp_path / "o.ply"
     original = ply_write.atomic_write
 
-    def first_another_run(path, write, overwrite=True):
+    def first_another_run(path, write, overwrite=True, outputs=None):
         path.write_bytes(b"the other run's output")
-        return original(path, write, overwrite)
+        return original(path, write, overwrite, outputs)
 
     monkeypatch.setattr("nanogs_warp.io.ply.atomic_write", first_another_run)
     result = run("simplify", scene, "-o", out, "--ratio", "0.5", "--device", "cpu")

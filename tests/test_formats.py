@@ -297,3 +297,24 @@ def test_splat_sizes_beyond_float32_are_clamped_and_said(tmp_path):
     a["log_scales"][:10] = -100.0  # the domain's floor: a float32 subnormal, read back
     save_splats(SplatSet.from_numpy(**a), tmp_path / "small.splat", on_loss=notes.append)
     assert notes == [] and load_splats(tmp_path / "small.splat").count == 50
+
+
+def test_a_small_spz_that_declares_a_huge_scene_is_refused_at_once(tmp_path, monkeypatch):
+    """A header may declare more splats than its gzip stream can hold (deflate expands at most 1032
+    times): refused before inflating anything. One that it could hold but that this machine's
+    available memory could not is refused before inflating too."""
+    import gzip
+    import struct
+
+    from nanogs_warp.io import spz
+
+    path = tmp_path / "bomb.spz"
+    path.write_bytes(gzip.compress(struct.pack("<IIIBBBB", 0x5053474E, 3, 2**32 - 1, 0, 12, 0, 0) + bytes(1 << 20)))
+    with pytest.raises(InputError, match="more than [0-9]+ bytes of gzip data can hold"):
+        load_splats(path)
+    good = tmp_path / "good.spz"
+    save_splats(SplatSet.from_numpy(**random_splat_arrays(200, sh_degree=1)), good)
+    monkeypatch.setattr("nanogs_warp.device.available_host_memory", lambda: 1000)
+    with pytest.raises(InputError, match="more than the 1,000 bytes of memory available"):
+        load_splats(good)
+    assert spz.most_inflated(1000) >= 1032 * 1000

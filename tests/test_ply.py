@@ -615,3 +615,36 @@ def test_scene_info_rejects_broken_files(good):
     edit_header(good, b"property float opacity\n", b"")
     with pytest.raises(InputError, match="missing vertex properties opacity"):
         scene_info(good)
+
+
+def test_nan_in_another_property_is_invalid_like_any(tmp_path):
+    """A NaN or Inf in a property outside the 3DGS model (here the normal nx) makes its row invalid
+    as in any other: refused in one line naming it, dropped with drop_invalid, and counted by info."""
+    arrays = random_splat_arrays(50, sh_degree=0, seed=3)
+    path = tmp_path / "normals.ply"
+    save_ply(SplatSet.from_numpy(**arrays), path)  # INRIA layout: nx ny nz written as zeros
+    ply = plyfile.PlyData.read(str(path))
+    vertex = ply["vertex"].data.copy()
+    vertex["nx"][7] = np.nan
+    vertex["ny"][9] = np.inf
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")]).write(str(path))
+    with pytest.raises(InputError, match=r"2 of 50 splats are invalid \(2 with NaN/Inf values in nx, ny\)"):
+        load_ply(path)
+    dropped = []
+    loaded = load_ply(path, drop_invalid=True, on_drop=dropped.append)
+    assert loaded.count == 48 and np.isfinite(loaded.extras.numpy()).all() and "nx, ny" in dropped[0]
+    info = scene_info(path)
+    assert info["nonfinite_rows"] == 2 and info["nonfinite"] == {"nx": 1, "ny": 1}
+
+
+def test_bytes_after_the_declared_data_are_said(tmp_path):
+    """A binary file longer than its header declares (a vertex count smaller than the data's, or
+    bytes appended) is read as declared, with one note saying how many bytes were ignored."""
+    path = tmp_path / "scene.ply"
+    random_splats_ply(path, 40, sh_degree=1, seed=2)
+    notes = []
+    assert load_ply(path, on_drop=notes.append).count == 40 and notes == []
+    with open(path, "ab") as f:
+        f.write(b"\0" * 100)
+    assert load_ply(path, on_drop=notes.append).count == 40
+    assert len(notes) == 1 and "100 bytes after the data its header declares were ignored" in notes[0]

@@ -92,7 +92,7 @@ class BatchProgress:
                 self._clear()
                 self.stream.write(f"nanogs-warp batch: {line}\n")
             self._draw()
-        elif not self.quiet:
+        elif not self.quiet or result.status == "failed":  # quiet: the failures still, as errors
             self._log(line)
 
     def close(self) -> None:

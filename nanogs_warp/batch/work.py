@@ -228,16 +228,24 @@ def _read(scene: LoadedScene, force: bool) -> None:
 
 def _write(scene: LoadedScene) -> None:
     from ..io import save_splats
+    from ..io.ply_write import OutputSet
 
     job, result = scene.job, scene.result
     job.out_dir.mkdir(parents=True, exist_ok=True)  # here: a scene that fails leaves no empty folder
-    outputs = []
-    for _, simplified, budgets in scene.simplified:
-        for budget in budgets:
-            path = job.output_path(budget)
-            save_splats(simplified, path, job.output_format, on_loss=lambda line: _note_once(result, line))
-            outputs.append({"path": path.name, "budget": budget.label, "count": simplified.count,
-                            "bytes": path.stat().st_size})  # fmt: skip
+    files = OutputSet()  # the scene's outputs appear together, or (a failure part way) none of them
+    try:
+        outputs = []
+        for _, simplified, budgets in scene.simplified:
+            for budget in budgets:
+                save_splats(simplified, job.output_path(budget), job.output_format, on_loss=lambda line: _note_once(result, line),
+                            outputs=files)  # fmt: skip
+                outputs.append({"path": job.output_path(budget).name, "budget": budget.label, "count": simplified.count})
+        files.publish()
+    except BaseException:
+        files.discard()
+        raise
+    for out in outputs:
+        out["bytes"] = (job.out_dir / out["path"]).stat().st_size
     outputs.sort(key=lambda o: [b.label for b in job.budgets].index(o["budget"]))
     record = {
         "format": RECORD_FORMAT,

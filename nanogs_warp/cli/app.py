@@ -116,6 +116,7 @@ def simplify(
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
     from ..device import WarpStart, keep_freed_host_memory, process_age
     from ..io import format_for_path, output_files, read_any_splats, save_levels
+    from ..io.ply_write import OutputSet
     from ..io.ply import splats_from_host
     from ..io.row_upload import RowUpload
 
@@ -201,21 +202,28 @@ def simplify(
 
         wp.synchronize_device(target_device)
     stages["upload"] = time.perf_counter() - loaded
-    # The outputs are written on another thread while the next budget is simplified.
+    # The outputs are written on another thread while the next budget is simplified, under
+    # temporary names: they appear together once the last is written, or not at all.
+    outputs = OutputSet(overwrite)
     writer = _Writer(background=True)
     try:
-        with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
-            warnings.simplefilter("always", NanogsWarning)
-            _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels,
-                               refine_config, writer, stages, overwrite)  # fmt: skip
-        writer.finish(stages)
-    finally:
-        writer.close()
-    progress.done()
-    if lod_set:  # level 0 is the finest: the largest budget, reached first
-        for level, out in enumerate(written):
-            out["level"] = level
-        save_levels(levels, Path(output), fmt, on_loss=notes, overwrite=overwrite)
+        try:
+            with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
+                warnings.simplefilter("always", NanogsWarning)
+                _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes,
+                                   levels, refine_config, writer, stages, overwrite, outputs)  # fmt: skip
+            writer.finish(stages)
+        finally:
+            writer.close()  # every write started has ended: none stages a file after a discard
+        progress.done()
+        if lod_set:  # level 0 is the finest: the largest budget, reached first
+            for level, out in enumerate(written):
+                out["level"] = level
+            save_levels(levels, Path(output), fmt, on_loss=notes, overwrite=overwrite, outputs=outputs)
+        outputs.publish()
+    except BaseException:
+        outputs.discard()
+        raise
     for warning in caught:
         if not issubclass(warning.category, NanogsWarning):
             warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
@@ -311,18 +319,17 @@ class _Writer:
 
 
 def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels,
-                       refine_config=None, writer=None, stages=None, overwrite=True):  # fmt: skip
+                       refine_config, writer, stages, overwrite, outputs):  # fmt: skip
     """Runs the progressive merge and writes each budget as it is reached (appending to ``written``);
     for a level-of-detail set (``levels`` a list) keeps each level on the host instead. With
     ``refine_config``, each budget's result is refined toward the input first. Each result comes
-    to the host here (``stages["download"]``) and is handed to ``writer``. Without ``overwrite``
-    a file that appeared at an output's path since it was checked stays, and the write fails."""
+    to the host here (``stages["download"]``) and is handed to ``writer``, which stages its files
+    in ``outputs`` (an ``OutputSet``: the caller publishes them). Without ``overwrite`` a file
+    that appeared at an output's path since it was checked stays, and the publishing fails."""
     from ..io import save_splats
     from ..pipeline import simplify_progressively
     from ..refinement.size_fit import size_fit_for
 
-    writer = writer or _Writer(background=False)
-    stages = {} if stages is None else stages
     stages.setdefault("download", 0.0)
     on_pass = lambda r: (passes.append(r), progress(r))  # noqa: E731
     size_fit = size_fit_for(on_device, config)
@@ -341,11 +348,12 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
         host = result.to("cpu")
         stages["download"] += time.perf_counter() - begun
         for budget in budgets_for_target[target]:
-            paths[budget].parent.mkdir(exist_ok=True)  # -o DIR/: created with the first output, not before
+            outputs.make_folder(paths[budget].parent)  # -o DIR/: made with the first output, not before
             if levels is not None:
                 levels.append(host)
             else:
-                writer.submit(lambda host=host, path=paths[budget]: save_splats(host, path, fmt, on_loss=notes, overwrite=overwrite))
+                writer.submit(lambda host=host, path=paths[budget]: save_splats(host, path, fmt, on_loss=notes, overwrite=overwrite,
+                                                                                outputs=outputs))  # fmt: skip
             written.append({"path": str(paths[budget].resolve()), "budget": budget.label, "count": result.count,
                             "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
             if size_fit is not None and size_fit.applies(result.count):
@@ -431,13 +439,18 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
     or exist as anything but a regular file. ``folder`` (from -o DIR/) may be created: its parent
     must exist."""
     from ..io import input_files
+    from ..io.open_file import open_regular
 
     for path in written:  # written beside a temporary ".<name>.<12 hex>.tmp" (18 more bytes)
         if len(os.fsencode(path.name)) > _LONGEST_OUTPUT_NAME:
             raise InputError(f"output name {path.name[:40]}... is {len(os.fsencode(path.name))} bytes long; "
                              f"at most {_LONGEST_OUTPUT_NAME} can be written")  # fmt: skip
-    input_resolved = input.resolve()
-    inputs = {p.resolve() for p in input_files(input)}
+    try:
+        input_resolved = input.resolve()
+        inputs = {p.resolve() for p in input_files(input)}
+    except (OSError, RuntimeError):  # a loop of symbolic links (a RuntimeError before Python 3.13)
+        open_regular(input).close()  # says why in one line
+        raise
     if folder is not None and not folder.is_dir():
         if folder.exists():
             raise InputError(f"output {folder} is not a folder")

@@ -64,8 +64,9 @@ def eval_command(
     from ..eval.cameras import load_cameras_json, orbit_cameras, parse_up
     from ..eval.evaluate import evaluate, format_table, write_images
     from ..eval.units import render_offset, rescaled, rescaled_camera
-    from ..folders import writable_folder
+    from ..folders import creatable_folder, writable_folder
     from ..io import load_splats
+    from ..io.open_file import open_regular
     from ..kernel_cache import EVAL_MODULES, load_kernels
 
     if not tests:
@@ -79,14 +80,15 @@ def eval_command(
     target = resolve_device(device)
     for path in [reference, *tests]:
         if not path.exists():
+            open_regular(path).close()  # its own line: no such file, a link loop, ...
             raise InputError(f"{path}: no such file")
-    if images is not None:  # made now, before any rendering: a folder that cannot be is one line
+    if images is not None:  # checked now, before any rendering (made when written): a folder that cannot be is one line
         if not images.strip():
             raise InputError("--images: give a folder")
         images = Path(images)
         if images.exists() and not images.is_dir():
             raise InputError(f"--images {images}: exists and is not a directory")
-        writable_folder(images, f"--images {images}")
+        creatable_folder(images, f"--images {images}")
     load_kernels(target, EVAL_MODULES)  # says so in one line when they must be compiled first
 
     ref_splats = load_splats(reference, device=target)
@@ -122,6 +124,7 @@ def eval_command(
             title = [f"REFERENCE {_scene_label(reference)} | {label} | DIFFERENCE ×4",
                      f"{t['count']:,} SPLATS  PSNR {_number(t['psnr']['mean'], 2)}  SSIM {_number(t['ssim']['mean'], 3)} (MEAN)"]  # fmt: skip
             try:
+                writable_folder(images, f"--images {images}")
                 written = write_images(folder, rendered["reference"], test_images, result["view_names"], comparison=t, title=title)
             except OSError as e:
                 raise InputError(f"--images {folder}: cannot write the images: {e.strerror or e}") from None

@@ -15,13 +15,13 @@ in chunks from one thread per core (they use no atomics, so the chunks are indep
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Sequence
 
 import numpy as np
 import warp as wp
 
+from ..device import available_host_memory
 from ..errors import InputError
 from ..kernels import render as kernels
 from ..parallel import cpu_workers
@@ -50,17 +50,10 @@ def entry_memory(device) -> int:
     or for the CPU the host's available memory, page cache included as the kernel counts it)."""
     if device.is_cuda:
         return int(device.free_memory) // 2
-    try:
-        with open("/proc/meminfo") as info:
-            for line in info:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024 // 2
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2
-    except (ValueError, OSError, AttributeError):  # not on this system: no memory bound but int32's
+    available = available_host_memory()
+    if available is None:  # not on this system: no memory bound but int32's
         return INDEX_LIMIT * ENTRY_BYTES
+    return available // 2
 
 
 def camera_params(camera: Camera) -> kernels.CameraParams:

@@ -20,7 +20,7 @@ from .common import dropped_parts, plain_layout, read_file_bytes
 from .open_file import open_regular
 from .ply import PlyArrays, checked_rows, normalize_quaternions, read_ply_arrays, read_splats, save_ply, splats_from_host
 from .ply_layout import PlyLayout
-from .ply_write import atomic_write
+from .ply_write import OutputSet, atomic_write
 
 if TYPE_CHECKING:
     from ..splats import SplatSet
@@ -138,31 +138,45 @@ def read_any_splats(path, drop_invalid: bool = False, on_drop=None, upload=None)
     return a, data.layout
 
 
-def save_splats(splats: SplatSet, path, format: str | None = None, on_loss=None, overwrite: bool = True) -> None:
+def save_splats(
+    splats: SplatSet, path, format: str | None = None, on_loss=None, overwrite: bool = True, outputs: OutputSet | None = None
+) -> None:
     """Writes ``splats`` in ``format`` (by default: by the name, :func:`format_for_path`), each
     file atomically. ``on_loss``, if given, is called with one line naming what the format could
     not hold (SH bands, extra properties, PLY elements), when anything. Without ``overwrite`` a
-    file already there is an InputError and stays as it is."""
-    save_levels([splats], path, format, on_loss, overwrite)
+    file already there is an InputError and stays as it is. With ``outputs`` (an ``OutputSet``) the
+    files are staged there, to appear together with the set's others when it is published."""
+    save_levels([splats], path, format, on_loss, overwrite, outputs)
 
 
-def save_levels(levels: list[SplatSet], path, format: str | None = None, on_loss=None, overwrite: bool = True) -> None:
+def save_levels(
+    levels: list[SplatSet], path, format: str | None = None, on_loss=None, overwrite: bool = True, outputs: OutputSet | None = None
+) -> None:
     """Writes one scene (``levels`` of one) or, for the ``lod`` format, a level-of-detail set of
-    several, finest first."""
+    several, finest first. Files of one call (an unbundled SOG's images, a set's levels) appear
+    together or not at all; with ``outputs`` they are staged there instead (``save_splats``)."""
     path = Path(path)
     fmt = format_for_path(path, format)
     if fmt != "lod" and len(levels) != 1:
         raise ValueError("several levels need the lod format")
-    if fmt == "ply":
-        save_ply(levels[0], path, overwrite=overwrite)
-        return
-    with np.errstate(all="ignore"):  # out-of-range values clip, by design
-        _write_levels([s.to_numpy() for s in levels], levels, path, fmt, on_loss, overwrite)
+    staged = OutputSet(overwrite) if outputs is None else outputs
+    try:
+        if fmt == "ply":
+            save_ply(levels[0], path, overwrite=overwrite, outputs=staged)
+        else:
+            with np.errstate(all="ignore"):  # out-of-range values clip, by design
+                _write_levels([s.to_numpy() for s in levels], levels, path, fmt, on_loss, overwrite, staged)
+        if outputs is None:
+            staged.publish()
+    except BaseException:
+        if outputs is None:
+            staged.discard()
+        raise
 
 
-def _write_levels(hosts, levels, path: Path, fmt: str, on_loss, overwrite: bool = True) -> None:
+def _write_levels(hosts, levels, path: Path, fmt: str, on_loss, overwrite: bool, outputs: OutputSet) -> None:
     def _write(path: Path, data: bytes) -> None:
-        atomic_write(path, lambda stream: stream.write(data), overwrite)
+        atomic_write(path, lambda stream: stream.write(data), overwrite, outputs)
 
     lost, changed = [], []  # parts the format drops; values it holds only clamped or rounded
     for s, host in zip(levels, hosts):
@@ -189,10 +203,7 @@ def _write_levels(hosts, levels, path: Path, fmt: str, on_loss, overwrite: bool 
             raise InputError(f"{folder.name}: exists and is not a directory")
         for relative, data in lod.encode(hosts, GENERATOR).items():
             target = folder / relative
-            try:
-                target.parent.mkdir(parents=True, exist_ok=True)
-            except OSError as e:
-                raise InputError(f"{target.parent}: cannot create the directory: {e.strerror or e}") from e
+            outputs.make_folder(target.parent)
             _write(target, data)
     if lost and on_loss is not None:
         on_loss(f"{path.name}: {_TITLE[fmt]} cannot hold {'; '.join(lost)}: dropped")

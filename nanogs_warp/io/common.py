@@ -126,8 +126,27 @@ def read_file_bytes(path: Path, limit: int | None = None) -> bytes:
             raise InputError(f"{name}: cannot read the file: {e.strerror or e}") from e
 
 
+# Deflate expands at most 1032 times (zlib's documented limit), plus the gzip header's few bytes.
+DEFLATE_MOST_EXPANSION = 1032
+
+
+def most_inflated(compressed_bytes: int) -> int:
+    """The most bytes a gzip stream of ``compressed_bytes`` bytes can hold."""
+    return DEFLATE_MOST_EXPANSION * compressed_bytes + 1024
+
+
 def gunzip_bounded(data: bytes, limit: int, name: str) -> bytes:
-    """The gzip stream's content, refusing more than ``limit`` bytes (nothing larger is allocated)."""
+    """The gzip stream's content, refusing more than ``limit`` bytes (nothing larger is allocated),
+    and refusing before any work a ``limit`` (of what ``data`` can hold: ``most_inflated``) that
+    this machine's available memory could not hold: a small file that declares a huge scene
+    ends in one line, not in exhausted memory."""
+    from ..device import available_host_memory
+
+    need = min(limit, most_inflated(len(data)))
+    available = available_host_memory()
+    if available is not None and need > available:
+        raise InputError(f"{name}: its header declares {limit:,} bytes of data, more than the {available:,} bytes of memory "
+                         "available")  # fmt: skip
     d = zlib.decompressobj(16 + zlib.MAX_WBITS)
     try:
         out = d.decompress(data, limit + 1)
@@ -162,13 +181,24 @@ def host_arrays(means, rotations, log_scales, opacities, features) -> dict[str, 
 VISIBLE_FRACTION = 1e-3
 
 
+def scene_extent(means: np.ndarray, log_scales: np.ndarray) -> float:
+    """The scene's size for the notes on what a format rounds or clamps: the larger of its centres'
+    widest spread and its largest splat's (one splat alone has a size, not a spread)."""
+    if means.shape[0] == 0:
+        return 0.0
+    spread = float(np.ptp(means.astype(np.float64), axis=0).max())
+    with np.errstate(all="ignore"):
+        largest = float(np.exp(np.clip(log_scales.astype(np.float64), -700.0, 700.0)).max()) if log_scales.size else 0.0
+    return max(spread, largest)
+
+
 def clamped_scales_note(log_scales: np.ndarray, means: np.ndarray, lowest: float, highest: float) -> list[str]:
     """A note when the format's log-scale range [lowest, highest] changes some splat's size by more
     than VISIBLE_FRACTION of the scene's extent (a scene stored in other units than the format
     expects); none otherwise."""
     if log_scales.size == 0:
         return []
-    extent = float(np.ptp(means.astype(np.float64), axis=0).max())
+    extent = scene_extent(means, log_scales)
     ls = log_scales.astype(np.float64)
     change = np.abs(np.exp(ls) - np.exp(np.clip(ls, lowest, highest)))
     count = int(np.count_nonzero((change > VISIBLE_FRACTION * extent).any(axis=1)))

@@ -44,9 +44,10 @@ from .ply_header import (
     natural,
     one_line,
     parse_header,
+    trailing_bytes,
 )
 from .ply_layout import PlyLayout
-from .ply_write import atomic_write, output_properties
+from .ply_write import OutputSet, atomic_write, output_properties
 from .ply_write import write_ply_stream as _write_ply_stream  # by this name: the tests patch it here
 from .ply_read import BlockCheck, Columns, copy_run, read_threads, read_vertex_rows, unit_size
 
@@ -90,13 +91,16 @@ def read_splats(path, drop_invalid: bool = False, digest=None, on_drop=None, fil
     name = Path(path).name
     data = _read(path, digest, file_hash, threads, prepare=True, upload=upload)
     a, check = data.arrays, data.check
+    if data.trailing_bytes and on_drop is not None:
+        on_drop(f"{name}: {data.trailing_bytes:,} bytes after the data its header declares were ignored (is its vertex "
+                "count smaller than the data's?)")  # fmt: skip
     if check is not None and not check.suspect:  # every value checked block by block: valid
         if check.infinite_opacity:
             a["opacities"] = saturate_opacity_logits(a["opacities"])
         return a, data.layout
     if "quats_xyzw" in a:  # a value to look at row by row: the exact checks, as for any file
         a["rotations"] = a.pop("quats_xyzw")[:, [3, 0, 1, 2]]
-    a = checked_rows(a, name, drop_invalid, on_drop)
+    a = checked_rows(a, name, drop_invalid, on_drop, data.layout.float_extra_names)
     a["rotations"] = normalize_quaternions(a["rotations"])
     return a, data.layout
 
@@ -107,11 +111,14 @@ def splats_from_host(arrays: dict[str, np.ndarray], layout: PlyLayout, device="c
     return _to_splat_set(arrays, layout, device)
 
 
-def checked_rows(a: dict[str, np.ndarray], name: str, drop_invalid: bool, on_drop=None) -> dict[str, np.ndarray]:
+def checked_rows(
+    a: dict[str, np.ndarray], name: str, drop_invalid: bool, on_drop=None, extra_names: list[str] | None = None
+) -> dict[str, np.ndarray]:
     """The host arrays with invalid rows refused (InputError) or dropped, and infinite opacity
-    logits saturated; shared by every format's reader."""
+    logits saturated; shared by every format's reader. ``extra_names``: the names of the float
+    extras' columns (a PLY's other properties), which must be finite too."""
     count = a["means"].shape[0]
-    check = check_values(a)
+    check = check_values(a, extra_names)
     bad = check.nonfinite_rows | check.zero_quat_rows | check.out_of_domain_rows
     n_bad = int(np.count_nonzero(bad))
     if n_bad:
@@ -143,7 +150,7 @@ def saturate_opacity_logits(logits: np.ndarray) -> np.ndarray:
     return out
 
 
-def save_ply(splats: SplatSet, path, threads: int | None = None, overwrite: bool = True) -> None:
+def save_ply(splats: SplatSet, path, threads: int | None = None, overwrite: bool = True, outputs: OutputSet | None = None) -> None:
     """Writes ``splats`` as a binary little-endian PLY file, atomically.
 
     Vertex properties follow ``splats.layout`` (names, order, dtypes; integer extras are clipped to
@@ -153,13 +160,14 @@ def save_ply(splats: SplatSet, path, threads: int | None = None, overwrite: bool
     vertex element. The data goes to a temporary file beside ``path`` that then replaces it, so a
     failure never leaves a partial file and never touches an existing one. ``threads`` pack the rows
     (None: :func:`~nanogs_warp.io.ply_read.read_threads`, at least two). Without ``overwrite`` an
-    existing ``path`` is an InputError and stays as it is.
+    existing ``path`` is an InputError and stays as it is. With ``outputs`` the file is staged there
+    (``OutputSet``) and appears when the set is published.
     """
     host = _host_arrays(splats)
     props = output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1],
                               host["integer_extras"].shape[1])  # fmt: skip
     atomic_write(Path(path), lambda stream: _write_ply_stream(stream, host, props, splats.layout, _CHUNK_BYTES, threads),
-                 overwrite)  # fmt: skip
+                 overwrite, outputs)  # fmt: skip
 
 
 def _host_arrays(splats: SplatSet) -> dict[str, np.ndarray]:
@@ -218,6 +226,7 @@ class PlyArrays:
     format: str
     file_bytes: int
     check: BlockCheck | None = None  # read_splats' reading: the block checks' findings (None: not checked)
+    trailing_bytes: int = 0  # after the data the header declares (binary files without list properties)
 
     @property
     def count(self) -> int:
@@ -394,7 +403,7 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
         comments=list(ply.comments),
         obj_info=list(ply.obj_info),
     )
-    return PlyArrays(arrays, layout, header.format, file_bytes, check)
+    return PlyArrays(arrays, layout, header.format, file_bytes, check, trailing_bytes(header, file_bytes))
 
 
 _CHUNK_BYTES = 4 << 20  # rows are written by save_ply (and converted from plyfile's array) in chunks of about this size

@@ -194,6 +194,15 @@ def check_sizes(header: Header, file_bytes: int, name: str) -> None:
             )
 
 
+def trailing_bytes(header: Header, file_bytes: int) -> int:
+    """Bytes of a binary file after the data its header declares (0 for ASCII files and files with
+    list properties, whose data length is not known from the header alone)."""
+    if header.format == "ascii" or any(p.is_list for e in header.elements for p in e.props):
+        return 0
+    declared = sum(e.count * sum(p.dtype.itemsize for p in e.props) for e in header.elements)
+    return max(0, file_bytes - header.length - declared)
+
+
 def check_agreement(header: Header, ply: plyfile.PlyData, name: str) -> None:
     ours = [(e.name, e.count, [p.name for p in e.props]) for e in header.elements]
     theirs = [(e.name, e.count, [p.name for p in e.properties]) for e in ply.elements]

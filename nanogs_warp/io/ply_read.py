@@ -275,7 +275,7 @@ def copy_run(out: np.ndarray, raw: np.ndarray, dt: np.dtype) -> None:
         out[...] = raw.view(dt)
 
 
-_CHECKED = ("means", "features", "log_scales")  # must be finite; opacities may be +-Inf
+_CHECKED = ("means", "features", "log_scales", "extras")  # must be finite; opacities may be +-Inf
 
 
 def check_block(columns: dict[str, Columns], first: int, stop: int) -> BlockCheck:

@@ -201,10 +201,81 @@ def copy_columns(block: np.ndarray, values: np.ndarray, dt: np.dtype) -> None:
         block.view(dt)[...] = values
 
 
-def atomic_write(path: Path, write, overwrite: bool = True) -> None:
+class OutputSet:
+    """A run's output files, each written under a temporary name beside its path (``atomic_write``
+    with ``outputs``) and all moved into place together by ``publish``, or all removed by
+    ``discard``: a run that fails part way (a full disk at its third file, a signal) leaves none of
+    them, and no folder it made for them. Without ``overwrite`` a file that appeared at one of the
+    paths is an InputError at ``publish``. Files may be added from another thread."""
+
+    def __init__(self, overwrite: bool = True):
+        self.overwrite = overwrite
+        self._staged: list[tuple[Path, Path]] = []  # (temporary, path)
+        self._folders: list[Path] = []  # made for the outputs, outermost first
+        self._lock = threading.Lock()
+
+    def stage(self, tmp: Path, path: Path) -> None:
+        with self._lock:
+            self._staged.append((tmp, path))
+
+    def make_folder(self, folder: Path) -> None:
+        """Makes ``folder`` and its missing parents, remembered for ``discard``; InputError if it cannot."""
+        missing = [f for f in (folder, *folder.parents) if not f.exists()][::-1]
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise InputError(f"{folder}: cannot create the directory: {e.strerror or e}") from e
+        with self._lock:
+            self._folders += [f for f in missing if f not in self._folders]
+
+    def publish(self) -> None:
+        """Moves every staged file into place, in the order staged; if one cannot be, the ones already
+        moved are removed again with the rest (InputError)."""
+        with self._lock:
+            staged, self._staged = self._staged, []
+        placed = []
+        try:
+            for tmp, path in staged:
+                if self.overwrite or not _linked(tmp, path):
+                    os.replace(tmp, path)
+                placed.append(path)
+        except BaseException as e:
+            for path in placed:
+                _remove(path)
+            self._staged = staged[len(placed):]
+            self.discard()
+            if isinstance(e, OSError):
+                raise InputError(f"{path.name}: cannot write the file: {e.strerror or one_line(e)}") from e
+            raise
+        with self._lock:
+            self._folders = []
+
+    def discard(self) -> None:
+        """Removes every staged file and the folders made for them (where empty)."""
+        with self._lock:
+            staged, self._staged = self._staged, []
+            folders, self._folders = self._folders, []
+        for tmp, _ in staged:
+            _remove(tmp)
+        for folder in reversed(folders):
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
+
+
+def _remove(path: Path) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
+
+
+def atomic_write(path: Path, write, overwrite: bool = True, outputs: OutputSet | None = None) -> None:
     """Calls ``write(stream)`` on a new temporary file beside ``path`` and moves it into place;
     without ``overwrite`` only where no file is (a file that appeared since it was checked, say by
-    another run writing the same name, is an InputError and stays as it is)."""
+    another run writing the same name, is an InputError and stays as it is). With ``outputs`` the
+    temporary file is left to ``outputs.publish`` instead (``OutputSet``)."""
     name = path.name
     directory = path.parent
     if path.is_dir():
@@ -218,7 +289,9 @@ def atomic_write(path: Path, write, overwrite: bool = True) -> None:
         created = True
         with os.fdopen(fd, "wb") as f:
             write(f)
-        if overwrite or not _linked(tmp, path):
+        if outputs is not None:
+            outputs.stage(tmp, path)
+        elif overwrite or not _linked(tmp, path):
             os.replace(tmp, path)
         created = False
     except OSError as e:
@@ -227,10 +300,7 @@ def atomic_write(path: Path, write, overwrite: bool = True) -> None:
         raise InputError(f"{name}: cannot write the file: {e.strerror or one_line(e)}") from e
     finally:
         if created:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
+            _remove(tmp)
 
 
 def _linked(tmp: Path, path: Path) -> bool:

@@ -19,7 +19,7 @@ def scene_info(path) -> dict:
     rows with finite means), ``opacity`` (sigmoid of the logits: min, median, mean, max),
     ``scale`` (exp of the log scales over all three axes: min, median, max), ``nonfinite``
     (property -> rows with NaN/Inf, extras included, only non-zero counts), ``nonfinite_rows``
-    (rows with NaN/Inf in a 3DGS property, which a load rejects), ``infinite_opacity``
+    (rows with NaN/Inf in any property, which a load rejects), ``infinite_opacity``
     (``{"+inf": rows, "-inf": rows}``: opacity logits of alpha 1 and 0, valid), ``zero_norm_quaternions``,
     ``out_of_domain`` (log-scale property -> finite values outside the numeric domain, which a load
     rejects too; only non-zero counts), ``out_of_domain_rows``,
@@ -31,8 +31,7 @@ def scene_info(path) -> dict:
     data = read_splat_arrays(path)
     a = data.arrays
     layout = data.layout
-    model = check_values(a)
-    with_extras = check_values(a, extra_names=layout.float_extra_names)  # integer ones are always finite
+    check = check_values(a, extra_names=layout.float_extra_names)  # integer extras are always finite
     means = a["means"]
     finite_means = means[np.isfinite(means).all(axis=1)]
     with np.errstate(all="ignore"):
@@ -54,12 +53,12 @@ def scene_info(path) -> dict:
         },
         "opacity": _stats(opacity, ("min", "median", "mean", "max")),
         "scale": _stats(scales, ("min", "median", "max")),
-        "nonfinite": with_extras.nonfinite_by_property,
-        "nonfinite_rows": int(np.count_nonzero(model.nonfinite_rows)),
-        "infinite_opacity": {"+inf": model.infinite_opacities[0], "-inf": model.infinite_opacities[1]},
-        "zero_norm_quaternions": int(np.count_nonzero(model.zero_quat_rows)),
-        "out_of_domain": model.out_of_domain_by_property,
-        "out_of_domain_rows": int(np.count_nonzero(model.out_of_domain_rows)),
+        "nonfinite": check.nonfinite_by_property,
+        "nonfinite_rows": int(np.count_nonzero(check.nonfinite_rows)),
+        "infinite_opacity": {"+inf": check.infinite_opacities[0], "-inf": check.infinite_opacities[1]},
+        "zero_norm_quaternions": int(np.count_nonzero(check.zero_quat_rows)),
+        "out_of_domain": check.out_of_domain_by_property,
+        "out_of_domain_rows": int(np.count_nonzero(check.out_of_domain_rows)),
         "comments": list(layout.comments),
         "obj_info": list(layout.obj_info),
         "other_elements": [

@@ -16,6 +16,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import re
 import warnings
 import zipfile
 from pathlib import Path
@@ -348,5 +349,5 @@ def _is_number(v) -> bool:
 
 
 def _short(e: BaseException) -> str:
-    text = " ".join(str(e).split())
+    text = re.sub(r" ?<[^<>]* object at 0x[0-9a-fA-F]+>", "", " ".join(str(e).split()))  # no object reprs
     return (text[:120] + "...") if len(text) > 120 else (text or type(e).__name__)

@@ -30,7 +30,9 @@ from .common import (
     gunzip_bounded,
     host_arrays,
     interleaved_to_channel_major,
+    most_inflated,
     opacity_to_byte,
+    scene_extent,
     smallest_three,
     unit_quaternions,
 )
@@ -79,6 +81,9 @@ def read_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
     rot_bytes = 4 if version == 3 else 3
     k = _REST[degree]
     sizes = [9 * n, n, 3 * n, 3 * n, rot_bytes * n, 3 * k * n]
+    if HEADER.size + sum(sizes) > most_inflated(len(data)):
+        raise InputError(f"{name}: truncated SPZ data: {n} splats need {HEADER.size + sum(sizes)} bytes, more than "
+                         f"{len(data)} bytes of gzip data can hold")  # fmt: skip
     body = gunzip_bounded(data, HEADER.size + sum(sizes), name)  # never more than the header declares
     if len(body) < HEADER.size + sum(sizes):
         raise InputError(f"{name}: truncated SPZ data: {n} splats need {HEADER.size + sum(sizes)} bytes, "
@@ -117,7 +122,7 @@ def encode(host: dict[str, np.ndarray], version: int = 3) -> tuple[bytes, list[s
     fixed = np.rint(means * (1 << frac))
     if np.any(np.abs(fixed) > (1 << 23) - 1):
         notes.append(f"positions beyond +-{((1 << 23) - 1) / (1 << frac):.4g} units: clipped")
-    extent = float(np.ptp(means, axis=0).max()) if n else 0.0
+    extent = scene_extent(means, host["log_scales"])
     if n and 0.5 / (1 << frac) > VISIBLE_FRACTION * extent:
         notes.append(f"positions finer than 1/{1 << frac} units: rounded, by more than {VISIBLE_FRACTION:g} of the scene's extent ({extent:.3g})")
     notes += clamped_scales_note(host["log_scales"], host["means"], LOG_SCALE_RANGE[0], LOG_SCALE_RANGE[1])
