@@ -319,3 +319,20 @@ def test_without_overwrite_a_file_that_appears_meanwhile_is_kept(scene, tmp_path
     assert run("simplify", scene, "-o", out, "--ratio", "0.5", "--device", "cpu", "-w").exit_code == 0
     assert load_ply(out).count == 300
     save_ply(load_ply(scene), out, overwrite=True)  # the library's default replaces, as before
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["eval", "a.ply"], "Missing argument 'TEST'"),
+        (["simplify", "a.ply", "--bogus"], "No such option: --bogus"),
+        (["eval", "a.ply", "b.ply", "--views", "many"], "'many' is not a valid int"),
+        (["frobnicate"], "No such command 'frobnicate'"),
+    ],
+)
+def test_a_command_line_the_parser_refuses_is_one_line(args, message):
+    result = run(*args)
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("nanogs-warp: error: ") and message in lines[0], result.stderr
+    assert lines[0].endswith("-h')")

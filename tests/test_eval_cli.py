@@ -183,3 +183,20 @@ def test_long_view_names_make_short_file_names(tmp_path):
     image = np.zeros((12, 12, 3), np.float32)
     written = write_images(tmp_path / "img", [image], [image], ["v" * 400])
     assert written[0].name == "v" * 100 + ".png" and written[0].exists()
+
+
+def test_invalid_rows_are_refused_or_dropped(scenes, tmp_path):
+    """A scene with a NaN row: one line and exit 2, or with --drop-invalid evaluated without it."""
+    from plyfile import PlyData
+
+    reference = scenes / "ref.ply"
+    bad = tmp_path / "bad.ply"
+    shutil.copy(reference, bad)
+    ply = PlyData.read(str(bad), mmap=False)
+    ply["vertex"].data["opacity"][3] = np.nan
+    ply.write(str(bad))
+    refused = run(bad, reference, "--device", "cpu", "--views", "2", "--size", "32")
+    assert refused.exit_code == 2 and "--drop-invalid" in refused.stderr
+    result = run(bad, reference, "--device", "cpu", "--views", "2", "--size", "32", "--drop-invalid", "--json")
+    assert result.exit_code == 0, result.output
+    assert "dropped 1 of 200" in result.stderr and json.loads(result.stdout)["tests"][0]["count"] == 200

@@ -648,3 +648,16 @@ def test_bytes_after_the_declared_data_are_said(tmp_path):
         f.write(b"\0" * 100)
     assert load_ply(path, on_drop=notes.append).count == 40
     assert len(notes) == 1 and "100 bytes after the data its header declares were ignored" in notes[0]
+
+
+def test_a_control_character_in_the_header_is_one_line(tmp_path):
+    """A NUL (or another control character) in a property name is refused, not carried into the
+    output's header; tabs between words are fine."""
+    path = tmp_path / "scene.ply"
+    random_splats_ply(path, 10, sh_degree=0, seed=1)
+    data = path.read_bytes()
+    (tmp_path / "nul.ply").write_bytes(data.replace(b"property float opacity", b"property float opa\0city", 1))
+    with pytest.raises(InputError, match="control character"):
+        load_ply(tmp_path / "nul.ply")
+    (tmp_path / "tabs.ply").write_bytes(data.replace(b"property float opacity", b"property\tfloat\topacity", 1))
+    assert load_ply(tmp_path / "tabs.ply").count == 10

@@ -19,12 +19,13 @@ from ..errors import InputError, NanogsWarning
 from ..refinement.config import RefineConfig
 from . import options as opts
 from .batch import batch_command
-from .errors import examples, readable_placeholders, user_errors
+from .errors import examples, one_line_usage_errors, readable_placeholders, user_errors
 from .eval import eval_command
 from .info import info_command
 from .warmup import warmup_command
 
 readable_placeholders()
+one_line_usage_errors()
 app = typer.Typer(
     name="nanogs-warp",
     help="Make trained 3D Gaussian Splatting scenes 10x-1000x smaller without training images (NanoGS).",

@@ -72,6 +72,24 @@ def user_errors(command):
     return wrapper
 
 
+def one_line_usage_errors() -> None:
+    """A command line the parser refuses (a missing argument, an unknown option, a value of the
+    wrong type) is one line on stderr, as every other error is, naming the help to read, instead of
+    the usage, a hint and the error on three or four. Exit code 2, as before. Does nothing on typer
+    versions without their own copy of click."""
+    try:
+        from typer._click.exceptions import UsageError
+        from typer._click.utils import echo
+    except ImportError:
+        return
+
+    def show(self, file=None) -> None:
+        command = self.ctx.command_path if self.ctx is not None else "nanogs-warp"
+        echo(f"nanogs-warp: error: {self.format_message()} (see '{command} -h')", err=file is None, file=file)
+
+    UsageError.show = show
+
+
 def readable_placeholders() -> None:
     """Help shows value placeholders as words (``--views VIEWS``, ``SCENE``) rather than this typer
     version's ``<int>`` types and ``{input}`` braces. Options and arguments with their own metavar

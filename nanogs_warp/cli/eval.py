@@ -15,6 +15,7 @@ from typing import Annotated, Optional
 import typer
 
 from ..errors import InputError
+from . import options as opts
 from .options import JSON_SCHEMA
 
 
@@ -55,6 +56,7 @@ def eval_command(
     up: Annotated[str, typer.Option("--up", help="World up axis of the orbit views: +x, -x, +y, -y, +z or -z (INRIA/COLMAP scenes are -y).", metavar="UP")] = "-y",
     background: Annotated[str, typer.Option("--background", metavar="R,G,B", help="Background colour R,G,B in [0, 1] (or black, white).")] = "0,0,0",
     images: Annotated[Optional[str], typer.Option("--images", metavar="FOLDER", help="Write reference | test | difference x4 PNGs per view and a contact sheet into this directory (one sub-directory per test scene).", show_default=False)] = None,
+    drop_invalid: opts.DropInvalid = False,
     json_output: Annotated[bool, typer.Option("--json", help="Print machine-readable results (JSON) instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
 ) -> None:
@@ -91,8 +93,12 @@ def eval_command(
         creatable_folder(images, f"--images {images}")
     load_kernels(target, EVAL_MODULES)  # says so in one line when they must be compiled first
 
-    ref_splats = load_splats(reference, device=target)
-    test_splats = [load_splats(path, device=target) for path in tests]
+    def dropped(line: str) -> None:
+        if not quiet:
+            print(f"nanogs-warp: warning: {line}", file=sys.stderr)
+
+    ref_splats = load_splats(reference, device=target, drop_invalid=drop_invalid, on_drop=dropped)
+    test_splats = [load_splats(path, device=target, drop_invalid=drop_invalid, on_drop=dropped) for path in tests]
     offset = render_offset(ref_splats)  # a scene far from the origin for its size: seen recentred
     if offset is not None:
         ref_splats, test_splats = rescaled(ref_splats, 1.0, offset), [rescaled(t, 1.0, offset) for t in test_splats]
