@@ -1,5 +1,7 @@
 """OutputSet: a run's files appear together when published, or not at all."""
 
+from pathlib import Path
+
 import pytest
 
 from nanogs_warp.errors import InputError
@@ -51,3 +53,54 @@ def test_an_existing_file_is_replaced_with_overwrite(tmp_path):
     assert (tmp_path / "out.ply").read_bytes() == b"old"
     outputs.publish()
     assert (tmp_path / "out.ply").read_bytes() == b"new"
+
+
+def test_an_interrupt_while_publishing_waits_for_the_last_file(tmp_path, monkeypatch):
+    """Ctrl-C (or SIGTERM) arriving while the files are moved into place is acted on once the last
+    one is: the set is whole, then the interrupt ends the command."""
+    import os
+    import signal
+
+    from nanogs_warp.io import ply_write
+
+    outputs = OutputSet()
+    for name in ("a.ply", "b.ply", "c.ply"):
+        _write(outputs, tmp_path / name, name.encode())
+    replace = os.replace
+    calls = []
+
+    def interrupted_replace(source, target):
+        calls.append(target)
+        if len(calls) == 1:
+            signal.raise_signal(signal.SIGINT)
+        return replace(source, target)
+
+    monkeypatch.setattr(ply_write.os, "replace", interrupted_replace)
+    with pytest.raises(KeyboardInterrupt):
+        outputs.publish()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.ply", "b.ply", "c.ply"] and len(calls) == 3
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_failure_while_publishing_keeps_what_replaced_older_files(tmp_path, monkeypatch):
+    """A move that fails part way (an OSError) removes the new files that replaced nothing and the
+    rest; a file that already replaced an older one stays (the older one is gone)."""
+    import os
+
+    from nanogs_warp.io import ply_write
+
+    (tmp_path / "old.ply").write_bytes(b"older")
+    outputs = OutputSet(overwrite=True)
+    for name in ("old.ply", "new.ply", "last.ply"):
+        _write(outputs, tmp_path / name, name.encode())
+    replace = os.replace
+
+    def failing_replace(source, target):
+        if Path(target).name == "last.ply":
+            raise OSError(28, "No space left on device")
+        return replace(source, target)
+
+    monkeypatch.setattr(ply_write.os, "replace", failing_replace)
+    with pytest.raises(InputError, match="last.ply: cannot write the file: No space left on device"):
+        outputs.publish()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.ply"] and (tmp_path / "old.ply").read_bytes() == b"old.ply"

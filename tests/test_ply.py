@@ -648,6 +648,7 @@ def test_bytes_after_the_declared_data_are_said(tmp_path):
         f.write(b"\0" * 100)
     assert load_ply(path, on_drop=notes.append).count == 40
     assert len(notes) == 1 and "100 bytes after the data its header declares were ignored" in notes[0]
+    assert scene_info(path)["trailing_bytes"] == 100 and "100 bytes after the declared data" in format_info(scene_info(path))
 
 
 def test_a_control_character_in_the_header_is_one_line(tmp_path):
@@ -659,5 +660,8 @@ def test_a_control_character_in_the_header_is_one_line(tmp_path):
     (tmp_path / "nul.ply").write_bytes(data.replace(b"property float opacity", b"property float opa\0city", 1))
     with pytest.raises(InputError, match="control character"):
         load_ply(tmp_path / "nul.ply")
+    (tmp_path / "comment.ply").write_bytes(data.replace(b"end_header", b"comment a\0b\nend_header", 1))
+    with pytest.raises(InputError, match="control character"):
+        load_ply(tmp_path / "comment.ply")
     (tmp_path / "tabs.ply").write_bytes(data.replace(b"property float opacity", b"property\tfloat\topacity", 1))
     assert load_ply(tmp_path / "tabs.ply").count == 10

@@ -66,9 +66,10 @@ def eval_command(
     from ..eval.cameras import load_cameras_json, orbit_cameras, parse_up
     from ..eval.evaluate import evaluate, format_table, write_images
     from ..eval.units import render_offset, rescaled, rescaled_camera
-    from ..folders import creatable_folder, writable_folder
+    from ..folders import creatable_folder
     from ..io import load_splats
     from ..io.open_file import open_regular
+    from ..io.ply_write import OutputSet
     from ..kernel_cache import EVAL_MODULES, load_kernels
 
     if not tests:
@@ -123,20 +124,30 @@ def eval_command(
     for t in result["tests"]:
         t["identical"] = all(v["psnr"] == math.inf for v in t["views"])
 
-    if images is not None:
-        for k, (label, test_images) in enumerate(zip(labels, rendered["tests"])):
-            folder = images / label.replace("/", "_")[-100:]
-            t = result["tests"][k]
-            title = [f"REFERENCE {_scene_label(reference)} | {label} | DIFFERENCE ×4",
-                     f"{t['count']:,} SPLATS  PSNR {_number(t['psnr']['mean'], 2)}  SSIM {_number(t['ssim']['mean'], 3)} (MEAN)"]  # fmt: skip
-            try:
-                writable_folder(images, f"--images {images}")
-                written = write_images(folder, rendered["reference"], test_images, result["view_names"], comparison=t, title=title)
-            except OSError as e:
-                raise InputError(f"--images {folder}: cannot write the images: {e.strerror or e}") from None
-            t["images"] = str(folder.resolve())
-            if not quiet:
-                print(f"wrote {len(written)} images to {folder}", file=sys.stderr)
+    if images is not None:  # every image under a temporary name, all moved into place at the end
+        image_files = OutputSet()
+        try:
+            image_files.make_folder(images)
+            counts = []
+            for k, (label, test_images) in enumerate(zip(labels, rendered["tests"])):
+                folder = images / label.replace("/", "_")[-100:]
+                t = result["tests"][k]
+                title = [f"REFERENCE {_scene_label(reference)} | {label} | DIFFERENCE ×4",
+                         f"{t['count']:,} SPLATS  PSNR {_number(t['psnr']['mean'], 2)}  SSIM {_number(t['ssim']['mean'], 3)} (MEAN)"]  # fmt: skip
+                try:
+                    written = write_images(folder, rendered["reference"], test_images, result["view_names"], comparison=t, title=title,
+                                           outputs=image_files)  # fmt: skip
+                except InputError as e:
+                    raise InputError(f"--images {folder}: {e}") from None
+                t["images"] = str(folder.resolve())
+                counts.append((len(written), folder))
+            image_files.publish()
+        except BaseException:
+            image_files.discard()
+            raise
+        if not quiet:
+            for count, folder in counts:
+                print(f"wrote {count} images to {folder}", file=sys.stderr)
 
     if json_output:
         typer.echo(json.dumps(_finite_or_none(result), indent=2))

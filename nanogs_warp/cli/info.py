@@ -32,7 +32,9 @@ def format_info(info: dict) -> str:
     """Human-readable text for a :func:`~nanogs_warp.io.scene_info.scene_info` dict."""
     lines = [
         f"file        {info['file']} ({info['file_bytes']:,} bytes, {info['format']})",
-        f"splats      {info['count']:,}",
+        f"splats      {info['count']:,}" + (
+            f" ({info['trailing_bytes']:,} bytes after the declared data ignored)" if info.get("trailing_bytes") else ""
+        ),
         f"SH degree   {info['sh_degree']} ({3 * (info['sh_degree'] + 1) ** 2} coefficients)",
     ]
     props = info["properties"]

@@ -206,8 +206,9 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     return np.round(np.clip(np.asarray(image, np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
-def write_png(path: Path | str, image: np.ndarray) -> None:
-    """Writes an (H, W, 3) uint8 image as an 8-bit RGB PNG (no filtering, zlib level 6)."""
+def write_png(path: Path | str, image: np.ndarray, outputs=None) -> None:
+    """Writes an (H, W, 3) uint8 image as an 8-bit RGB PNG (no filtering, zlib level 6), staged in
+    ``outputs`` (an ``OutputSet``) when given."""
     image = np.ascontiguousarray(image, dtype=np.uint8)
     if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) image, got {image.shape}")
@@ -219,8 +220,13 @@ def write_png(path: Path | str, image: np.ndarray) -> None:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
 
     header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
-    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw.tobytes(), 6))
-    Path(path).write_bytes(png + chunk(b"IEND", b""))
+    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw.tobytes(), 6)) + chunk(b"IEND", b"")
+    if outputs is None:
+        Path(path).write_bytes(png)
+    else:
+        from ..io.ply_write import atomic_write
+
+        atomic_write(Path(path), lambda stream: stream.write(png), True, outputs)
 
 
 def comparison_strip(reference: np.ndarray, test: np.ndarray, gap: int = 2) -> np.ndarray:
@@ -290,14 +296,19 @@ def write_images(
     names: Sequence[str],
     comparison: dict | None = None,
     title: Sequence[str] = (),
+    outputs=None,
 ) -> list[Path]:
     """Writes ``<name>.png`` per view (reference | test | difference x 4) and ``contact_sheet.png``
     (every view's strip on a grid) into ``directory`` (created if missing). With ``comparison``
     (``compare_images``' result for these images), each cell of the sheet is labelled with its view,
     PSNR and SSIM and the worst view by PSNR is marked; ``title`` lines head the sheet (the scene
-    names). Returns the paths."""
+    names). With ``outputs`` (an ``OutputSet``) the files and the folder are staged there, to
+    appear when it is published. Returns the paths."""
     directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
+    if outputs is None:
+        directory.mkdir(parents=True, exist_ok=True)
+    else:
+        outputs.make_folder(directory)
     written, strips, used = [], [], {"contact_sheet"}
     for k, (name, ref, test) in enumerate(zip(names, reference_images, test_images)):
         strip = comparison_strip(ref, test)
@@ -307,7 +318,7 @@ def write_images(
             stem = f"{stem}_{k:03d}"
         used.add(stem)
         path = directory / f"{stem}.png"
-        write_png(path, strip)
+        write_png(path, strip, outputs)
         written.append(path)
     if strips:
         labels, worst = None, None
@@ -318,7 +329,7 @@ def write_images(
             identical = all(v["psnr"] == math.inf for v in views)
             worst = None if identical else next((k for k, v in enumerate(views) if v["name"] == worst_name), None)
         path = directory / "contact_sheet.png"
-        write_png(path, contact_sheet(strips, labels=labels, worst=worst, title=title))
+        write_png(path, contact_sheet(strips, labels=labels, worst=worst, title=title), outputs)
         written.append(path)
     return written
 

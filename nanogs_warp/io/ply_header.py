@@ -94,12 +94,12 @@ def parse_header(head: bytes, name: str) -> Header:
         line = raw.strip()
         if not line:
             continue
+        if not line.replace("\t", " ").isprintable():  # a NUL or another control character: no tool reads it back
+            fail(lineno, f"a control character in {line[:40]!r}")
         keyword, *fields = line.split()
         rest = line[len(keyword) :]
         if keyword in ("comment", "obj_info"):  # plyfile's reading keeps them
             continue
-        if not line.replace("\t", " ").isprintable():  # a NUL or another control character: no tool reads it back
-            fail(lineno, f"a control character in {line[:40]!r}")
         if keyword == "format":
             if fmt is not None or elements:
                 fail(lineno, "unexpected 'format' line")

@@ -6,10 +6,12 @@ file that then replaces the target (see :func:`nanogs_warp.io.ply.save_ply`, the
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import os
 import secrets
+import signal
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -229,24 +231,31 @@ class OutputSet:
             self._folders += [f for f in missing if f not in self._folders]
 
     def publish(self) -> None:
-        """Moves every staged file into place, in the order staged; if one cannot be, the ones already
-        moved are removed again with the rest (InputError)."""
+        """Moves every staged file into place, in the order staged, with SIGINT, SIGTERM and SIGHUP
+        held until the last is moved (``signals_held``). If one cannot be moved, the rest are
+        removed, and so are the files already moved that replaced nothing (InputError); one that
+        replaced an older file (``overwrite``) stays, as the older one is gone."""
         with self._lock:
             staged, self._staged = self._staged, []
-        placed = []
-        try:
-            for tmp, path in staged:
-                if self.overwrite or not _linked(tmp, path):
-                    os.replace(tmp, path)
-                placed.append(path)
-        except BaseException as e:
-            for path in placed:
-                _remove(path)
-            self._staged = staged[len(placed):]
-            self.discard()
-            if isinstance(e, OSError):
-                raise InputError(f"{path.name}: cannot write the file: {e.strerror or one_line(e)}") from e
-            raise
+        placed = []  # the paths moved into place that replaced nothing
+        done = 0
+        with signals_held():
+            try:
+                for tmp, path in staged:
+                    existed = os.path.lexists(path)
+                    if self.overwrite or not _linked(tmp, path):
+                        os.replace(tmp, path)
+                    done += 1
+                    if not existed:
+                        placed.append(path)
+            except BaseException as e:
+                for moved in placed:
+                    _remove(moved)
+                self._staged = staged[done:]
+                self.discard()
+                if isinstance(e, OSError):
+                    raise InputError(f"{path.name}: cannot write the file: {e.strerror or one_line(e)}") from e
+                raise
         with self._lock:
             self._folders = []
 
@@ -262,6 +271,29 @@ class OutputSet:
                 folder.rmdir()
             except OSError:
                 pass
+
+
+@contextlib.contextmanager
+def signals_held():
+    """SIGINT, SIGTERM and SIGHUP that arrive in the block are acted on when it ends: the handlers
+    in place are restored and the first such signal raised again. Only on the main thread (Python
+    sets handlers there alone); elsewhere the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+    previous = {}
+    for name in ("SIGINT", "SIGTERM", "SIGHUP"):
+        number = getattr(signal, name, None)
+        if number is not None and signal.getsignal(number) is not None:
+            previous[number] = signal.signal(number, lambda received, frame: pending.append(received))
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+        if pending:
+            signal.raise_signal(pending[0])
 
 
 def _remove(path: Path) -> None:

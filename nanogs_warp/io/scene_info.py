@@ -14,7 +14,8 @@ from .ply import check_values, sh_degree_for_rest_count
 def scene_info(path) -> dict:
     """Facts about a splat file (any format :func:`nanogs_warp.io.load_splats` reads) as a JSON-ready dict.
 
-    Keys: ``file``, ``file_bytes``, ``format``, ``count``, ``sh_degree``, ``properties`` (list of
+    Keys: ``file``, ``file_bytes``, ``trailing_bytes`` (of a binary PLY after the data its header
+    declares, which a load ignores), ``format``, ``count``, ``sh_degree``, ``properties`` (list of
     ``{"name", "dtype"}`` in file order), ``extra_properties``, ``bbox`` (``min``/``max`` xyz over
     rows with finite means), ``opacity`` (sigmoid of the logits: min, median, mean, max),
     ``scale`` (exp of the log scales over all three axes: min, median, max), ``nonfinite``
@@ -42,6 +43,7 @@ def scene_info(path) -> dict:
     return {
         "file": Path(path).name,
         "file_bytes": data.file_bytes,
+        "trailing_bytes": data.trailing_bytes,
         "format": data.format,
         "count": data.count,
         "sh_degree": sh_degree_for_rest_count(a["features"].shape[1] - 3),
