@@ -130,8 +130,9 @@ def batch_command(
 
 def main() -> None:
     """``python -m nanogs_warp.cli.batch``: the batch command on its own (as ``nanogs-warp batch``)."""
-    from .errors import user_errors
+    from .errors import one_line_usage_errors, user_errors
 
+    one_line_usage_errors()
     app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, rich_markup_mode=None,
                       context_settings={"help_option_names": ["-h", "--help"]})  # fmt: skip
     app.command("batch")(user_errors(batch_command))
