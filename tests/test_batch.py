@@ -465,3 +465,16 @@ def test_ray_task_past_its_time_limit_is_cancelled(scenes_and_a_spinner, tmp_pat
         ray.shutdown()
     summary = run_json(root, "-o", out, "--ratio", "0.1,0.01", "--scene-timeout", "20", "--ray", "local", code=1)
     check_spinner_timed_out(summary, clean, out, 20, "its Ray task was cancelled")
+
+
+def test_failed_scenes_leave_no_folders_the_run_made(scenes, tmp_path):
+    """A batch whose scenes all fail leaves no output folder it made; one whose scene fails while
+    writing (a full disk, simulated) leaves no empty scene folder, while a folder that was there
+    before stays."""
+    manifest = tmp_path / "list.txt"
+    manifest.write_text("in/missing.ply\n")
+    result = run(manifest, "-o", tmp_path / "new" / "out", "--ratio", "0.1", "--devices", "cpu", "-q")
+    assert result.exit_code == 1 and not (tmp_path / "new").exists()
+    (tmp_path / "kept").mkdir()
+    result = run(manifest, "-o", tmp_path / "kept", "--ratio", "0.1", "--devices", "cpu", "-q")
+    assert result.exit_code == 1 and (tmp_path / "kept").is_dir()

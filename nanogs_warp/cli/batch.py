@@ -105,12 +105,15 @@ def batch_command(
         from ..batch.local import parse_devices
 
         device_list = parse_devices(devices)
+    made_here = _missing_folders(output, [job.out_dir for job in selected])
     writable_folder(output, f"--output {output}")
 
     progress = BatchProgress(len(selected), quiet=quiet)
     if shard_count > 1 and not quiet:
         typer.echo(f"nanogs-warp batch: shard {shard_index}/{shard_count}: {len(selected)} of {len(jobs)} scenes", err=True)
     results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress, scene_timeout, readers)
+    if shard_count == 1:  # every worker was this run's and has ended: nothing else writes there now
+        _remove_empty(made_here)
     seconds = time.perf_counter() - started
     if json_output:
         summary = summary_json(results, seconds, (shard_index, shard_count))
@@ -126,6 +129,26 @@ def batch_command(
     sys.stdout.flush()
     if any(r.status == "failed" for r in results):
         raise typer.Exit(1)
+
+
+def _missing_folders(root: Path, folders: list[Path]) -> list[Path]:
+    """The folders that do not exist yet among ``folders`` (below ``root``), ``root`` and all the
+    folders above each of them, up to the first that exists."""
+    missing = set()
+    for folder in {root, *folders}:
+        while not folder.exists() and folder not in missing:
+            missing.add(folder)
+            folder = folder.parent
+    return sorted(missing)
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Removes those of ``folders`` (made by this run) that its failed scenes left empty, deepest first."""
+    for folder in sorted(folders, key=lambda f: len(f.parts), reverse=True):
+        try:
+            folder.rmdir()  # only an empty one
+        except OSError:
+            pass
 
 
 def main() -> None:
