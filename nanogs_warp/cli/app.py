@@ -206,7 +206,7 @@ def simplify(
     # The outputs are written on another thread while the next budget is simplified, under
     # temporary names: they appear together once the last is written, or not at all.
     outputs = OutputSet(overwrite)
-    writer = _Writer(background=True)
+    writer = _Writer()
     try:
         try:
             with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
@@ -279,16 +279,13 @@ class _Notes:
 
 
 class _Writer:
-    """Writes outputs in turn, on one background thread (``background``) or on the caller's; its
-    clock: ``write`` (seconds spent writing) and ``write_wait`` (the caller waiting for the writes
-    at the end)."""
+    """Writes outputs in turn on one background thread; its clock: ``write`` (seconds spent
+    writing) and ``write_wait`` (the caller waiting for the writes at the end)."""
 
-    def __init__(self, background: bool):
-        self.pool = None
-        if background:
-            from concurrent.futures import ThreadPoolExecutor
+    def __init__(self):
+        from concurrent.futures import ThreadPoolExecutor
 
-            self.pool = ThreadPoolExecutor(1, thread_name_prefix="nanogs-write")
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="nanogs-write")
         self.pending: list = []
         self.seconds = 0.0
 
@@ -296,10 +293,7 @@ class _Writer:
         for future in [f for f in self.pending if f.done()]:  # an error shows as soon as it is seen
             self.pending.remove(future)
             future.result()
-        if self.pool is None:
-            self._timed(write)
-        else:
-            self.pending.append(self.pool.submit(self._timed, write))
+        self.pending.append(self.pool.submit(self._timed, write))
 
     def _timed(self, write) -> None:
         begun = time.perf_counter()
@@ -315,8 +309,7 @@ class _Writer:
         stages["write_wait"] = time.perf_counter() - begun
 
     def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(wait=True)
+        self.pool.shutdown(wait=True)
 
 
 def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels,
@@ -363,8 +356,7 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
                 written[-1]["refine"] = report.to_json()
         smaller = [t for t in budgets_for_target if t < target]
         progress.target = max(smaller) if smaller else target
-    in_turn = writer.seconds if writer.pool is None else 0.0  # writes done on this thread
-    stages["simplify"] = time.perf_counter() - loaded - stages.get("upload", 0.0) - stages["download"] - in_turn
+    stages["simplify"] = time.perf_counter() - loaded - stages.get("upload", 0.0) - stages["download"]
 
 
 def _refine(result, reference, config: RefineConfig, show_progress: bool, views=None):
