@@ -161,6 +161,41 @@ def test_an_unbundled_sog_never_replaces_the_inputs_images_or_existing_files(sce
     assert load_splats(other / "meta.json").count == 10
 
 
+def test_overwriting_a_lod_set_with_fewer_levels_removes_the_older_levels(scene, tmp_path, monkeypatch):
+    lods = tmp_path / "set"
+    lods.mkdir()
+    assert run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5,0.2,0.1", "--device", "cpu", "-q").exit_code == 0
+    (lods / "2_0" / "notes.txt").write_text("mine")  # not a file of the set: stays, and its folder with it
+    assert run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5", "--device", "cpu", "-q", "-w").exit_code == 0
+    meta = json.loads((lods / "lod-meta.json").read_text())
+    assert meta["filenames"] == ["0_0/meta.json"]
+    assert not (lods / "1_0").exists() and sorted(p.name for p in (lods / "2_0").iterdir()) == ["notes.txt"]
+    assert load_splats(lods / "lod-meta.json").count == 200
+    # a level that is the input is never removed, though the new set leaves it out
+    assert run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5,0.2,0.1", "--device", "cpu", "-q", "-w").exit_code == 0
+    level = _contents(lods / "2_0")
+    result = run("simplify", lods / "2_0" / "meta.json", "-o", lods / "lod-meta.json", "--ratio", "0.5", "--device", "cpu", "-q", "-w")
+    assert result.exit_code == 0, result.output
+    assert _contents(lods / "2_0") == level and not (lods / "1_0").exists()
+    # a set whose writing fails part way (a full disk at its third file) retires nothing
+    assert run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5,0.2,0.1", "--device", "cpu", "-q", "-w").exit_code == 0
+    before = _contents(lods)
+    from nanogs_warp.errors import InputError
+    from nanogs_warp.io import ply_write
+
+    calls = []
+
+    def full_disk(path, write, overwrite=True, outputs=None):
+        calls.append(path)
+        if len(calls) == 3:
+            raise InputError(f"{path.name}: cannot write the file: No space left on device")
+        return ply_write.atomic_write(path, write, overwrite, outputs)
+
+    monkeypatch.setattr("nanogs_warp.io.atomic_write", full_disk)
+    result = run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5", "--device", "cpu", "-w")
+    assert result.exit_code == 2 and "No space left on device" in result.stderr and _contents(lods) == before
+
+
 def test_a_lod_set_never_replaces_the_inputs_level_or_existing_levels(scene, tmp_path):
     lods = tmp_path / "set"
     lods.mkdir()

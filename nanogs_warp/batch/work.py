@@ -227,12 +227,12 @@ def _read(scene: LoadedScene, force: bool) -> None:
 
 
 def _write(scene: LoadedScene) -> None:
-    from ..io import save_splats
+    from ..io import input_files, save_splats
     from ..io.ply_write import OutputSet
 
     job, result = scene.job, scene.result
     job.out_dir.mkdir(parents=True, exist_ok=True)  # here: a scene that fails leaves no empty folder
-    files = OutputSet()  # the scene's outputs appear together, or (a failure part way) none of them
+    files = OutputSet(keep=input_files(job.input))  # the scene's outputs appear together, or (a failure part way) none of them
     try:
         outputs = []
         for _, simplified, budgets in scene.simplified:

@@ -116,7 +116,7 @@ def simplify(
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
     from ..device import WarpStart, keep_freed_host_memory, process_age
-    from ..io import format_for_path, output_files, read_any_splats, save_levels
+    from ..io import format_for_path, input_files, output_files, read_any_splats, save_levels
     from ..io.ply_write import OutputSet
     from ..io.ply import splats_from_host
     from ..io.row_upload import RowUpload
@@ -205,7 +205,7 @@ def simplify(
     stages["upload"] = time.perf_counter() - loaded
     # The outputs are written on another thread while the next budget is simplified, under
     # temporary names: they appear together once the last is written, or not at all.
-    outputs = OutputSet(overwrite)
+    outputs = OutputSet(overwrite, keep=input_files(input))  # an older LOD set's levels go, never the input's files
     writer = _Writer()
     try:
         try:

@@ -9,6 +9,7 @@ levels). What each keeps and loses: docs/formats.md.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -201,14 +202,35 @@ def _write_levels(hosts, levels, path: Path, fmt: str, on_loss, overwrite: bool,
         folder = path.parent if path.name.lower() == "lod-meta.json" else path
         if folder.exists() and not folder.is_dir():
             raise InputError(f"{folder.name}: exists and is not a directory")
-        for relative, data in lod.encode(hosts, GENERATOR).items():
-            target = folder / relative
+        files = {folder / relative: data for relative, data in lod.encode(hosts, GENERATOR).items()}
+        if overwrite:
+            outputs.retire(_stale_level_files(folder, files))
+        for target, data in files.items():
             outputs.make_folder(target.parent)
             _write(target, data)
     if lost and on_loss is not None:
         on_loss(f"{path.name}: {_TITLE[fmt]} cannot hold {'; '.join(lost)}: dropped")
     if changed and on_loss is not None:
         on_loss(f"{path.name}: {_TITLE[fmt]} cannot hold all values exactly: {'; '.join(changed)}")
+
+
+def _stale_level_files(folder: Path, files) -> list[Path]:
+    """The files of the level-of-detail set already in ``folder`` (its ``lod-meta.json``'s levels:
+    each SOG's meta.json and the images it names) that a new set of ``files`` does not write: the
+    levels an older set had beyond the new one's. Only files inside ``folder`` are named; none
+    where there is no readable set."""
+    meta_path = folder / "lod-meta.json"
+    try:
+        metas = lod.level_metas(meta_path, read_file_bytes(meta_path, lod.META_LIMIT))
+    except InputError:  # no set there (or not one that can be read): nothing to retire
+        return []
+    root = os.path.realpath(folder)
+    stale = []
+    for meta in metas:
+        for member in sog.member_files(meta):
+            if member not in files and os.path.realpath(member).startswith(root + os.sep) and member.is_file():
+                stale.append(member)
+    return stale
 
 
 def output_files(path, format: str | None = None, levels: int = 1) -> list[Path]:

@@ -54,6 +54,23 @@ def encode(levels: list[dict[str, np.ndarray]], generator: str) -> dict[str, byt
     return files
 
 
+def level_metas(path, data: bytes) -> list:
+    """The paths of every level's SOG ``meta.json`` that a ``lod-meta.json`` names inside its folder
+    (the others are left out); an empty list where it is not a readable version-1 set."""
+    try:
+        meta = json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError):
+        return []
+    files = meta.get("filenames") if isinstance(meta, dict) and meta.get("version", 1) == 1 else None
+    if not isinstance(files, list):
+        return []
+    return [path.parent / f for f in files if isinstance(f, str) and f and _inside(f)]
+
+
+def _inside(relative: str) -> bool:
+    return not relative.startswith(("/", "\\")) and ".." not in relative.replace("\\", "/").split("/")
+
+
 def finest_level_meta(path, data: bytes):
     """The path of the finest level's SOG ``meta.json`` named by a ``lod-meta.json``."""
     name = path.name
@@ -76,6 +93,6 @@ def finest_level_meta(path, data: bytes):
     if not (isinstance(index, int) and not isinstance(index, bool) and 0 <= index < len(files)):
         raise InputError(f"{name}: lod-meta.json has no level-0 file reference")
     relative = files[index]
-    if relative.startswith(("/", "\\")) or ".." in relative.replace("\\", "/").split("/"):
+    if not _inside(relative):
         raise InputError(f"{name}: lod-meta.json names {relative!r} outside its folder")
     return path.parent / relative

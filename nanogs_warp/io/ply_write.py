@@ -208,12 +208,15 @@ class OutputSet:
     with ``outputs``) and all moved into place together by ``publish``, or all removed by
     ``discard``: a run that fails part way (a full disk at its third file, a signal) leaves none of
     them, and no folder it made for them. Without ``overwrite`` a file that appeared at one of the
-    paths is an InputError at ``publish``. Files may be added from another thread."""
+    paths is an InputError at ``publish``. Files may be added from another thread. ``keep``: files
+    never retired (``retire``), whatever an older output says of them: the run's inputs."""
 
-    def __init__(self, overwrite: bool = True):
+    def __init__(self, overwrite: bool = True, keep=()):
         self.overwrite = overwrite
+        self._keep = {os.path.realpath(p) for p in keep}
         self._staged: list[tuple[Path, Path]] = []  # (temporary, path)
         self._folders: list[Path] = []  # made for the outputs, outermost first
+        self._retired: list[Path] = []  # older outputs' files that the staged ones make stale
         self._lock = threading.Lock()
 
     def stage(self, tmp: Path, path: Path) -> None:
@@ -230,11 +233,19 @@ class OutputSet:
         with self._lock:
             self._folders += [f for f in missing if f not in self._folders]
 
+    def retire(self, paths) -> None:
+        """Files of an older output that the staged ones replace as a whole without writing over
+        them (a level-of-detail set's levels beyond the new set's): removed once every staged file
+        is in place, and their folders with them where left empty; kept if the run fails."""
+        with self._lock:
+            self._retired += [Path(p) for p in paths if Path(p) not in self._retired and os.path.realpath(p) not in self._keep]
+
     def publish(self) -> None:
         """Moves every staged file into place, in the order staged, with SIGINT, SIGTERM and SIGHUP
-        held until the last is moved (``signals_held``). If one cannot be moved, the rest are
-        removed, and so are the files already moved that replaced nothing (InputError); one that
-        replaced an older file (``overwrite``) stays, as the older one is gone."""
+        held until the last is moved (``signals_held``), then removes the retired files. If one
+        cannot be moved, the rest are removed, and so are the files already moved that replaced
+        nothing (InputError); one that replaced an older file (``overwrite``) stays, as the older
+        one is gone, and the retired files stay."""
         with self._lock:
             staged, self._staged = self._staged, []
         placed = []  # the paths moved into place that replaced nothing
@@ -256,6 +267,15 @@ class OutputSet:
                 if isinstance(e, OSError):
                     raise InputError(f"{path.name}: cannot write the file: {e.strerror or one_line(e)}") from e
                 raise
+            with self._lock:
+                retired, self._retired = self._retired, []
+            for path in retired:
+                _remove(path)
+            for folder in dict.fromkeys(path.parent for path in retired):
+                try:
+                    folder.rmdir()  # only where nothing else is left in it
+                except OSError:
+                    pass
         with self._lock:
             self._folders = []
 
@@ -264,6 +284,7 @@ class OutputSet:
         with self._lock:
             staged, self._staged = self._staged, []
             folders, self._folders = self._folders, []
+            self._retired = []
         for tmp, _ in staged:
             _remove(tmp)
         for folder in reversed(folders):
