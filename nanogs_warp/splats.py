@@ -159,6 +159,22 @@ class SplatSet:
         device = self.device if device is None else device
         return replace(self, **{f.name: wp.clone(getattr(self, f.name), device=device) for f in _ARRAY_FIELDS})
 
+    def with_sh_degree(self, degree: int) -> SplatSet:
+        """This splat set with spherical harmonics up to ``degree`` only (0: the base colour alone),
+        its other arrays shared; itself when its degree is not above ``degree``. The kept
+        coefficients are copied exactly: f_dc, then each channel's first (degree + 1)^2 - 1 f_rest."""
+        if not 0 <= degree <= 3:
+            raise ValueError(f"an SH degree is 0 to 3, got {degree}")
+        own = self.sh_degree
+        if degree >= own:
+            return self
+        kept, rest = (degree + 1) ** 2 - 1, (own + 1) ** 2 - 1
+        features = wp.empty((self.count, 3 + 3 * kept), dtype=wp.float32, device=self.device)
+        wp.copy(features[:, 0:3], self.features[:, 0:3])
+        for channel in range(3 if kept else 0):  # f_rest is channel-major: all R, then G, then B
+            wp.copy(features[:, 3 + channel * kept : 3 + (channel + 1) * kept], self.features[:, 3 + channel * rest : 3 + channel * rest + kept])
+        return replace(self, features=features)
+
     def kernel_view(self):
         """The arrays bundled as the kernels' ``Splats`` struct."""
         from .kernels.splat_math import Splats

@@ -103,3 +103,45 @@ def test_help_describes_the_default_cost():
     text = run("simplify", "--help").stdout
     lambda_geo = text[text.index("--lambda-geo") : text.index("--lambda-app")]
     assert "runnalls" in lambda_geo and "default" in lambda_geo
+
+
+def test_sh_degree_of_the_outputs(tmp_path):
+    """--sh-degree drops the input's higher bands before the merge: the outputs hold that degree (the
+    PLY's f_rest block resized), --json echoes it, the input's own degree changes nothing, and
+    batch writes the same bytes as simplify (the size fit of the 0.5 % output compares both with
+    the whole input)."""
+    import typer
+    from plyfile import PlyData
+
+    from nanogs_warp.cli.batch import batch_command
+    from nanogs_warp.cli.errors import user_errors
+
+    scenes = tmp_path / "in"
+    scenes.mkdir()
+    scene = scenes / "s.ply"
+    random_splats_ply(scene, 2000, sh_degree=3, seed=8)
+    budgets = ("--ratio", "0.1,0.005")
+    result = run("simplify", scene, "-o", tmp_path / "one.ply", *budgets, "--sh-degree", "1", "--device", "cpu", "--json")
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["settings"]["sh_degree"] == 1
+    for budget, count in (("0.1", 200), ("0.005", 10)):
+        names = [p.name for p in PlyData.read(str(tmp_path / f"one_{budget}.ply"))["vertex"].properties]
+        assert [n for n in names if n.startswith("f_rest_")] == [f"f_rest_{i}" for i in range(9)]
+        assert load_ply(tmp_path / f"one_{budget}.ply").count == count
+    assert run("simplify", scene, "-o", tmp_path / "all.ply", *budgets, "--sh-degree", "3", "--device", "cpu", "-q").exit_code == 0
+    assert run("simplify", scene, "-o", tmp_path / "plain.ply", *budgets, "--device", "cpu", "-q").exit_code == 0
+    for budget in ("0.1", "0.005"):
+        assert (tmp_path / f"all_{budget}.ply").read_bytes() == (tmp_path / f"plain_{budget}.ply").read_bytes()
+    assert run("simplify", scene, "-o", tmp_path / "zero.ply", *budgets, "--sh-degree", "0", "--device", "cpu", "-q").exit_code == 0
+    batch = typer.Typer(pretty_exceptions_enable=False)
+    batch.callback()(lambda: None)
+    batch.command("batch")(user_errors(batch_command))
+    result = CliRunner().invoke(batch, ["batch", str(scenes), "-o", str(tmp_path / "out"), *budgets, "--sh-degree", "0", "--devices", "cpu", "-q"])
+    assert result.exit_code == 0, result.output
+    for budget in ("0.1", "0.005"):
+        assert (tmp_path / "out" / f"s_{budget}.ply").read_bytes() == (tmp_path / f"zero_{budget}.ply").read_bytes()
+    assert json.loads((tmp_path / "out" / "s.nanogs.json").read_text())["options"]["sh_degree"] == 0
+    for command in (["simplify", scene, "-o", tmp_path / "bad.ply"], ["batch", scenes, "-o", tmp_path / "bad"]):
+        result = run(*command, "--ratio", "0.1", "--sh-degree", "4", "--device" if command[0] == "simplify" else "--devices", "cpu")
+        assert result.exit_code == 2 and result.stderr.strip() == "nanogs-warp: error: --sh-degree must be 0, 1, 2 or 3, got 4"
+    assert not (tmp_path / "bad.ply").exists() and not (tmp_path / "bad").exists()

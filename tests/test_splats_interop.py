@@ -65,3 +65,28 @@ def test_documented_way_back_from_the_gsplat_layout(tmp_path):
     back = SplatSet.from_numpy(g["means"], g["quats"], g["scales"], g["opacities"], features, g["extras"])
     for key, value in back.to_numpy().items():
         np.testing.assert_array_equal(value, splats.to_numpy()[key])
+
+
+def test_fewer_sh_bands_keep_each_channels_first_coefficients(tmp_path, device):
+    """``with_sh_degree`` against the PLY names: f_dc, then f_rest_{c (k' - 1) + j} of the kept
+    degree from f_rest_{c (k - 1) + j} of the input's, for every pair of degrees."""
+    from plyfile import PlyData
+
+    for own in range(4):
+        path = tmp_path / f"s{own}.ply"
+        random_splats_ply(path, 40, sh_degree=own, seed=own)
+        vertex = PlyData.read(str(path))["vertex"].data
+        splats = load_ply(path, device=device)
+        for degree in range(4):
+            fewer = splats.with_sh_degree(degree)
+            if degree >= own:
+                assert fewer is splats
+                continue
+            k = (degree + 1) ** 2
+            f = fewer.features.numpy()
+            assert f.shape == (40, 3 * k) and fewer.sh_degree == degree and fewer.means is splats.means
+            expected = [vertex[f"f_dc_{c}"] for c in range(3)]
+            expected += [vertex[f"f_rest_{c * ((own + 1) ** 2 - 1) + j}"] for c in range(3) for j in range(k - 1)]
+            np.testing.assert_array_equal(f, np.stack(expected, axis=1))
+    with pytest.raises(ValueError, match="0 to 3"):
+        splats.with_sh_degree(4)

@@ -40,6 +40,7 @@ class SceneJob:
     output_format: str = "ply"  # a nanogs_warp.io format other than "lod"
     refine_steps: int = 0  # refinement steps per output (0: none)
     refine_size: int = 256  # longest side of refinement's training views
+    sh_degree: int | None = None  # the outputs' SH degree (None: the input's)
 
     @property
     def stem(self) -> str:
@@ -60,6 +61,8 @@ class SceneJob:
             options["format"] = self.output_format
         if self.refine_steps > 0:
             options.update(refine_steps=self.refine_steps, refine_size=self.refine_size)
+        if self.sh_degree is not None:
+            options["sh_degree"] = self.sh_degree
         return options
 
 

@@ -109,6 +109,7 @@ def simplify(
     refine_steps: opts.RefineSteps = None,
     refine_size: opts.RefineSize = RefineConfig.size,
     output_format: opts.Format = None,
+    sh_degree: opts.ShDegree = None,
     sample: Annotated[bool, typer.Option("--sample", help="Use the shipped 20,000-splat sample scene as the input.")] = False,
     overwrite: Annotated[bool, typer.Option("-w", "--overwrite", help="Replace output files that already exist (by default they are an error).")] = False,
     json_output: opts.Json = False,
@@ -127,6 +128,7 @@ def simplify(
         median_cost_factor=median_cost_factor, fit_size=fit_size,
     )
     config.validate()  # before anything is started or read
+    opts.check_sh_degree(sh_degree)
     refine_config = None
     if refine or refine_steps is not None:
         refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size, seed=config.seed)
@@ -212,7 +214,7 @@ def simplify(
             with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
                 warnings.simplefilter("always", NanogsWarning)
                 _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes,
-                                   levels, refine_config, writer, stages, overwrite, outputs)  # fmt: skip
+                                   levels, refine_config, writer, stages, overwrite, outputs, sh_degree)  # fmt: skip
             writer.finish(stages)
         finally:
             writer.close()  # every write started has ended: none stages a file after a discard
@@ -239,7 +241,7 @@ def simplify(
         "input_count": splats.count,
         "after_prune_count": after_prune,
         "device": str(target_device),
-        "settings": _settings(config, after_prune, target_device),
+        "settings": _settings(config, after_prune, target_device, sh_degree),
         "passes": len(passes),
         "outputs": written,
         "notes": notes.lines,
@@ -313,13 +315,15 @@ class _Writer:
 
 
 def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes, levels,
-                       refine_config, writer, stages, overwrite, outputs):  # fmt: skip
+                       refine_config, writer, stages, overwrite, outputs, sh_degree=None):  # fmt: skip
     """Runs the progressive merge and writes each budget as it is reached (appending to ``written``);
     for a level-of-detail set (``levels`` a list) keeps each level on the host instead. With
     ``refine_config``, each budget's result is refined toward the input first. Each result comes
     to the host here (``stages["download"]``) and is handed to ``writer``, which stages its files
     in ``outputs`` (an ``OutputSet``: the caller publishes them). Without ``overwrite`` a file
-    that appeared at an output's path since it was checked stays, and the publishing fails."""
+    that appeared at an output's path since it was checked stays, and the publishing fails.
+    ``sh_degree``: the input's bands above it are dropped before the merge (the size fit and
+    refinement compare with the whole input)."""
     from ..io import save_splats
     from ..pipeline import simplify_progressively
     from ..refinement.size_fit import size_fit_for
@@ -332,7 +336,8 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
         from ..refinement.refine import ReferenceViews
 
         views = ReferenceViews(on_device, refine_config)
-    for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass, finish=size_fit):
+    merged_from = on_device if sh_degree is None else on_device.with_sh_degree(sh_degree)
+    for target, result in simplify_progressively(merged_from, list(budgets_for_target), config, on_pass=on_pass, finish=size_fit):
         reached = time.perf_counter()
         report = None
         if refine_config is not None:
@@ -376,11 +381,13 @@ def _refine(result, reference, config: RefineConfig, show_progress: bool, views=
     return refined, report
 
 
-def _settings(config, splat_count: int, device) -> dict:
+def _settings(config, splat_count: int, device, sh_degree: int | None = None) -> dict:
     """The settings a run used, as --json echoes them: k resolved for the scene's size."""
     settings = dict(vars(config))
     settings["k"] = config.neighbours(splat_count)
     settings["device"] = str(device)
+    if sh_degree is not None:
+        settings["sh_degree"] = sh_degree
     return settings
 
 

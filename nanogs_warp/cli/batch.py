@@ -55,6 +55,7 @@ def batch_command(
     refine_steps: opts.RefineSteps = None,
     refine_size: opts.RefineSize = RefineConfig.size,
     output_format: Annotated[Optional[str], typer.Option("--format", show_default=False, metavar="OUTPUT_FORMAT", help="Output format: ply (default), compressed-ply, spz, sog or splat.")] = None,
+    sh_degree: opts.ShDegree = None,
     json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
 ) -> None:
@@ -72,6 +73,7 @@ def batch_command(
         median_cost_factor=median_cost_factor, fit_size=fit_size,
     )
     config.validate()
+    opts.check_sh_degree(sh_degree)
     budgets = parse_budgets(ratio, count) if ratio is not None or count is not None else None
     shard_index, shard_count = parse_shard(shard)
     if scene_timeout is not None and not (0 <= scene_timeout <= MAX_SCENE_TIMEOUT):  # NaN too
@@ -94,6 +96,8 @@ def batch_command(
         refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size)
         refine_config.validate()
         jobs = [replace(job, refine_steps=refine_config.steps, refine_size=refine_config.size) for job in jobs]
+    if sh_degree is not None:
+        jobs = [replace(job, sh_degree=sh_degree) for job in jobs]
     selected = select_shard(jobs, shard_index, shard_count)
     device_list, ray_gpu = None, None
     if ray is not None:
@@ -122,6 +126,8 @@ def batch_command(
             for out in scene["outputs"]:
                 out["path"] = os.path.abspath(out["path"])
         settings = {**vars(config), "devices": devices, "workers": workers, "readers": readers, "ray": ray, "drop_invalid": drop_invalid}
+        if sh_degree is not None:
+            settings["sh_degree"] = sh_degree
         summary = {"schema": opts.JSON_SCHEMA, "command": "batch", "output": os.path.abspath(output), "settings": settings, **summary}
         typer.echo(json.dumps(summary, indent=2))
     elif not quiet:
