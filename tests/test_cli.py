@@ -328,6 +328,7 @@ def test_without_overwrite_a_file_that_appears_meanwhile_is_kept(scene, tmp_path
         (["simplify", "a.ply", "--bogus"], "No such option: --bogus"),
         (["eval", "a.ply", "b.ply", "--views", "many"], "'many' is not a valid int"),
         (["frobnicate"], "No such command 'frobnicate'"),
+        (["simplify", "a.ply", "-o"], "Option '-o' requires an argument"),
     ],
 )
 def test_a_command_line_the_parser_refuses_is_one_line(args, message):
@@ -335,4 +336,5 @@ def test_a_command_line_the_parser_refuses_is_one_line(args, message):
     assert result.exit_code == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("nanogs-warp: error: ") and message in lines[0], result.stderr
-    assert lines[0].endswith("-h')")
+    command = args[0] if args[0] != "frobnicate" else None
+    assert lines[0].endswith(f"(see '{' '.join(filter(None, ['nanogs-warp', command]))} -h')"), lines[0]

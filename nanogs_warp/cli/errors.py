@@ -78,6 +78,7 @@ def one_line_usage_errors() -> None:
     the usage, a hint and the error on three or four. Exit code 2, as before. Does nothing on typer
     versions without their own copy of click."""
     try:
+        from typer._click.core import Command
         from typer._click.exceptions import UsageError
         from typer._click.utils import echo
     except ImportError:
@@ -88,6 +89,22 @@ def one_line_usage_errors() -> None:
         echo(f"nanogs-warp: error: {self.format_message()} (see '{command} -h')", err=file is None, file=file)
 
     UsageError.show = show
+    if getattr(Command.parse_args, "_names_its_command", False):
+        return
+    parse_args = Command.parse_args
+
+    def parse_args_naming_the_command(self, ctx, args):
+        """The parser raises some errors (an option missing its value) without the command's
+        context: given it here, the line names the subcommand's help, not the program's."""
+        try:
+            return parse_args(self, ctx, args)
+        except UsageError as e:
+            if e.ctx is None:
+                e.ctx = ctx
+            raise
+
+    parse_args_naming_the_command._names_its_command = True
+    Command.parse_args = parse_args_naming_the_command
 
 
 def readable_placeholders() -> None:
