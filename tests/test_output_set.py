@@ -104,3 +104,28 @@ def test_a_failure_while_publishing_keeps_what_replaced_older_files(tmp_path, mo
     with pytest.raises(InputError, match="last.ply: cannot write the file: No space left on device"):
         outputs.publish()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old.ply"] and (tmp_path / "old.ply").read_bytes() == b"old.ply"
+
+
+def test_retired_files_go_once_the_set_is_in_place(tmp_path):
+    """Files retired (an older output's that the new one makes stale) are removed after the staged
+    ones are moved, each once however often named, with their folders where left empty; never a
+    kept file (an input); and none when the set is discarded."""
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "a.webp").write_bytes(b"a")
+    (old / "b.webp").write_bytes(b"b")
+    (tmp_path / "input.json").write_bytes(b"i")
+    outputs = OutputSet(keep=[tmp_path / "input.json"])
+    outputs.retire([old / "a.webp"] * 50_000 + [old / "b.webp", tmp_path / "input.json"])
+    assert outputs._retired == [old / "a.webp", old / "b.webp"]
+    _write(outputs, tmp_path / "new.ply", b"n")
+    assert (old / "a.webp").exists()  # not before the new files are in place
+    outputs.publish()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["input.json", "new.ply"]
+    (old).mkdir()
+    (old / "a.webp").write_bytes(b"a")
+    outputs = OutputSet()
+    outputs.retire([old / "a.webp"])
+    _write(outputs, tmp_path / "other.ply", b"o")
+    outputs.discard()
+    assert (old / "a.webp").read_bytes() == b"a" and not (tmp_path / "other.ply").exists()

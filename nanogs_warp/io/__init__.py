@@ -225,12 +225,14 @@ def _stale_level_files(folder: Path, files) -> list[Path]:
     except InputError:  # no set there (or not one that can be read): nothing to retire
         return []
     root = os.path.realpath(folder)
-    stale = []
+    stale = {}  # in order, each once (a hostile set may name one file many times)
     for meta in metas:
+        if not os.path.isfile(meta):
+            continue
         for member in sog.member_files(meta):
-            if member not in files and os.path.realpath(member).startswith(root + os.sep) and member.is_file():
-                stale.append(member)
-    return stale
+            if member not in files and member not in stale and os.path.realpath(member).startswith(root + os.sep) and member.is_file():
+                stale[member] = None
+    return list(stale)
 
 
 def output_files(path, format: str | None = None, levels: int = 1) -> list[Path]:

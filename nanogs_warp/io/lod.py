@@ -56,7 +56,7 @@ def encode(levels: list[dict[str, np.ndarray]], generator: str) -> dict[str, byt
 
 def level_metas(path, data: bytes) -> list:
     """The paths of every level's SOG ``meta.json`` that a ``lod-meta.json`` names inside its folder
-    (the others are left out); an empty list where it is not a readable version-1 set."""
+    (the others are left out), each once; an empty list where it is not a readable version-1 set."""
     try:
         meta = json.loads(data.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError):
@@ -64,7 +64,7 @@ def level_metas(path, data: bytes) -> list:
     files = meta.get("filenames") if isinstance(meta, dict) and meta.get("version", 1) == 1 else None
     if not isinstance(files, list):
         return []
-    return [path.parent / f for f in files if isinstance(f, str) and f and _inside(f)]
+    return [path.parent / f for f in dict.fromkeys(f for f in files if isinstance(f, str) and f and _inside(f))]
 
 
 def _inside(relative: str) -> bool:

@@ -238,7 +238,11 @@ class OutputSet:
         them (a level-of-detail set's levels beyond the new set's): removed once every staged file
         is in place, and their folders with them where left empty; kept if the run fails."""
         with self._lock:
-            self._retired += [Path(p) for p in paths if Path(p) not in self._retired and os.path.realpath(p) not in self._keep]
+            known = set(self._retired)
+            for path in map(Path, paths):
+                if path not in known and os.path.realpath(path) not in self._keep:
+                    self._retired.append(path)
+                    known.add(path)
 
     def publish(self) -> None:
         """Moves every staged file into place, in the order staged, with SIGINT, SIGTERM and SIGHUP
