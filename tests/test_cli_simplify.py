@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from nanogs_warp.cli.app import app
 from nanogs_warp.data import sample_path
-from nanogs_warp.io.ply import load_ply
+from nanogs_warp.io.ply import load_ply, save_ply
 
 
 def run(*args):
@@ -106,10 +106,9 @@ def test_help_describes_the_default_cost():
 
 
 def test_sh_degree_of_the_outputs(tmp_path):
-    """--sh-degree drops the input's higher bands before the merge: the outputs hold that degree (the
-    PLY's f_rest block resized), --json echoes it, the input's own degree changes nothing, and
-    batch writes the same bytes as simplify (the size fit of the 0.5 % output compares both with
-    the whole input)."""
+    """--sh-degree drops each output's higher bands after the merge and the size fit: the outputs
+    are the plain run's with the PLY's f_rest block cut to that degree, --json echoes it, the
+    input's own degree changes nothing, and batch writes the same bytes as simplify."""
     import typer
     from plyfile import PlyData
 
@@ -124,14 +123,15 @@ def test_sh_degree_of_the_outputs(tmp_path):
     result = run("simplify", scene, "-o", tmp_path / "one.ply", *budgets, "--sh-degree", "1", "--device", "cpu", "--json")
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout)["settings"]["sh_degree"] == 1
+    assert run("simplify", scene, "-o", tmp_path / "all.ply", *budgets, "--sh-degree", "3", "--device", "cpu", "-q").exit_code == 0
+    assert run("simplify", scene, "-o", tmp_path / "plain.ply", *budgets, "--device", "cpu", "-q").exit_code == 0
     for budget, count in (("0.1", 200), ("0.005", 10)):
         names = [p.name for p in PlyData.read(str(tmp_path / f"one_{budget}.ply"))["vertex"].properties]
         assert [n for n in names if n.startswith("f_rest_")] == [f"f_rest_{i}" for i in range(9)]
         assert load_ply(tmp_path / f"one_{budget}.ply").count == count
-    assert run("simplify", scene, "-o", tmp_path / "all.ply", *budgets, "--sh-degree", "3", "--device", "cpu", "-q").exit_code == 0
-    assert run("simplify", scene, "-o", tmp_path / "plain.ply", *budgets, "--device", "cpu", "-q").exit_code == 0
-    for budget in ("0.1", "0.005"):
         assert (tmp_path / f"all_{budget}.ply").read_bytes() == (tmp_path / f"plain_{budget}.ply").read_bytes()
+        save_ply(load_ply(tmp_path / f"plain_{budget}.ply").with_sh_degree(1), tmp_path / "cut.ply")
+        assert (tmp_path / "cut.ply").read_bytes() == (tmp_path / f"one_{budget}.ply").read_bytes()
     assert run("simplify", scene, "-o", tmp_path / "zero.ply", *budgets, "--sh-degree", "0", "--device", "cpu", "-q").exit_code == 0
     batch = typer.Typer(pretty_exceptions_enable=False)
     batch.callback()(lambda: None)

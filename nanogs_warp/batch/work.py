@@ -130,8 +130,9 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
             from ..refinement.refine import ReferenceViews, refine_with_report
 
             views = ReferenceViews(on_device, RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed))
-        merged_from = on_device if job.sh_degree is None else on_device.with_sh_degree(job.sh_degree)
-        for target, simplified in simplify_progressively(merged_from, list(by_target), job.config, on_pass=on_pass, reference=on_device):
+        for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
+            if job.sh_degree is not None:  # the bands above it dropped from the output, before refinement
+                simplified = simplified.with_sh_degree(job.sh_degree)
             if views is not None:
                 simplified = refine_with_report(simplified, on_device, views.config, views=views)[0]
             # to the host here, so that the writer thread never touches the GPU (and its memory is freed)

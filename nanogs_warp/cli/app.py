@@ -322,8 +322,8 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
     to the host here (``stages["download"]``) and is handed to ``writer``, which stages its files
     in ``outputs`` (an ``OutputSet``: the caller publishes them). Without ``overwrite`` a file
     that appeared at an output's path since it was checked stays, and the publishing fails.
-    ``sh_degree``: the input's bands above it are dropped before the merge (the size fit and
-    refinement compare with the whole input)."""
+    ``sh_degree``: each output's bands above it are dropped after the merge and the size fit,
+    before refinement (which then compares the output as it will be written with the input)."""
     from ..io import save_splats
     from ..pipeline import simplify_progressively
     from ..refinement.size_fit import size_fit_for
@@ -336,10 +336,11 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
         from ..refinement.refine import ReferenceViews
 
         views = ReferenceViews(on_device, refine_config)
-    merged_from = on_device if sh_degree is None else on_device.with_sh_degree(sh_degree)
-    for target, result in simplify_progressively(merged_from, list(budgets_for_target), config, on_pass=on_pass, finish=size_fit):
+    for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass, finish=size_fit):
         reached = time.perf_counter()
         report = None
+        if sh_degree is not None:
+            result = result.with_sh_degree(sh_degree)
         if refine_config is not None:
             progress.done()
             result, report = _refine(result, on_device, refine_config, progress.enabled, views)

@@ -32,7 +32,7 @@ MedianCostFactor = Annotated[Optional[float], typer.Option("--median-cost-factor
 FitSize = Annotated[Optional[bool], typer.Option("--fit-size/--no-fit-size", show_default=False, help="Scale each output of at most 1 % of the input's splats by the one factor whose renders match the input's best at a coarse and a fine pixel size (default and its budgets at or below 1 %; off in the fast and paper presets).")]
 DropInvalid = Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values or zero quaternions instead of failing (says how many and why). Opacity logits of +-Inf (alpha 1 or 0) are valid.")]
 Format = Annotated[Optional[str], typer.Option("--format", metavar="FORMAT", show_default=False, help="Output format, whatever the output's name: ply, compressed-ply, spz, sog, splat or lod [default: by the output's name, else ply].")]
-ShDegree = Annotated[Optional[int], typer.Option("--sh-degree", metavar="DEGREE", show_default=False, help="Spherical-harmonics degree of the outputs, 0 to 3 (0: the base colour only, the smallest files); the input's higher bands are dropped before simplifying, and the size fit and refinement still compare with the whole input [default: the input's].")]
+ShDegree = Annotated[Optional[int], typer.Option("--sh-degree", metavar="DEGREE", show_default=False, help="Spherical-harmonics degree of the outputs, 0 to 3 (0: the base colour only, the smallest files): each output's higher bands are dropped after the merge, before refinement [default: the input's].")]
 Json = Annotated[bool, typer.Option("--json", help="Print a machine-readable summary on stdout.")]
 Quiet = Annotated[bool, typer.Option("-q", "--quiet", help="Print nothing but errors (and --json).")]
 

@@ -23,14 +23,10 @@ def simplify_progressively(
     config: SimplifyConfig = SimplifyConfig(),
     on_pass: Callable[[PassReport], None] | None = None,
     clock: StageClock | None = None,
-    reference: SplatSet | None = None,
 ) -> Iterator[tuple[int, SplatSet]]:
     """Yields (target, splats) for each target count, largest first, from one progressive merge
-    (``pipeline.simplify_progressively``), each output fitted for size when ``config.fit_size``:
-    against renders of ``reference`` (default: ``splats``; the whole input where ``splats`` is it
-    with fewer SH bands, ``SplatSet.with_sh_degree``)."""
-    fit = size_fit_for(splats if reference is None else reference, config)
-    return merged_progressively(splats, targets, config, on_pass, clock, finish=fit)
+    (``pipeline.simplify_progressively``), each output fitted for size when ``config.fit_size``."""
+    return merged_progressively(splats, targets, config, on_pass, clock, finish=size_fit_for(splats, config))
 
 
 def simplify(
