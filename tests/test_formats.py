@@ -178,6 +178,20 @@ def test_lod_set_round_trip(tmp_path):
     assert load_splats(path.parent / "1_0" / "meta.json").count == 40
 
 
+def test_the_levels_a_lod_meta_names():
+    """``lod.level_metas``: each level's meta.json inside the set's folder, once, in order; names
+    outside it (absolute, '..') left out; nothing from what is not a version-1 set."""
+    from nanogs_warp.io import lod
+
+    path = Path("set") / "lod-meta.json"
+    names = ["1_0/meta.json", "0_0/meta.json", "1_0/meta.json", "/etc/x/meta.json", "../up/meta.json", "a/../../b", "", 7]
+    data = json.dumps({"version": 1, "filenames": names, "tree": {}}).encode()
+    assert lod.level_metas(path, data) == [Path("set/1_0/meta.json"), Path("set/0_0/meta.json")]
+    for bad in (b"[1]", b"{", b"\xff", json.dumps({"version": 2, "filenames": names}).encode(),
+                json.dumps({"filenames": "0_0/meta.json"}).encode()):
+        assert lod.level_metas(path, bad) == []
+
+
 def test_detection_is_by_content_and_names_pick_the_output(tmp_path):
     a = scene(50, 0, seed=50)
     for name, fmt in (("x.splat", "splat"), ("x.compressed.ply", "compressed-ply"), ("x.spz", "spz"),
