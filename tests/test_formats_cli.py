@@ -4,6 +4,7 @@ sets, infinite opacity logits (accepted, counted, never dropped silently) and ev
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -194,6 +195,29 @@ def test_overwriting_a_lod_set_with_fewer_levels_removes_the_older_levels(scene,
     monkeypatch.setattr("nanogs_warp.io.atomic_write", full_disk)
     result = run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5", "--device", "cpu", "-w")
     assert result.exit_code == 2 and "No space left on device" in result.stderr and _contents(lods) == before
+
+
+def test_retiring_an_older_lod_set_never_removes_the_new_one_nor_other_files(scene, tmp_path):
+    """A level folder that links to another level, the same level named in many spellings, and a
+    lod-meta.json that names itself with a 'files' list of other files: the new set stays whole,
+    files that are not SOG files stay, and the old level's files go once."""
+    lods = tmp_path / "set"
+    lods.mkdir()
+    assert run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5,0.2", "--device", "cpu", "-q").exit_code == 0
+    shutil.rmtree(lods / "1_0")
+    (lods / "1_0").symlink_to("0_0", target_is_directory=True)
+    assert run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.3", "--device", "cpu", "-q", "-w").exit_code == 0
+    assert load_splats(lods / "lod-meta.json").count == 120 and (lods / "0_0" / "meta.json").is_file()
+    (lods / "1_0").unlink()
+    assert run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5,0.2", "--device", "cpu", "-q", "-w").exit_code == 0
+    (lods / "notes.txt").write_text("mine")
+    meta = json.loads((lods / "lod-meta.json").read_text())
+    meta["filenames"] += ["./1_0/meta.json", "1_0//meta.json", "lod-meta.json"]
+    meta["junk"] = {"files": ["notes.txt"]}
+    (lods / "lod-meta.json").write_text(json.dumps(meta))
+    assert run("simplify", scene, "-o", lods / "lod-meta.json", "--ratio", "0.5", "--device", "cpu", "-q", "-w").exit_code == 0
+    assert sorted(p.name for p in lods.iterdir()) == ["0_0", "lod-meta.json", "notes.txt"]
+    assert load_splats(lods / "lod-meta.json").count == 200
 
 
 def test_a_lod_set_never_replaces_the_inputs_level_or_existing_levels(scene, tmp_path):

@@ -216,23 +216,27 @@ def _write_levels(hosts, levels, path: Path, fmt: str, on_loss, overwrite: bool,
 
 def _stale_level_files(folder: Path, files) -> list[Path]:
     """The files of the level-of-detail set already in ``folder`` (its ``lod-meta.json``'s levels:
-    each SOG's meta.json and the images it names) that a new set of ``files`` does not write: the
-    levels an older set had beyond the new one's. Only files inside ``folder`` are named; none
-    where there is no readable set."""
+    each SOG's meta.json and the .webp images it names) that a new set of ``files`` does not write:
+    the levels an older set had beyond the new one's. Paths are compared as they resolve (a level
+    folder may be a link to another); only files inside ``folder`` are named, each once; none where
+    there is no readable set."""
     meta_path = folder / "lod-meta.json"
     try:
         metas = lod.level_metas(meta_path, read_file_bytes(meta_path, lod.META_LIMIT))
     except InputError:  # no set there (or not one that can be read): nothing to retire
         return []
-    root = os.path.realpath(folder)
-    stale = {}  # in order, each once (a hostile set may name one file many times)
-    for meta in metas:
-        if not os.path.isfile(meta):
+    root = os.path.realpath(folder) + os.sep
+    written = {os.path.realpath(p) for p in files}
+    stale: dict[str, Path] = {}  # real path -> the path to remove, in order
+    for meta in dict.fromkeys(os.path.realpath(m) for m in metas):
+        if not (meta.startswith(root) and os.path.isfile(meta)):
             continue
-        for member in sog.member_files(meta):
-            if member not in files and member not in stale and os.path.realpath(member).startswith(root + os.sep) and member.is_file():
-                stale[member] = None
-    return list(stale)
+        for member in dict.fromkeys(sog.member_files(Path(meta))):
+            real = os.path.realpath(member)
+            if (member.name == "meta.json" or member.suffix == ".webp") and real.startswith(root) and real not in written \
+                    and real not in stale and os.path.isfile(real):  # fmt: skip
+                stale[real] = Path(real)
+    return list(stale.values())
 
 
 def output_files(path, format: str | None = None, levels: int = 1) -> list[Path]:
