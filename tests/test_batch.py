@@ -478,3 +478,16 @@ def test_failed_scenes_leave_no_folders_the_run_made(scenes, tmp_path):
     (tmp_path / "kept").mkdir()
     result = run(manifest, "-o", tmp_path / "kept", "--ratio", "0.1", "--devices", "cpu", "-q")
     assert result.exit_code == 1 and (tmp_path / "kept").is_dir()
+
+
+def test_an_output_that_is_a_scene_of_the_batch_is_refused(tmp_path):
+    """An output tree that overlaps the input tree: a scene's output (or record) that is another
+    scene of the batch is refused before anything runs, and that input is left as it was."""
+    root = tmp_path / "b"
+    random_splats_ply(root / "a.ply", 300, seed=1)
+    random_splats_ply(root / "a_0.5.ply", 100, seed=2)
+    (root / "list.txt").write_text("a.ply\na_0.5.ply\n")
+    before = (root / "a_0.5.ply").read_bytes()
+    result = run(root / "list.txt", "-o", root, "--ratio", "0.5", "--devices", "cpu")
+    assert result.exit_code == 2 and "a.ply's output" in result.stderr and "is the scene a_0.5.ply of this batch" in result.stderr
+    assert (root / "a_0.5.ply").read_bytes() == before and sorted(p.name for p in root.iterdir()) == ["a.ply", "a_0.5.ply", "list.txt"]

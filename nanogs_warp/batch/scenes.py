@@ -266,9 +266,17 @@ def _typed(value, kind, where: str):
 
 
 def _check_unique(jobs: list[SceneJob]) -> None:
+    """No two scenes write the same outputs, and no scene's output or record is a scene of the
+    batch (an output tree that overlaps the input tree would replace an input)."""
     seen: dict[Path, str] = {}
     for job in jobs:
         key = Path(os.path.realpath(job.record_path))  # never raises, even on a symlink loop
         if key in seen:
             raise InputError(f"{seen[key]} and {job.relative} would write the same outputs ({job.out_dir / job.stem}_*)")
         seen[key] = job.relative
+    inputs = {os.path.realpath(job.input): job.relative for job in jobs}
+    for job in jobs:
+        for path in (job.record_path, *(job.output_path(b) for b in job.budgets)):
+            if os.path.realpath(path) in inputs:
+                raise InputError(f"{job.relative}'s output {path} is the scene {inputs[os.path.realpath(path)]} of this batch; "
+                                 "choose an output folder outside the scenes")  # fmt: skip
