@@ -484,6 +484,7 @@ def test_an_output_that_is_a_scene_of_the_batch_is_refused(tmp_path):
     """An output tree that overlaps the input tree: a scene's output (or record) that is another
     scene of the batch is refused before anything runs, and that input is left as it was."""
     root = tmp_path / "b"
+    root.mkdir()
     random_splats_ply(root / "a.ply", 300, seed=1)
     random_splats_ply(root / "a_0.5.ply", 100, seed=2)
     (root / "list.txt").write_text("a.ply\na_0.5.ply\n")
