@@ -8,3 +8,9 @@ class InputError(Exception):
 class NanogsWarning(UserWarning):
     """Something the user should know that does not stop the work (e.g. PLY elements dropped): the
     commands show it as one line on stderr."""
+
+
+def printable(message: str) -> str:
+    """``message`` with its control characters (a newline in a file's name) written as escapes, so
+    that a line of output stays one line."""
+    return "".join(c if c.isprintable() or c == " " else repr(c)[1:-1] for c in message)

@@ -492,3 +492,24 @@ def test_an_output_that_is_a_scene_of_the_batch_is_refused(tmp_path):
     result = run(root / "list.txt", "-o", root, "--ratio", "0.5", "--devices", "cpu")
     assert result.exit_code == 2 and "a.ply's output" in result.stderr and "is the scene a_0.5.ply of this batch" in result.stderr
     assert (root / "a_0.5.ply").read_bytes() == before and sorted(p.name for p in root.iterdir()) == ["a.ply", "a_0.5.ply", "list.txt"]
+
+
+def test_a_recursive_pattern_does_not_follow_links_to_folders(tmp_path):
+    """'**' is matched by walking the tree without following links to folders: three links to '.'
+    made Python's glob run for ever (and one made it list the same scene 41 times)."""
+    root = tmp_path / "gl"
+    (root / "sub").mkdir(parents=True)
+    random_splats_ply(root / "a.ply", 50, seed=1)
+    random_splats_ply(root / "sub" / "b.ply", 50, seed=2)
+    for name in ("l1", "l2", "l3"):
+        (root / name).symlink_to(".", target_is_directory=True)
+    jobs = find_scenes(str(root / "**" / "*.ply"), tmp_path / "out", parse_budgets_for_test(), SimplifyConfig(), False)
+    assert [job.relative for job in jobs] == ["a.ply", "sub/b.ply"]
+    jobs = find_scenes(str(root / "sub" / "**"), tmp_path / "out", parse_budgets_for_test(), SimplifyConfig(), False)
+    assert [job.relative for job in jobs] == ["b.ply"]
+
+
+def parse_budgets_for_test():
+    from nanogs_warp.budgets import parse_budgets
+
+    return parse_budgets("0.5", None)

@@ -1,5 +1,6 @@
 """A batch scene's record names the kind of device it ran on."""
 
+import os
 import json
 
 import warp as wp
@@ -22,3 +23,22 @@ def test_record_names_the_device_kind(tmp_path, device):
     assert record["device"] == str(wp.get_device(device))
     assert record["device_kind"] == wp.get_device(device).name  # "CPU" or the GPU's model
     assert record["device_kind"] and record["device_kind"] != record["device"]
+
+
+def test_a_record_that_is_not_a_small_regular_file_is_no_record(tmp_path):
+    """A FIFO, a device or a huge file in a record's place reads as no record (the scene is redone)
+    at once: it blocked until the scene timed out, or read /dev/zero until memory ran out."""
+    from nanogs_warp.batch.work import RECORD_LIMIT, read_record
+
+    fifo = tmp_path / "g.nanogs.json"
+    os.mkfifo(fifo)
+    assert read_record(fifo) is None
+    zero = tmp_path / "z.nanogs.json"
+    zero.symlink_to("/dev/zero")
+    assert read_record(zero) is None
+    big = tmp_path / "b.nanogs.json"
+    big.write_bytes(b"{" + b" " * RECORD_LIMIT + b"}")
+    assert read_record(big) is None
+    good = tmp_path / "ok.nanogs.json"
+    good.write_text('{"format": 1}')
+    assert read_record(good) == {"format": 1}

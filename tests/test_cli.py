@@ -6,6 +6,7 @@ import math
 import os
 import shutil
 import subprocess
+import sys
 from importlib import resources
 from pathlib import Path
 
@@ -338,3 +339,44 @@ def test_a_command_line_the_parser_refuses_is_one_line(args, message):
     assert len(lines) == 1 and lines[0].startswith("nanogs-warp: error: ") and message in lines[0], result.stderr
     command = args[0] if args[0] != "frobnicate" else None
     assert lines[0].endswith(f"(see '{' '.join(filter(None, ['nanogs-warp', command]))} -h')"), lines[0]
+
+
+def test_errors_about_names_and_json_stay_one_line(scene, tmp_path):
+    """A name longer than the file system takes, a newline in a name, a NUL in a SOG's image name
+    and a JSON integer too long to read: one line each, exit 2 (they were internal errors, exit 1,
+    or two lines)."""
+    import json as json_module
+
+    long_name = tmp_path / ("a" * 300 + ".ply")
+    result = run("info", long_name)
+    assert result.exit_code == 2 and "File name too long" in result.stderr and result.stderr.count("\n") == 1
+    newline = tmp_path / "bad\nname.ply"
+    newline.write_bytes(b"garbage")
+    result = run("info", newline)
+    assert result.exit_code == 2 and "bad\\nname.ply: not a PLY file" in result.stderr and result.stderr.count("\n") == 1
+    (tmp_path / "huge.json").write_text('[{"path": "x.ply", "ratio": ' + "9" * 5000 + "}]")
+    result = run("batch", tmp_path / "huge.json", "-o", tmp_path / "out", "--ratio", "0.1", "--devices", "cpu")
+    assert result.exit_code == 2 and "huge.json: not valid JSON" in result.stderr
+    (tmp_path / "cams.json").write_text('[{"width": ' + "9" * 5000 + "}]")
+    result = run("eval", scene, scene, "--cameras", tmp_path / "cams.json", "--device", "cpu")
+    assert result.exit_code == 2 and "is not JSON" in result.stderr
+    assert run("simplify", scene, "-o", tmp_path / "s" / "meta.json", "--ratio", "0.5", "--device", "cpu", "-q").exit_code == 2
+    (tmp_path / "s").mkdir()
+    assert run("simplify", scene, "-o", tmp_path / "s" / "meta.json", "--ratio", "0.5", "--device", "cpu", "-q").exit_code == 0
+    meta = json_module.loads((tmp_path / "s" / "meta.json").read_text())
+    meta["means"]["files"][0] = "a\u0000b"
+    (tmp_path / "s" / "meta.json").write_text(json_module.dumps(meta))
+    result = run("simplify", tmp_path / "s" / "meta.json", "-o", tmp_path / "o.ply", "--ratio", "0.5", "--device", "cpu")
+    assert result.exit_code == 2 and "is not a plain file name" in result.stderr and result.stderr.count("\n") == 1
+
+
+def test_a_closed_stdout_is_not_an_error(scene, tmp_path):
+    """Started with stdout closed (>&-), a command runs and exits 0 (a traceback and exit 1 before);
+    with stdout on a full disk, one line and exit 2."""
+    command = [sys.executable, "-m", "nanogs_warp", "info", str(scene)]
+    closed = subprocess.run(["bash", "-c", '"$@" >&-', "_", *command], capture_output=True, text=True, timeout=120)
+    assert closed.returncode == 0 and closed.stderr == ""
+    if os.path.exists("/dev/full"):
+        with open("/dev/full", "w") as full:
+            result = subprocess.run(command, stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
+        assert result.returncode == 2 and result.stderr.strip() == "nanogs-warp: error: cannot write the command's output: No space left on device"

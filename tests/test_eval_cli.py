@@ -200,3 +200,20 @@ def test_invalid_rows_are_refused_or_dropped(scenes, tmp_path):
     result = run(bad, reference, "--device", "cpu", "--views", "2", "--size", "32", "--drop-invalid", "--json")
     assert result.exit_code == 0, result.output
     assert "dropped 1 of 200" in result.stderr and json.loads(result.stdout)["tests"][0]["count"] == 200
+
+
+def test_each_test_scene_gets_its_own_images_folder_inside_images(scenes, tmp_path):
+    """A test scene named '...ply' (label '..') writes inside --images, not beside it; labels that
+    differ only before their last 100 characters still get folders of their own."""
+    from nanogs_warp.cli.eval import image_folders
+
+    assert image_folders(["..", ".", ".hidden", "a/b", "a_b"]) == ["scene_1", "scene_2", "hidden", "a_b", "a_b_5"]
+    long = ["x" + "y" * 150, "z" + "y" * 150]
+    assert len(set(image_folders(long))) == 2 and all(len(n) <= 100 for n in image_folders(long))
+    shutil.copy(scenes / "ours" / "scene_0.1.ply", tmp_path / "...ply")
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "view_000.png").write_text("mine")
+    result = run(scenes / "ref.ply", tmp_path / "...ply", "--views", "1", "--size", "16", "--device", "cpu", "--images", tmp_path / "run" / "imgs", "-q")
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "run" / "view_000.png").read_text() == "mine" and sorted(p.name for p in (tmp_path / "run").iterdir()) == ["imgs", "view_000.png"]
+    assert (tmp_path / "run" / "imgs" / "scene_1" / "view_000.png").is_file()

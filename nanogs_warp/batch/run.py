@@ -11,6 +11,7 @@ from __future__ import annotations
 import sys
 import time
 
+from ..errors import printable
 from .scenes import SceneJob, find_scenes, parse_shard, select_shard
 from .work import SceneResult, process_scene
 
@@ -86,7 +87,7 @@ class BatchProgress:
     def finished(self, worker: str, result: SceneResult) -> None:
         self.counts[result.status] = self.counts.get(result.status, 0) + 1
         self.workers.pop(worker, None)
-        line = f"{result.relative}: {_describe(result)}"
+        line = printable(f"{result.relative}: {_describe(result)}")
         if self.live:
             if result.status == "failed":
                 self._clear()
@@ -101,14 +102,14 @@ class BatchProgress:
             self.stream.flush()
 
     def _log(self, text: str) -> None:
-        self.stream.write(f"nanogs-warp batch: [{sum(self.counts.values())}/{self.total}] {text}\n")
+        self.stream.write(f"nanogs-warp batch: [{sum(self.counts.values())}/{self.total}] {printable(text)}\n")
         self.stream.flush()
 
     def _draw(self) -> None:
         c = self.counts
         lines = [f"batch: {sum(c.values())}/{self.total} scenes ({c['done']} done, {c['skipped']} skipped, "
                  f"{c['failed']} failed), {time.monotonic() - self.started_at:.0f} s"]  # fmt: skip
-        lines += [f"  {name} {status}" for name, status in sorted(self.workers.items())]
+        lines += [printable(f"  {name} {status}") for name, status in sorted(self.workers.items())]
         self._clear()
         self.stream.write("".join(f"{line[:200]}\033[K\n" for line in lines))
         self.stream.flush()
@@ -133,7 +134,7 @@ def format_summary(results: list[SceneResult], seconds: float) -> str:
     """The table printed at the end: scene, count in, counts out, seconds, device, status; then
     one line per failure and the totals."""
     header = ("scene", "in", "out", "seconds", "device", "status")
-    rows = [(r.relative, f"{r.input_count:,}" if r.input_count is not None else "-",
+    rows = [(printable(r.relative), f"{r.input_count:,}" if r.input_count is not None else "-",
              " / ".join(f"{o['count']:,}" for o in r.outputs) or "-",
              f"{r.seconds:.2f}", r.device, r.status) for r in results]  # fmt: skip
     widths = [max(len(h), *(len(row[i]) for row in rows)) if rows else len(h) for i, h in enumerate(header)]
@@ -143,8 +144,8 @@ def format_summary(results: list[SceneResult], seconds: float) -> str:
         return "  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths))).rstrip()
 
     out = [line(header), line(["-" * w for w in widths]), *(line(row) for row in rows)]
-    out += [f"failed: {r.relative}: {r.error}" for r in results if r.status == "failed"]
-    out += [f"note: {r.relative}: {note}" for r in results for note in r.notes]
+    out += [printable(f"failed: {r.relative}: {r.error}") for r in results if r.status == "failed"]
+    out += [printable(f"note: {r.relative}: {note}") for r in results for note in r.notes]
     totals = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
     out.append(f"{len(results)} scenes: {totals['done']} done, {totals['skipped']} skipped, "
                f"{totals['failed']} failed, {seconds:.2f} s")  # fmt: skip

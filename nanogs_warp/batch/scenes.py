@@ -6,9 +6,11 @@ No Warp here: the batch's parent process plans with these, its workers (or Ray t
 
 from __future__ import annotations
 
+import fnmatch
 import glob
 import json
 import os
+import re
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -97,7 +99,7 @@ def find_scenes(
     elif _GLOB_CHARS & set(input):
         root = _glob_root(input)
         skip = out_dir.resolve()
-        entries = [(Path(p), {}) for p in glob.glob(input, recursive=True)
+        entries = [(Path(p), {}) for p in _glob(input)
                    if _is_scene(p) and Path(p).is_file() and skip not in Path(p).resolve().parents]  # fmt: skip
         what = f"no .ply files match {input!r} (nor .spz, .sog or .splat files)"
     else:
@@ -170,6 +172,48 @@ def _is_scene(name: str) -> bool:
     return name.lower().endswith(SCENE_SUFFIXES)
 
 
+def _glob(pattern: str) -> list[str]:
+    """The files matching ``pattern``; ``**`` matches any number of folders, found by walking the
+    tree without following links to folders (Python's glob follows them, and a link loop made it
+    run for ever), each path's folders matched one by one as glob does."""
+    if "**" not in pattern:
+        return glob.glob(pattern)
+    root = _glob_root(pattern)
+    parts = Path(pattern).parts[len(root.parts) if str(root) != "." else 0 :]
+    pieces = ["(?:[^/]+/)*" if part == "**" else _part_regex(part) + "/" for part in parts]
+    if parts and parts[-1] == "**":  # "dir/**": every file below
+        pieces[-1] = "(?:[^/]+/)*[^/]+/"
+    regex = re.compile("".join(pieces)[:-1] + r"\Z")
+    found = []
+    for directory, subdirs, files in os.walk(root):  # links to folders are not followed
+        subdirs[:] = sorted(d for d in subdirs if not d.startswith("."))
+        relative = os.path.relpath(directory, root)
+        prefix = "" if relative == "." else relative.replace(os.sep, "/") + "/"
+        found += [os.path.join(directory, f) for f in sorted(files) if not f.startswith(".") and regex.match(prefix + f)]
+    return found
+
+
+def _part_regex(part: str) -> str:
+    """One path component of a glob pattern (``*``, ``?``, ``[...]``) as a regular expression that
+    stays within the component."""
+    out, i = [], 0
+    while i < len(part):
+        c = part[i]
+        close = part.find("]", i + 2 if part[i + 1 : i + 2] in ("!", "^") else i + 1) if c == "[" else -1
+        if c == "*":
+            out.append("[^/]*")
+        elif c == "?":
+            out.append("[^/]")
+        elif close > i:
+            body = part[i + 1 : close]
+            out.append("[" + ("^" + body[1:] if body[:1] in ("!", "^") else body).replace("\\", "\\\\") + "]")
+            i = close
+        else:
+            out.append(re.escape(c))
+        i += 1
+    return "".join(out)
+
+
 def _glob_root(pattern: str) -> Path:
     """The leading directories of ``pattern`` that hold no glob characters."""
     fixed = []
@@ -193,7 +237,7 @@ def _read_manifest(path: Path) -> list[tuple[Path, dict]]:
     if path.suffix.lower() == ".json" or text.lstrip().startswith("["):
         try:
             items = json.loads(text)
-        except json.JSONDecodeError as e:
+        except ValueError as e:  # not JSON, or an integer too long to read
             raise InputError(f"{path.name}: not valid JSON: {e}") from None
         except RecursionError:
             raise InputError(f"{path.name}: nested too deeply to be a list of scenes") from None

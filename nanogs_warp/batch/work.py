@@ -284,10 +284,18 @@ def spin_if_asked(job: SceneJob) -> None:
             pass
 
 
+RECORD_LIMIT = 16 << 20  # a scene's record is a few kB; a larger file (or no regular file) is not one
+
+
 def read_record(path: Path) -> dict | None:
+    """The scene's record, or None where there is none that can be read (the scene is then redone):
+    a FIFO or a device in its place is not read, nor more than RECORD_LIMIT bytes."""
+    from ..errors import InputError
+    from ..io.common import read_file_bytes
+
     try:
-        record = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError):
+        record = json.loads(read_file_bytes(path, RECORD_LIMIT).decode("utf-8"))
+    except (InputError, OSError, ValueError, RecursionError):
         return None
     return record if isinstance(record, dict) else None
 

@@ -4,7 +4,9 @@ interrupt does, then imports and runs the command.
 
 Python's garbage collector is paused first, for the command's imports (:mod:`.gc_pause`)."""
 
+import os
 import signal
+import sys
 
 from .cuda_prestart import start_cuda_early
 from .gc_pause import pause_gc
@@ -19,6 +21,9 @@ def _end_command(signum, frame) -> None:
 
 def main() -> None:
     pause_gc()
+    for name in ("stdout", "stderr"):  # started with one closed (>&-): what goes there is discarded
+        if getattr(sys, name) is None:
+            setattr(sys, name, open(os.devnull, "w"))
     start_cuda_early()
     for name in ("SIGTERM", "SIGHUP"):
         if hasattr(signal, name):

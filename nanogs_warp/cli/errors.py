@@ -4,6 +4,7 @@ anything else as one line and exit code 1. Shared by every command module (no co
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import os
 import traceback
@@ -11,7 +12,7 @@ import warnings
 
 import typer
 
-from ..errors import InputError
+from ..errors import InputError, printable
 
 
 def examples(*lines: str) -> str:
@@ -20,8 +21,19 @@ def examples(*lines: str) -> str:
 
 
 def _fail(message: str, code: int) -> None:
-    typer.echo(f"nanogs-warp: error: {message}", err=True)
+    try:
+        typer.echo(f"nanogs-warp: error: {printable(message)}", err=True)
+    except OSError:  # stderr itself cannot be written (closed, a full disk): the exit code says it
+        pass
     raise typer.Exit(code)
+
+
+def _file_error(e: OSError) -> str | None:
+    """The line for an operating-system error about a path given or named (a name too long, a loop,
+    a NUL in a name), or None for one that is not about a path."""
+    if e.filename is not None:
+        return f"{e.filename}: {e.strerror or e}"
+    return None
 
 
 @contextlib.contextmanager
@@ -55,21 +67,36 @@ def user_errors(command):
             _fail(str(e), 2)
         except MemoryError:
             _fail("out of memory", 1)
+        except OSError as e:
+            if _file_error(e) is not None:
+                _fail(_file_error(e), 2)
+            if e.errno in (errno.EPIPE, errno.ENOSPC, errno.EIO, errno.EBADF):  # writing stdout or stderr failed
+                _fail(f"cannot write the command's output: {e.strerror}", 2)
+            _unexpected(e)
+        except ValueError as e:
+            if "embedded null" in str(e):  # a path (from a file or the command line) with a NUL in it
+                _fail("a file name holds a NUL character", 2)
+            _unexpected(e)
         except Exception as e:  # noqa: BLE001 - the last line of defence for a command-line tool
-            if os.environ.get("NANOGS_DEBUG"):
-                traceback.print_exc()
-            from ..device import gpu_fault
-            from ..kernel_cache import damaged_cache
-
-            fault = gpu_fault()  # a GPU that stopped makes every later kernel look missing
-            if fault is not None:
-                _fail(f"internal error: the GPU stopped: {fault} (set NANOGS_DEBUG=1 for details)", 1)
-            damaged = damaged_cache(e)
-            if damaged is not None:
-                _fail(damaged, 2)
-            _fail(f"internal error: {type(e).__name__}: {e} (set NANOGS_DEBUG=1 for details)", 1)
+            _unexpected(e)
 
     return wrapper
+
+
+def _unexpected(e: Exception) -> None:
+    """One line and exit code 1 for an error no check foresaw (2 for a damaged kernel cache)."""
+    if os.environ.get("NANOGS_DEBUG"):
+        traceback.print_exc()
+    from ..device import gpu_fault
+    from ..kernel_cache import damaged_cache
+
+    fault = gpu_fault()  # a GPU that stopped makes every later kernel look missing
+    if fault is not None:
+        _fail(f"internal error: the GPU stopped: {fault} (set NANOGS_DEBUG=1 for details)", 1)
+    damaged = damaged_cache(e)
+    if damaged is not None:
+        _fail(damaged, 2)
+    _fail(f"internal error: {type(e).__name__}: {e} (set NANOGS_DEBUG=1 for details)", 1)
 
 
 def one_line_usage_errors() -> None:

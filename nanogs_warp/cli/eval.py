@@ -129,8 +129,8 @@ def eval_command(
         try:
             image_files.make_folder(images)
             counts = []
-            for k, (label, test_images) in enumerate(zip(labels, rendered["tests"])):
-                folder = images / label.replace("/", "_")[-100:]
+            for k, (label, name, test_images) in enumerate(zip(labels, image_folders(labels), rendered["tests"])):
+                folder = images / name
                 t = result["tests"][k]
                 title = [f"REFERENCE {_scene_label(reference)} | {label} | DIFFERENCE ×4",
                          f"{t['count']:,} SPLATS  PSNR {_number(t['psnr']['mean'], 2)}  SSIM {_number(t['ssim']['mean'], 3)} (MEAN)"]  # fmt: skip
@@ -153,6 +153,19 @@ def eval_command(
         typer.echo(json.dumps(_finite_or_none(result), indent=2))
     elif not quiet:
         typer.echo(format_table(result))
+
+
+def image_folders(labels: list[str]) -> list[str]:
+    """A folder name inside ``--images`` for each test scene's label: at most 100 characters, no
+    separator, never '.', '..' or hidden (a scene file named '...ply'), and each its own (labels
+    that only differ before their last 100 characters get a number)."""
+    names: list[str] = []
+    for k, label in enumerate(labels):
+        name = label.replace("/", "_").replace("\\", "_")[-100:].lstrip(".") or f"scene_{k + 1}"
+        while name in names:
+            name = f"{name[-90:]}_{k + 1}"
+        names.append(name)
+    return names
 
 
 def _scene_label(path: Path) -> str:

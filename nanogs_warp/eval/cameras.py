@@ -176,7 +176,7 @@ def load_cameras_json(path: Path | str, size: int | None = None) -> list[Camera]
         entries = json.loads(read_file_bytes(path).decode("utf-8"))
     except InputError as e:
         raise InputError(f"cannot read cameras {path}: {str(e).split(': ', 1)[-1]}") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+    except ValueError as e:  # not UTF-8, not JSON, or an integer too long to read
         raise InputError(f"cameras {path} is not JSON: {e}") from None
     except RecursionError:
         raise InputError(f"cameras {path}: nested too deeply to be a list of cameras") from None

@@ -59,7 +59,7 @@ def level_metas(path, data: bytes) -> list:
     (the others are left out), each once; an empty list where it is not a readable version-1 set."""
     try:
         meta = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError):
+    except (ValueError, RecursionError):  # not UTF-8, not JSON, an integer too long to read
         return []
     files = meta.get("filenames") if isinstance(meta, dict) and meta.get("version", 1) == 1 else None
     if not isinstance(files, list):
@@ -68,7 +68,7 @@ def level_metas(path, data: bytes) -> list:
 
 
 def _inside(relative: str) -> bool:
-    return not relative.startswith(("/", "\\")) and ".." not in relative.replace("\\", "/").split("/")
+    return not relative.startswith(("/", "\\")) and "\0" not in relative and ".." not in relative.replace("\\", "/").split("/")
 
 
 def finest_level_meta(path, data: bytes):
@@ -76,7 +76,7 @@ def finest_level_meta(path, data: bytes):
     name = path.name
     try:
         meta = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError):
+    except (ValueError, RecursionError):  # not UTF-8, not JSON, an integer too long to read
         raise InputError(f"{name}: not valid JSON") from None
     if not isinstance(meta, dict) or meta.get("version", 1) != 1:
         raise InputError(f"{name}: not a version-1 lod-meta.json")

@@ -209,7 +209,7 @@ def member_files(meta_path: Path) -> list[Path]:
         for sec in meta.values() if isinstance(meta, dict) else ():
             listed = sec.get("files") if isinstance(sec, dict) else None
             if isinstance(listed, list):
-                names += [n for n in listed if isinstance(n, str) and n and "/" not in n and "\\" not in n]
+                names += [n for n in listed if isinstance(n, str) and n and not {"/", "\\", "\0"} & set(n)]
     except (InputError, OSError, ValueError, RecursionError):
         pass
     return [meta_path, *(meta_path.parent / n for n in names)]
@@ -218,7 +218,7 @@ def member_files(meta_path: Path) -> list[Path]:
 def _decode(name: str, meta_bytes: bytes, load) -> dict[str, np.ndarray]:
     try:
         meta = json.loads(meta_bytes.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+    except (ValueError, RecursionError) as e:  # not UTF-8, not JSON, an integer too long to read
         raise InputError(f"{name}: meta.json is not valid JSON ({_short(e)})") from None
     if not isinstance(meta, dict):
         raise InputError(f"{name}: meta.json is not a JSON object")
@@ -239,7 +239,7 @@ def _decode(name: str, meta_bytes: bytes, load) -> dict[str, np.ndarray]:
         if not (isinstance(names, list) and len(names) == count and all(isinstance(f, str) for f in names)):
             raise InputError(f"{name}: meta.json {key}.files must list {count} file name(s)")
         for f in names:
-            if not f or "/" in f or "\\" in f or f in (".", ".."):
+            if not f or "/" in f or "\\" in f or "\0" in f or f in (".", ".."):
                 raise InputError(f"{name}: meta.json {key}.files: {f!r} is not a plain file name")
         return names
 
