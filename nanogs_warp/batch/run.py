@@ -87,11 +87,11 @@ class BatchProgress:
     def finished(self, worker: str, result: SceneResult) -> None:
         self.counts[result.status] = self.counts.get(result.status, 0) + 1
         self.workers.pop(worker, None)
-        line = printable(f"{result.relative}: {_describe(result)}")
+        line = f"{result.relative}: {_describe(result)}"
         if self.live:
             if result.status == "failed":
                 self._clear()
-                self.stream.write(f"nanogs-warp batch: {line}\n")
+                self.stream.write(f"nanogs-warp batch: {printable(line)}\n")
             self._draw()
         elif not self.quiet or result.status == "failed":  # quiet: the failures still, as errors
             self._log(line)

@@ -321,6 +321,7 @@ def _check_unique(jobs: list[SceneJob]) -> None:
     inputs = {os.path.realpath(job.input): job.relative for job in jobs}
     for job in jobs:
         for path in (job.record_path, *(job.output_path(b) for b in job.budgets)):
-            if os.path.realpath(path) in inputs:
-                raise InputError(f"{job.relative}'s output {path} is the scene {inputs[os.path.realpath(path)]} of this batch; "
+            scene = inputs.get(os.path.realpath(path))
+            if scene is not None:
+                raise InputError(f"{job.relative}'s output {path} is the scene {scene} of this batch; "
                                  "choose an output folder outside the scenes")  # fmt: skip

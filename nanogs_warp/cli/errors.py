@@ -28,14 +28,6 @@ def _fail(message: str, code: int) -> None:
     raise typer.Exit(code)
 
 
-def _file_error(e: OSError) -> str | None:
-    """The line for an operating-system error about a path given or named (a name too long, a loop,
-    a NUL in a name), or None for one that is not about a path."""
-    if e.filename is not None:
-        return f"{e.filename}: {e.strerror or e}"
-    return None
-
-
 @contextlib.contextmanager
 def quiet_warnings():
     """Python warnings (numpy's floating-point RuntimeWarnings, Warp's) and numpy's floating-point
@@ -68,8 +60,8 @@ def user_errors(command):
         except MemoryError:
             _fail("out of memory", 1)
         except OSError as e:
-            if _file_error(e) is not None:
-                _fail(_file_error(e), 2)
+            if e.filename is not None:  # about a path given or named: a name too long, a link loop
+                _fail(f"{e.filename}: {e.strerror or e}", 2)
             if e.errno in (errno.EPIPE, errno.ENOSPC, errno.EIO, errno.EBADF):  # writing stdout or stderr failed
                 _fail(f"cannot write the command's output: {e.strerror}", 2)
             _unexpected(e)

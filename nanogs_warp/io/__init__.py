@@ -227,7 +227,7 @@ def _stale_level_files(folder: Path, files) -> list[Path]:
         return []
     root = os.path.realpath(folder) + os.sep
     written = {os.path.realpath(p) for p in files}
-    stale: dict[str, Path] = {}  # real path -> the path to remove, in order
+    stale: dict[str, None] = {}  # real paths, in order, each once
     for meta in dict.fromkeys(os.path.realpath(m) for m in metas):
         if not (meta.startswith(root) and os.path.isfile(meta)):
             continue
@@ -235,8 +235,8 @@ def _stale_level_files(folder: Path, files) -> list[Path]:
             real = os.path.realpath(member)
             if (member.name == "meta.json" or member.suffix == ".webp") and real.startswith(root) and real not in written \
                     and real not in stale and os.path.isfile(real):  # fmt: skip
-                stale[real] = Path(real)
-    return list(stale.values())
+                stale[real] = None
+    return [Path(real) for real in stale]
 
 
 def output_files(path, format: str | None = None, levels: int = 1) -> list[Path]:

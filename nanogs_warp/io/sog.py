@@ -197,6 +197,12 @@ def read_unbundled(meta_path: Path) -> dict[str, np.ndarray]:
     return _decode(meta_path.name, read_file_bytes(meta_path, META_LIMIT), load)
 
 
+def plain_name(name: str) -> bool:
+    """Whether a file name from a meta.json names a file beside it: not empty, not '.' or '..', no
+    separator and no NUL."""
+    return bool(name) and name not in (".", "..") and not {"/", "\\", "\0"} & set(name)
+
+
 def member_files(meta_path: Path) -> list[Path]:
     """The files an unbundled SOG is made of: ``meta.json`` and the images it names (as far as it can
     be read; the decoder says what is wrong with it)."""
@@ -209,7 +215,7 @@ def member_files(meta_path: Path) -> list[Path]:
         for sec in meta.values() if isinstance(meta, dict) else ():
             listed = sec.get("files") if isinstance(sec, dict) else None
             if isinstance(listed, list):
-                names += [n for n in listed if isinstance(n, str) and n and not {"/", "\\", "\0"} & set(n)]
+                names += [n for n in listed if isinstance(n, str) and plain_name(n)]
     except (InputError, OSError, ValueError, RecursionError):
         pass
     return [meta_path, *(meta_path.parent / n for n in names)]
@@ -239,7 +245,7 @@ def _decode(name: str, meta_bytes: bytes, load) -> dict[str, np.ndarray]:
         if not (isinstance(names, list) and len(names) == count and all(isinstance(f, str) for f in names)):
             raise InputError(f"{name}: meta.json {key}.files must list {count} file name(s)")
         for f in names:
-            if not f or "/" in f or "\\" in f or "\0" in f or f in (".", ".."):
+            if not plain_name(f):
                 raise InputError(f"{name}: meta.json {key}.files: {f!r} is not a plain file name")
         return names
 
