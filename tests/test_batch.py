@@ -202,6 +202,56 @@ def test_manifests(scenes, tmp_path):
     assert result.exit_code == 2 and "unknown key(s) ratios" in result.stderr
 
 
+def test_a_manifest_scene_with_its_own_preset_sh_degree_and_refinement(scenes, tmp_path):
+    manifest = tmp_path / "scenes.json"
+    manifest.write_text(json.dumps([
+        {"path": "in/room/a.ply", "preset": "fast", "sh-degree": 0},
+        {"path": "in/c.ply", "pass_fraction": 0.3, "fit_size": False, "refine_steps": 2, "refine_size": 32},
+        {"path": "in/d/d.ply", "sh_degree": None},
+    ]))  # fmt: skip
+    out = tmp_path / "json"
+    run_json(manifest, "-o", out, "--ratio", "0.1", "--k", "8", "--sh-degree", "1")
+    options = {name: json.loads((out / f"{name}.nanogs.json").read_text())["options"] for name in ("room/a", "c", "d/d")}
+    assert options["room/a"]["cost"] == "runnalls" and options["room/a"]["k"] == 8  # the preset, the command line's --k over it
+    assert options["room/a"]["sh_degree"] == 0 and "refine_steps" not in options["room/a"]
+    assert options["c"]["cost"] == "field" and options["c"]["pass_fraction"] == 0.3 and options["c"]["fit_size"] is False
+    assert options["c"]["sh_degree"] == 1 and (options["c"]["refine_steps"], options["c"]["refine_size"]) == (2, 32)
+    assert "sh_degree" not in options["d/d"]  # null: the input's degree, as without --sh-degree
+
+    # each scene's outputs are the bytes a batch of that scene alone with the same options writes
+    alone = [
+        ("room/a.ply", "a_0.1.ply", ["--preset", "fast", "--k", "8", "--sh-degree", "0"]),
+        ("c.ply", "c_0.1.ply", ["--k", "8", "--pass-fraction", "0.3", "--no-fit-size", "--sh-degree", "1",
+                                "--refine-steps", "2", "--refine-size", "32"]),
+        ("d/d.ply", "d_0.1.ply", ["--k", "8"]),
+    ]  # fmt: skip
+    for i, (scene, name, args) in enumerate(alone):
+        run_json(scenes / scene, "-o", tmp_path / f"alone{i}", "--ratio", "0.1", *args)
+        assert (out / Path(scene).parent / name).read_bytes() == (tmp_path / f"alone{i}" / name).read_bytes(), scene
+    assert load_ply(out / "room" / "a_0.1.ply").sh_degree == 0 and load_ply(out / "d" / "d_0.1.ply").sh_degree == 1
+
+
+@pytest.mark.parametrize(
+    "entry, message",
+    [
+        ({"sh_degree": 4}, "sh_degree must be 0, 1, 2, 3 or null, got 4"),
+        ({"sh_degree": "3"}, "sh_degree: expected int"),
+        ({"refine_steps": -1}, "refine_steps must be in"),
+        ({"refine_steps": 5, "refine_size": 8}, "refine_size must be in"),
+        ({"preset": "quick"}, "unknown preset 'quick'"),
+        ({"fit_size": 1}, "fit_size: expected bool"),
+        ({"pass_fraction": 0.9}, "pass"),
+    ],
+)
+def test_bad_per_scene_settings_are_one_line(scenes, tmp_path, entry, message):
+    manifest = tmp_path / "scenes.json"
+    manifest.write_text(json.dumps([{"path": "in/c.ply", **entry}]))
+    result = run(manifest, "-o", tmp_path / "out", "--ratio", "0.1", "--devices", "cpu")
+    assert result.exit_code == 2, result.output
+    assert result.stderr.startswith("nanogs-warp: error: c.ply: ") and message in result.stderr, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize(
     "args, message",
     [

@@ -17,13 +17,16 @@ from pathlib import Path
 from ..budgets import Budget, parse_budgets
 from ..config import SimplifyConfig
 from ..errors import InputError
+from ..refinement.config import RefineConfig
 
 RECORD_SUFFIX = ".nanogs.json"
 _GLOB_CHARS = set("*?[")
-# Per-scene keys of a JSON manifest besides "path" (kebab-case spellings are accepted too).
-_CONFIG_KEYS = {"k": int, "prune_opacity": float, "samples": int, "seed": int,
-                "lambda_geo": float, "lambda_app": float, "cost": str, "operator": str}  # fmt: skip
-_SCENE_KEYS = {"path", "ratio", "count", "drop_invalid", *_CONFIG_KEYS}
+# Per-scene keys of a JSON manifest besides "path" (kebab-case spellings are accepted too): the
+# method's settings, a preset to start them from, and what else a scene's outputs depend on.
+_CONFIG_KEYS = {"k": int, "prune_opacity": float, "samples": int, "seed": int, "lambda_geo": float, "lambda_app": float,
+                "cost": str, "operator": str, "pass_fraction": float, "median_cost_factor": float, "fit_size": bool}  # fmt: skip
+_OUTPUT_KEYS = {"sh_degree", "refine_steps", "refine_size"}
+_SCENE_KEYS = {"path", "ratio", "count", "drop_invalid", "preset", *_CONFIG_KEYS, *_OUTPUT_KEYS}
 SCENE_SUFFIXES = (".ply", ".spz", ".sog", ".splat")  # files a directory or glob contributes
 OUTPUT_SUFFIXES = {"ply": ".ply", "compressed-ply": ".compressed.ply", "spz": ".spz", "sog": ".sog", "splat": ".splat"}
 
@@ -68,6 +71,18 @@ class SceneJob:
         return options
 
 
+@dataclass(frozen=True)
+class SceneDefaults:
+    """What a scene takes from the command line where its manifest entry does not say otherwise:
+    the method's explicit options (``method_options``, laid over a scene's own ``"preset"``), the
+    outputs' SH degree and the refinement."""
+
+    method_options: tuple[tuple[str, object], ...] = ()
+    sh_degree: int | None = None
+    refine_steps: int = 0
+    refine_size: int = 256
+
+
 def find_scenes(
     input: str,
     out_dir: Path,
@@ -75,6 +90,7 @@ def find_scenes(
     config: SimplifyConfig,
     drop_invalid: bool,
     output_format: str = "ply",
+    defaults: SceneDefaults = SceneDefaults(),
 ) -> list[SceneJob]:
     """The batch's scenes sorted by relative path. ``input`` is a directory (every scene file below
     it: ``.ply``, ``.spz``, ``.sog``, ``.splat``; leaving out ``out_dir`` if it lies inside), a glob
@@ -82,7 +98,9 @@ def find_scenes(
     of paths or ``{"path": ..., "ratio"/"count"/<simplify option>: ...}`` objects. Relative
     manifest paths start at the manifest's directory. Outputs go to ``out_dir/<relative>``, where
     ``relative`` is the path below the root: the directory, the pattern's fixed leading directories,
-    or the deepest directory that holds every scene of a manifest."""
+    or the deepest directory that holds every scene of a manifest. A scene's ``config`` is
+    ``config``, or ``defaults.method_options`` over its own ``"preset"``; its own settings go over
+    either."""
     path = Path(input)
     out_dir = Path(out_dir)
     if path.is_dir():
@@ -107,7 +125,7 @@ def find_scenes(
     if not entries:
         raise InputError(what)
 
-    jobs = [replace(_make_job(p, overrides, root, out_dir, budgets, config, drop_invalid), output_format=output_format)
+    jobs = [_make_job(p, overrides, root, out_dir, budgets, config, drop_invalid, output_format, defaults)
             for p, overrides in entries]  # fmt: skip
     jobs.sort(key=lambda j: j.relative)
     _check_unique(jobs)
@@ -266,7 +284,7 @@ def _manifest_entry(item, i: int, name: str, base: Path) -> tuple[Path, dict]:
     return base / options.pop("path"), options
 
 
-def _make_job(path, overrides, root, out_dir, budgets, config, drop_invalid) -> SceneJob:
+def _make_job(path, overrides, root, out_dir, budgets, config, drop_invalid, output_format, defaults) -> SceneJob:
     relative = Path(os.path.relpath(os.path.abspath(path), os.path.abspath(root)))
     where = relative.as_posix()
     scene_budgets = budgets
@@ -277,18 +295,53 @@ def _make_job(path, overrides, root, out_dir, budgets, config, drop_invalid) -> 
             raise InputError(f"{where}: {e}") from None
     if scene_budgets is None:
         raise InputError(f"{where}: no budget: give --ratio or --count (or per-scene \"ratio\"/\"count\" in a JSON manifest)")
-    changes = {}
-    for key, kind in _CONFIG_KEYS.items():
-        if key in overrides:
-            changes[key] = _typed(overrides[key], kind, f"{where}: {key}")
-    scene_config = replace(config, **changes)
-    scene_config.validate()
+    try:
+        scene_config = _scene_config(overrides, config, defaults, where)
+    except InputError as e:
+        raise InputError(f"{where}: {e}") from None
     drop = _typed(overrides["drop_invalid"], bool, f"{where}: drop_invalid") if "drop_invalid" in overrides else drop_invalid
     try:
         size = path.stat().st_size
     except OSError:
         size = -1
-    return SceneJob(path, relative.as_posix(), out_dir / relative.parent, tuple(scene_budgets), scene_config, drop, size)
+    job = SceneJob(path, relative.as_posix(), out_dir / relative.parent, tuple(scene_budgets), scene_config, drop, size,
+                   output_format, defaults.refine_steps, defaults.refine_size, defaults.sh_degree)  # fmt: skip
+    try:
+        return replace(job, **_output_settings(overrides, job))
+    except InputError as e:
+        raise InputError(f"{where}: {e}") from None
+
+
+def _scene_config(overrides: dict, config: SimplifyConfig, defaults: SceneDefaults, where: str) -> SimplifyConfig:
+    """The scene's method settings: its own keys over ``config``, or over its ``"preset"`` with the
+    command line's explicit options."""
+    if "preset" in overrides:
+        config = SimplifyConfig.preset(_typed(overrides["preset"], str, "preset"), **dict(defaults.method_options))
+    changes = {key: _typed(overrides[key], kind, key) for key, kind in _CONFIG_KEYS.items() if key in overrides}
+    config = replace(config, **changes)
+    config.validate()
+    return config
+
+
+def _output_settings(overrides: dict, job: SceneJob) -> dict:
+    """The scene's own ``sh_degree`` (0-3, or null for the input's), ``refine_steps`` (0: none) and
+    ``refine_size``, checked."""
+    changes = {}
+    if "sh_degree" in overrides:
+        degree = overrides["sh_degree"]
+        if degree is not None and (_typed(degree, int, "sh_degree") not in (0, 1, 2, 3)):
+            raise InputError(f"sh_degree must be 0, 1, 2, 3 or null, got {degree!r}")
+        changes["sh_degree"] = degree
+    for key in ("refine_steps", "refine_size"):
+        if key in overrides:
+            changes[key] = _typed(overrides[key], int, key)
+    steps, size = changes.get("refine_steps", job.refine_steps), changes.get("refine_size", job.refine_size)
+    if steps or "refine_size" in changes:
+        try:
+            RefineConfig(steps=steps, size=size).validate()
+        except InputError as e:  # its message names the command line's options
+            raise InputError(str(e).replace("--refine-steps", "refine_steps").replace("--refine-size", "refine_size")) from None
+    return changes
 
 
 def _budget_text(value, where: str) -> str | None:

@@ -10,7 +10,6 @@ import json
 import os
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -63,15 +62,15 @@ def batch_command(
     of a Slurm array, or a Ray cluster. Finished scenes are skipped when run again; one failing
     scene is reported and the others go on (exit code 1 if any failed)."""
     from ..batch.run import BatchProgress, find_scenes, format_summary, parse_shard, run_batch, select_shard, summary_json
-    from ..batch.scenes import OUTPUT_SUFFIXES
+    from ..batch.scenes import OUTPUT_SUFFIXES, SceneDefaults
     from ..budgets import parse_budgets
 
     started = time.perf_counter()
-    config = opts.method_config(
-        preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
-        lambda_app=lambda_app, cost=cost, operator=operator, pass_fraction=pass_fraction,
-        median_cost_factor=median_cost_factor, fit_size=fit_size,
-    )
+    method_options = dict(
+        k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo, lambda_app=lambda_app,
+        cost=cost, operator=operator, pass_fraction=pass_fraction, median_cost_factor=median_cost_factor, fit_size=fit_size,
+    )  # fmt: skip
+    config = opts.method_config(preset, **method_options)
     config.validate()
     opts.check_sh_degree(sh_degree)
     budgets = parse_budgets(ratio, count) if ratio is not None or count is not None else None
@@ -91,13 +90,15 @@ def batch_command(
     fmt = output_format or "ply"
     if fmt not in OUTPUT_SUFFIXES:
         raise InputError(f"--format {fmt!r}: batch writes one of {', '.join(OUTPUT_SUFFIXES)}")
-    jobs = find_scenes(input, output, budgets, config, drop_invalid, fmt)
+    refine_config = RefineConfig(steps=0, size=refine_size)  # a scene of a manifest may still ask for steps
     if refine or refine_steps is not None:
         refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size)
         refine_config.validate()
-        jobs = [replace(job, refine_steps=refine_config.steps, refine_size=refine_config.size) for job in jobs]
-    if sh_degree is not None:
-        jobs = [replace(job, sh_degree=sh_degree) for job in jobs]
+    defaults = SceneDefaults(
+        tuple((name, value) for name, value in method_options.items() if value is not None),
+        sh_degree, refine_config.steps, refine_config.size,
+    )  # fmt: skip
+    jobs = find_scenes(input, output, budgets, config, drop_invalid, fmt, defaults)
     selected = select_shard(jobs, shard_index, shard_count)
     device_list, ray_gpu = None, None
     if ray is not None:
