@@ -231,6 +231,38 @@ def test_a_manifest_scene_with_its_own_preset_sh_degree_and_refinement(scenes, t
     assert load_ply(out / "room" / "a_0.1.ply").sh_degree == 0 and load_ply(out / "d" / "d_0.1.ply").sh_degree == 1
 
 
+def test_a_dry_run_says_what_a_run_would_do_and_writes_nothing(scenes, tmp_path):
+    out = tmp_path / "out"
+
+    def plan(*args):
+        result = run(scenes, "-o", out, "--ratio", "0.1", "--dry-run", "--json", *args)
+        assert result.exit_code == 0, result.output
+        return {s["relative"]: (s["action"], s["reason"]) for s in json.loads(result.stdout)["scenes"]}
+
+    assert plan() == {name: ("run", "no record") for name in SCENES}
+    assert not out.exists()  # no folder made
+    run_json(scenes, "-o", out, "--ratio", "0.1")
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    assert plan() == {name: ("skip", None) for name in SCENES}
+    (out / "c_0.1.ply").unlink()
+    random_splats_ply(scenes / "d" / "d.ply", 201, seed=9)  # another input under the same name
+    assert plan()["c.ply"] == ("run", "an output is missing") and plan()["d/d.ply"] == ("run", "the input changed")
+    assert plan("--seed", "1")["room/a.ply"] == ("run", "other budgets or options")
+    assert plan("--force")["room/a.ply"] == ("run", "--force")
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == {p: t for p, t in before.items() if p.name != "c_0.1.ply"}
+
+    (scenes / "room" / "sub" / "b.ply").unlink()
+    manifest = tmp_path / "list.txt"
+    manifest.write_text(f"{scenes / 'room' / 'a.ply'}\n{scenes / 'room' / 'sub' / 'b.ply'}\n")
+    result = run(manifest, "-o", out / "room", "--ratio", "0.1", "--dry-run")
+    assert result.exit_code == 0, result.output
+    assert result.stdout.splitlines() == [
+        "skip  a.ply      up to date",
+        "fail  sub/b.ply  no such file",
+        "2 scenes: 0 to run, 1 up to date, 1 would fail (dry run: nothing written)",
+    ]
+
+
 @pytest.mark.parametrize(
     "entry, message",
     [

@@ -82,16 +82,17 @@ def outputs(tmp_path_factory):
         "eval": run("eval", scenes / "a.ply", root / "out" / "a_0.1.ply", root / "out" / "a_0.01.ply", "--views", "2",
                     "--size", "16", "--device", "cpu", "--json", "--images", root / "images"),  # fmt: skip
         "batch": run("batch", scenes, "-o", root / "batch", "--ratio", "0.1", "--devices", "cpu", "--json"),
+        "batch_dry_run": run("batch", scenes, "-o", root / "batch", "--ratio", "0.1,0.5", "--dry-run", "--json"),
     }
 
 
-@pytest.mark.parametrize("command", ["simplify", "info", "eval", "batch"])
+@pytest.mark.parametrize("command", ["simplify", "info", "eval", "batch", "batch_dry_run"])
 def test_json_output_matches_its_documented_layout(outputs, command):
     layouts = documented_layouts()
-    assert set(layouts) == {"simplify", "info", "eval", "batch"}
+    assert set(layouts) == {"simplify", "info", "eval", "batch", "batch_dry_run"}
     out = outputs[command]
     assert problems(out, layouts[command]) == []
-    assert out["schema"] == 1 and out["command"] == command
+    assert out["schema"] == 1 and out["command"] == command.removesuffix("_dry_run")
 
 
 def test_json_paths_are_absolute_and_settings_echoed(outputs):

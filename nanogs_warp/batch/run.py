@@ -13,10 +13,10 @@ import time
 
 from ..errors import printable
 from .scenes import SceneJob, find_scenes, parse_shard, select_shard
-from .work import SceneResult, process_scene
+from .work import SceneResult, planned, process_scene
 
-__all__ = ["BatchProgress", "SceneJob", "SceneResult", "find_scenes", "format_summary", "parse_shard",
-           "process_scene", "run_batch", "select_shard", "summary_json"]  # fmt: skip
+__all__ = ["BatchProgress", "SceneJob", "SceneResult", "find_scenes", "format_plan", "format_summary", "parse_shard",
+           "plan_batch", "process_scene", "run_batch", "select_shard", "summary_json"]  # fmt: skip
 
 
 def run_batch(
@@ -156,3 +156,25 @@ def summary_json(results: list[SceneResult], seconds: float, shard: tuple[int, i
     totals = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
     return {"scenes": [r.to_json() for r in results], **totals, "shard": f"{shard[0]}/{shard[1]}",
             "seconds": round(seconds, 4)}  # fmt: skip
+
+
+def plan_batch(jobs: list[SceneJob], force: bool) -> list[dict]:
+    """``--dry-run``: for each scene what a run would do (``planned``: "run", "skip" or "fail", and
+    why) and the outputs it would write; nothing is written."""
+    plan = []
+    for job in jobs:
+        action, reason = planned(job, force)
+        plan.append({"input": str(job.input), "relative": job.relative, "action": action, "reason": reason,
+                     "outputs": [str(job.output_path(b)) for b in job.budgets]})  # fmt: skip
+    return plan
+
+
+def format_plan(plan: list[dict]) -> str:
+    """One line per scene (action, scene, why), then the totals."""
+    width = max(len(printable(p["relative"])) for p in plan) if plan else 0
+    out = [f"{p['action']:4s}  {printable(p['relative']).ljust(width)}  {printable(p['reason'] or 'up to date')}".rstrip()
+           for p in plan]  # fmt: skip
+    totals = {a: sum(p["action"] == a for p in plan) for a in ("run", "skip", "fail")}
+    out.append(f"{len(plan)} scenes: {totals['run']} to run, {totals['skip']} up to date, {totals['fail']} would fail "
+               "(dry run: nothing written)")  # fmt: skip
+    return "\n".join(out)

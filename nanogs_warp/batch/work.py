@@ -304,19 +304,56 @@ def record_matches(record: dict | None, job: SceneJob, size: int, sha: str | Non
     """True when ``record`` was written by this tool version for these exact input bytes and
     options, and every output it lists is still there with its recorded size (``sha`` None: any
     input with this size)."""
+    return record_mismatch(record, job, size, sha, options) is None
+
+
+def record_mismatch(record: dict | None, job: SceneJob, size: int, sha: str | None, options: dict) -> str | None:
+    """Why ``record`` does not show the scene up to date (``record_matches``), in a few words; None
+    when it does."""
+    if record is None:
+        return "no record"
     try:
-        if (record["format"] != RECORD_FORMAT or record["version"] != __version__ or record["options"] != options
-                or record["input"]["bytes"] != size or (sha is not None and record["input"]["sha256_pieces"] != sha)):  # fmt: skip
-            return False
+        if record["format"] != RECORD_FORMAT or record["version"] != __version__:
+            return "made by another version"
+        if record["options"] != options:
+            return "other budgets or options"
+        if record["input"]["bytes"] != size or (sha is not None and record["input"]["sha256_pieces"] != sha):
+            return "the input changed"
         outputs = record["outputs"]
         if not (_whole(record["input_count"]) and all(_whole(o["count"]) and _whole(o["bytes"]) and _plain_name(o["path"])
                                                        for o in outputs)):  # fmt: skip
-            return False  # a record edited by hand: the scene is redone
+            return "a record edited by hand"
         if sorted(o["budget"] for o in outputs) != sorted(b.label for b in job.budgets):
-            return False
-        return all((job.out_dir / o["path"]).stat().st_size == o["bytes"] for o in outputs)
-    except (KeyError, TypeError, OSError):
-        return False
+            return "other budgets"
+        if not all((job.out_dir / o["path"]).stat().st_size == o["bytes"] for o in outputs):
+            return "an output changed"
+    except (KeyError, TypeError):
+        return "a record edited by hand"
+    except OSError:
+        return "an output is missing"
+    return None
+
+
+def planned(job: SceneJob, force: bool) -> tuple[str, str | None]:
+    """What a run would do with the scene, as ``_read`` decides it (the input hashed where its
+    record could match): ("skip", None) when it is up to date, ("run", why) or ("fail", why)."""
+    try:
+        size = job.input.stat().st_size
+    except FileNotFoundError:
+        return "fail", "no such file"
+    except OSError as e:
+        return "fail", f"cannot read the file: {e.strerror or e}"
+    if force:
+        return "run", "--force"
+    options = job.options()
+    record = read_record(job.record_path)
+    why = record_mismatch(record, job, size, None, options)
+    if why is None:
+        try:
+            why = record_mismatch(record, job, size, input_hash(job.input), options)
+        except OSError as e:
+            return "fail", f"cannot read the file: {e.strerror or e}"
+    return ("skip", None) if why is None else ("run", why)
 
 
 def _whole(value) -> bool:

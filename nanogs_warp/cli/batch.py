@@ -55,13 +55,14 @@ def batch_command(
     refine_size: opts.RefineSize = RefineConfig.size,
     output_format: Annotated[Optional[str], typer.Option("--format", show_default=False, metavar="OUTPUT_FORMAT", help="Output format: ply (default), compressed-ply, spz, sog or splat.")] = None,
     sh_degree: opts.ShDegree = None,
+    dry_run: Annotated[bool, typer.Option("--dry-run", help="List the scenes (of this shard) and what a run would do with each: simplify it (and why), skip it as up to date, or fail; records are read and inputs hashed as a run does, the devices are not checked, nothing is written.")] = False,
     json_output: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary (one entry per scene) on stdout instead of the table.")] = False,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="No progress and no table; only errors (and --json).")] = False,
 ) -> None:
     """Simplify many scenes to every budget (one progressive run each) on all local GPUs, a shard
     of a Slurm array, or a Ray cluster. Finished scenes are skipped when run again; one failing
     scene is reported and the others go on (exit code 1 if any failed)."""
-    from ..batch.run import BatchProgress, find_scenes, format_summary, parse_shard, run_batch, select_shard, summary_json
+    from ..batch.run import BatchProgress, find_scenes, format_summary, parse_shard, plan_batch, run_batch, select_shard, summary_json
     from ..batch.scenes import OUTPUT_SUFFIXES, SceneDefaults
     from ..budgets import parse_budgets
 
@@ -100,6 +101,9 @@ def batch_command(
     )  # fmt: skip
     jobs = find_scenes(input, output, budgets, config, drop_invalid, fmt, defaults)
     selected = select_shard(jobs, shard_index, shard_count)
+    if dry_run:
+        _print_plan(plan_batch(selected, force), output, (shard_index, shard_count), json_output)
+        return
     device_list, ray_gpu = None, None
     if ray is not None:
         from ..batch.ray_cluster import import_ray
@@ -136,6 +140,20 @@ def batch_command(
     sys.stdout.flush()
     if any(r.status == "failed" for r in results):
         raise typer.Exit(1)
+
+
+def _print_plan(plan: list[dict], output: Path, shard: tuple[int, int], json_output: bool) -> None:
+    from ..batch.run import format_plan
+
+    if json_output:
+        for scene in plan:  # full paths, as every --json output
+            scene["input"] = os.path.abspath(scene["input"])
+            scene["outputs"] = [os.path.abspath(path) for path in scene["outputs"]]
+        totals = {action: sum(p["action"] == action for p in plan) for action in ("run", "skip", "fail")}
+        typer.echo(json.dumps({"schema": opts.JSON_SCHEMA, "command": "batch", "dry_run": True, "output": os.path.abspath(output),
+                               "shard": f"{shard[0]}/{shard[1]}", "scenes": plan, **totals}, indent=2))  # fmt: skip
+    else:
+        typer.echo(format_plan(plan))
 
 
 def _missing_folders(root: Path, folders: list[Path]) -> list[Path]:
