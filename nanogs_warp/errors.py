@@ -1,5 +1,7 @@
 """The one exception type that user-facing code turns into a one-line message and exit code 2."""
 
+import re
+
 
 class InputError(Exception):
     """Bad input or an impossible request: the message is shown to the user as one line."""
@@ -14,3 +16,18 @@ def printable(message: str) -> str:
     """``message`` with its control characters (a newline in a file's name) written as escapes, so
     that a line of output stays one line."""
     return "".join(c if c.isprintable() or c == " " else repr(c)[1:-1] for c in message)
+
+
+def out_of_memory(error: BaseException) -> str | None:
+    """The line to show when ``error`` says that memory ran out: Python's ``MemoryError``, or Warp's
+    failed allocation on a device (a scene too large for the GPU, or a host at its limit); None
+    for any other error."""
+    if isinstance(error, MemoryError):
+        return "out of memory"
+    match = _WARP_ALLOCATION.match(str(error)) if isinstance(error, RuntimeError) else None
+    if match is None:
+        return None
+    return f"out of memory on {match['device']}: could not allocate {int(match['bytes']):,} bytes"
+
+
+_WARP_ALLOCATION = re.compile(r"Failed to allocate (?P<bytes>\d+) bytes (?:with \w+ )?on device '(?P<device>[^']+)'")

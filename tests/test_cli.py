@@ -299,6 +299,35 @@ def test_a_run_that_fails_part_way_leaves_no_output(scene, tmp_path, monkeypatch
     assert result.exit_code == 0, result.output
 
 
+def test_memory_that_runs_out_is_one_line_and_no_output(scene, tmp_path, monkeypatch):
+    """Warp's failed allocation (a scene too large for the device) names the device and the size,
+    not an internal error; the run leaves nothing behind."""
+    allocator = wp.get_device("cpu").get_allocator()
+    allocate, calls = allocator.allocate, []
+
+    def failing(size_in_bytes):  # the 30th allocation asks for 4 EiB: Warp's own error, as a full host gives it
+        calls.append(size_in_bytes)
+        return allocate(1 << 62 if len(calls) == 30 else size_in_bytes)
+
+    monkeypatch.setattr(allocator, "allocate", failing)
+    result = run("simplify", scene, "-o", tmp_path / "out.ply", "--ratio", "0.1,0.01", "--device", "cpu")
+    assert len(calls) >= 30 and result.exit_code == 1, result.output
+    assert result.stderr == f"nanogs-warp: error: out of memory on cpu: could not allocate {1 << 62:,} bytes\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply"]
+
+
+def test_out_of_memory_lines():
+    from nanogs_warp.errors import out_of_memory
+
+    assert out_of_memory(MemoryError()) == "out of memory"
+    assert out_of_memory(RuntimeError("Failed to allocate 2048 bytes on device 'cuda:1'")) == (
+        "out of memory on cuda:1: could not allocate 2,048 bytes")  # fmt: skip
+    assert out_of_memory(RuntimeError("Failed to allocate 5 bytes with CudaManagedAllocator on device 'cuda:0'; x")) == (
+        "out of memory on cuda:0: could not allocate 5 bytes")  # fmt: skip
+    assert out_of_memory(RuntimeError("Failed to load the shared library")) is None
+    assert out_of_memory(ValueError("Failed to allocate 5 bytes on device 'cpu'")) is None
+
+
 def test_without_overwrite_a_file_that_appears_meanwhile_is_kept(scene, tmp_path, monkeypatch):
     """The check that an output does not exist comes before the work; a file put there meanwhile
     (another run writing the same name) used to be replaced by the final rename. Now the write fails

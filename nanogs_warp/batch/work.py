@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from .. import __version__
-from ..errors import InputError
+from ..errors import InputError, out_of_memory
 from .scenes import SceneJob
 
 RECORD_FORMAT = 2  # 2: the input's hash is its PieceHash ("sha256_pieces"), no longer its plain SHA-256
@@ -173,12 +173,10 @@ def _stage(scene: LoadedScene, name: str):
         yield
     except InputError as e:
         scene.result.error = str(e)
-    except MemoryError:
-        scene.result.error = "out of memory"
     except Exception as e:  # noqa: BLE001 - one bad scene must not stop the batch
         if os.environ.get("NANOGS_DEBUG"):
             traceback.print_exc()
-        scene.result.error = f"{type(e).__name__}: {' '.join(str(e).split())}"
+        scene.result.error = out_of_memory(e) or f"{type(e).__name__}: {' '.join(str(e).split())}"
     finally:
         seconds = time.perf_counter() - started
         scene.seconds += seconds
@@ -290,7 +288,7 @@ RECORD_LIMIT = 16 << 20  # a scene's record is a few kB; a larger file (or no re
 def read_record(path: Path) -> dict | None:
     """The scene's record, or None where there is none that can be read (the scene is then redone):
     a FIFO or a device in its place is not read, nor more than RECORD_LIMIT bytes."""
-    from ..errors import InputError
+    from ..errors import InputError, out_of_memory
     from ..io.common import read_file_bytes
 
     try:

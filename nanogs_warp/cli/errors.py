@@ -12,7 +12,7 @@ import warnings
 
 import typer
 
-from ..errors import InputError, printable
+from ..errors import InputError, out_of_memory, printable
 
 
 def examples(*lines: str) -> str:
@@ -57,8 +57,8 @@ def user_errors(command):
             raise
         except InputError as e:
             _fail(str(e), 2)
-        except MemoryError:
-            _fail("out of memory", 1)
+        except MemoryError as e:
+            _fail(out_of_memory(e), 1)
         except OSError as e:
             if e.filename is not None:  # about a path given or named: a name too long, a link loop
                 _fail(f"{e.filename}: {e.strerror or e}", 2)
@@ -88,6 +88,9 @@ def _unexpected(e: Exception) -> None:
     damaged = damaged_cache(e)
     if damaged is not None:
         _fail(damaged, 2)
+    memory = out_of_memory(e)
+    if memory is not None:
+        _fail(memory, 1)
     _fail(f"internal error: {type(e).__name__}: {e} (set NANOGS_DEBUG=1 for details)", 1)
 
 
