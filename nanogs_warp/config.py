@@ -4,6 +4,7 @@ without Warp: the command line reads them before it decides whether it needs War
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
 from fractions import Fraction
@@ -80,6 +81,7 @@ class SimplifyConfig:
     def validate(self) -> None:
         """Checks every option without importing Warp (the names below are those of the kernel
         registries, ``cost.COSTS``, ``operators.OPERATORS`` and ``topology.KnnTopology.MAX_K``)."""
+        check_types(self, _FIELD_KINDS)
         if self.k is not None and not 1 <= self.k <= MAX_K:
             raise InputError(f"--k must be between 1 and {MAX_K}, got {self.k}")
         if not 0.0 <= self.prune_opacity <= 1.0:
@@ -100,6 +102,34 @@ class SimplifyConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise InputError(f"--seed must be between 0 and {MAX_SEED}, got {self.seed}")
+
+
+MAX_SEED = 2**31 - 1  # the kernels take the seed as a 32-bit integer
+# What each field of SimplifyConfig holds: "int" and "number" exclude bool.
+_FIELD_KINDS = {"k": "int|None", "prune_opacity": "number", "samples": "int", "seed": "int", "lambda_geo": "number",
+                "lambda_app": "number", "cost": "str", "operator": "str", "pass_fraction": "number",
+                "median_cost_factor": "number", "fit_size": "bool"}  # fmt: skip
+
+
+def check_types(settings, kinds: dict[str, str]) -> None:
+    """An InputError naming the first field of the dataclass ``settings`` whose value is not of its
+    kind in ``kinds`` ("int", "number", "str", "bool", with "|None" where None is allowed): a
+    setting of the wrong type fails where it is built, with the field's name."""
+    tests = {
+        "int": lambda v: isinstance(v, numbers.Integral) and not isinstance(v, bool),
+        "number": lambda v: isinstance(v, numbers.Real) and not isinstance(v, bool),
+        "str": lambda v: isinstance(v, str),
+        "bool": lambda v: isinstance(v, bool),
+        "None": lambda v: v is None,
+    }
+    for name, kind in kinds.items():
+        value = getattr(settings, name)
+        if not any(tests[k](value) for k in kind.split("|")):
+            expected = {"int": "a whole number", "number": "a number", "str": "a string", "bool": "True or False"}
+            what = " or ".join(expected.get(k, k) for k in kind.split("|"))
+            raise InputError(f"{type(settings).__name__}.{name} must be {what}, got {value!r}")
 
 
 # The kernel registries' names, here so that a configuration is checked without importing Warp (a
@@ -130,7 +160,7 @@ def exact_ratio(ratio: float | str | Decimal | Fraction) -> Fraction:
     if isinstance(ratio, Fraction):
         value = ratio
     else:
-        text = repr(ratio) if isinstance(ratio, float) else str(ratio).strip()
+        text = repr(float(ratio)) if isinstance(ratio, float) else str(ratio).strip()  # numpy's float64 too
         try:
             decimal = Decimal(text)
         except (InvalidOperation, ValueError):

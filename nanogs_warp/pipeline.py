@@ -106,7 +106,7 @@ def simplify_progressively(
     ``finish`` (the size fit of ``nanogs_warp.simplify_progressively``) makes each yielded set from
     the merged one; the merging goes on from the merged one.
     """
-    config.validate()
+    check_arguments(splats, config)
     targets = sorted(set(int(t) for t in targets), reverse=True)
     if not targets or targets[-1] < 1 or targets[0] > splats.count:
         raise InputError(f"target counts must be between 1 and the input's {splats.count} splats, got {targets}")
@@ -125,9 +125,10 @@ def simplify_progressively(
     pass_index = 0
     # Termination: every pass removes at least one splat (or the run stops with an error), so the
     # loops end after at most count - targets[-1] passes; pass_limit stops a run long before that.
-    # (the median cost limit keeps at least half of a pass's pairs: at worst half the pace)
+    # (the median cost limit keeps at least half of a pass's pairs: at worst half the pace; a pass
+    # stops at the next budget, so each budget may add one pass)
     pace = config.pass_fraction / 2 if config.median_cost_factor > 0 else config.pass_fraction
-    most_passes = pass_limit(current.count, targets[-1], pace)
+    most_passes = pass_limit(current.count, targets[-1], pace) + len(targets)
     for target in targets:
         while current.count > target:
             if pass_index >= most_passes:
@@ -167,6 +168,15 @@ def simplify_progressively(
         yield target, (current if finish is None else finish(current))
 
 
+def check_arguments(splats, config) -> None:
+    """A TypeError where the splat set or the configuration handed to the API is something else."""
+    if not isinstance(splats, SplatSet):
+        raise TypeError(f"expected a SplatSet (nanogs_warp.load_ply reads one from a file), got {type(splats).__name__}")
+    if not isinstance(config, SimplifyConfig):
+        raise TypeError(f"config must be a SimplifyConfig (e.g. SimplifyConfig(k=16)), got {type(config).__name__}")
+    config.validate()
+
+
 def simplify(
     splats: SplatSet,
     ratio: float | str | Sequence[float | str] | None = None,
@@ -195,6 +205,7 @@ def simplify(
         if count is not None:
             raise InputError("give count or counts, not both")
         count = list(counts)
+    check_arguments(splats, config)
     if (ratio is None) == (count is None):
         raise InputError("give exactly one of ratio or count")
     several = not isinstance(ratio if ratio is not None else count, (str, numbers.Number))
@@ -206,7 +217,7 @@ def simplify(
     else:
         targets = []
         for c in budgets:
-            if isinstance(c, bool) or int(c) != c:
+            if isinstance(c, bool) or not isinstance(c, numbers.Real) or not math.isfinite(c) or int(c) != c:
                 raise InputError(f"count must be a whole number, got {c!r}")
             targets.append(int(c))
     if isinstance(device, str):

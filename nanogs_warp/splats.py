@@ -41,8 +41,29 @@ class SplatSet:
     integer_extras: wp.array | None = None  # None: (N, 0)
 
     def __post_init__(self):
+        if not isinstance(self.means, wp.array):
+            raise TypeError(f"SplatSet.means must be a Warp array, got {type(self.means).__name__}")
         if self.integer_extras is None:
             self.integer_extras = wp.empty((self.means.shape[0], 0), dtype=wp.int64, device=self.means.device)
+        self._check_arrays()
+
+    def _check_arrays(self) -> None:
+        """Every array a Warp array of its dtype and dimensions, with one row per splat, on the means'
+        device, and 3 (d + 1)^2 features for an SH degree d of 0 to 3: a kernel given a shorter array
+        would read and write memory it does not own."""
+        n, device = self.means.shape[0], self.means.device
+        for name, (dtype, ndim) in _ARRAY_LAYOUT.items():
+            a = getattr(self, name)
+            if not isinstance(a, wp.array):
+                raise TypeError(f"SplatSet.{name} must be a Warp array, got {type(a).__name__}")
+            if a.dtype is not dtype or a.ndim != ndim:
+                raise ValueError(f"SplatSet.{name} must be a {ndim}-D Warp array of {dtype.__name__}, "
+                                 f"got a {a.ndim}-D array of {getattr(a.dtype, '__name__', a.dtype)}")  # fmt: skip
+            if a.shape[0] != n:
+                raise ValueError(f"SplatSet.{name} has {a.shape[0]} rows, not one per splat ({n}, as means)")
+            if a.device != device:
+                raise ValueError(f"SplatSet.{name} is on {a.device}, the means on {device}: one splat set lives on one device")
+        sh_degree_for_features(self.features.shape[1])
 
     @property
     def count(self) -> int:
@@ -70,17 +91,30 @@ class SplatSet:
         layout: PlyLayout | None = None,
         device=None,
         integer_extras: np.ndarray | None = None,
+        validate: bool = True,
     ) -> SplatSet:
         """Builds a splat set from host arrays; quaternions are given w-first, as PLY stores them.
 
         ``extras`` may also hold every extra property of ``layout`` (integer ones included, as
         floats) when ``integer_extras`` is not given: the integer columns are then rounded (half to
-        even) and clipped to their type."""
+        even) and clipped to their type. Arrays of the wrong shape raise ValueError naming them;
+        with ``validate`` (the default), values a scene file may not hold either raise InputError,
+        as on reading a file: NaN or infinite values (opacity logits of +-Inf are valid: alpha 1
+        or 0), quaternions of norm 0, log-scales beyond the numeric domain."""
         device = wp.get_device(device)
+        means = _host_rows("means", means, 3)
         n = means.shape[0]
+        rotations = _host_rows("rotations", rotations, 4, n)
+        log_scales = _host_rows("log_scales", log_scales, 3, n)
+        opacities = _host_rows("opacities", opacities, None, n)
+        features = _host_rows("features", features, 0, n)
+        sh_degree_for_features(features.shape[1])
+        extras = np.zeros((n, 0), np.float32) if extras is None else _host_rows("extras", extras, 0, n)
+        if integer_extras is not None:
+            integer_extras = _host_rows("integer_extras", integer_extras, 0, n)
+        if validate:
+            _check_values(means, rotations, log_scales, opacities, features)
         quat_xyzw = np.ascontiguousarray(np.asarray(rotations, dtype=np.float32)[:, [1, 2, 3, 0]])
-        if extras is None:
-            extras = np.zeros((n, 0), np.float32)
         if integer_extras is None:
             extras, integer_extras = split_integer_extras(np.asarray(extras), layout)
 
@@ -206,6 +240,57 @@ class SplatSet:
 
 
 _ARRAY_FIELDS = [f for f in fields(SplatSet) if f.name != "layout"]
+# dtype and dimensions of each array field
+_ARRAY_LAYOUT = {"means": (wp.vec3, 1), "rotations": (wp.quat, 1), "log_scales": (wp.vec3, 1), "opacities": (wp.float32, 1),
+                 "features": (wp.float32, 2), "extras": (wp.float32, 2), "integer_extras": (wp.int64, 2)}  # fmt: skip
+
+
+def _host_rows(name: str, array, width: int | None, rows: int | None = None) -> np.ndarray:
+    """``array`` as a numpy array of ``rows`` rows (any count when None) of ``width`` columns (any
+    number when 0; one value a row, (N,) or (N, 1), when None), or a ValueError naming it."""
+    a = np.asarray(array)
+    if width is None and a.ndim == 2 and a.shape[1] == 1:
+        a = a.reshape(-1)
+    expected = "(N,)" if width is None else f"(N, {width})" if width else "(N, columns)"
+    if a.ndim != (1 if width is None else 2) or (width and a.shape[1] != width) or (rows is not None and a.shape[0] != rows):
+        got = "x".join(map(str, a.shape)) or "a scalar"
+        raise ValueError(f"{name} must be an array of shape {expected}" + (f" with N = {rows} (as means)" if rows is not None else "")
+                         + f", got shape {got}")  # fmt: skip
+    if not np.issubdtype(a.dtype, np.number):
+        raise ValueError(f"{name} must hold numbers, got {a.dtype}")
+    return a
+
+
+def _check_values(means, rotations, log_scales, opacities, features) -> None:
+    """The value checks a file's rows get on reading (``nanogs_warp.io.ply.check_values``), as one
+    InputError naming the arrays: NaN/Inf (opacity logits of +-Inf are valid), quaternions of norm
+    0, finite log-scales beyond the numeric domain."""
+    from .domain import LOG_SCALE_LIMIT
+    from .errors import InputError
+
+    n = means.shape[0]
+    if n == 0:
+        return
+    bad = np.zeros(n, bool)
+    parts = []
+    with np.errstate(all="ignore"):
+        for name, values in (("means", means), ("rotations", rotations), ("log_scales", log_scales),
+                             ("opacities", opacities), ("features", features)):  # fmt: skip
+            rows = (np.isnan(values) if name == "opacities" else ~np.isfinite(values)).reshape(n, -1).any(axis=1)
+            if rows.any():
+                parts.append(f"{np.count_nonzero(rows)} with NaN/Inf {name}")
+                bad |= rows
+        q = np.asarray(rotations, dtype=np.float64)
+        rows = np.einsum("ij,ij->i", q, q) == 0
+        if rows.any():
+            parts.append(f"{np.count_nonzero(rows)} with zero-norm quaternions")
+            bad |= rows
+        rows = (np.abs(np.asarray(log_scales, dtype=np.float64)) > LOG_SCALE_LIMIT).any(axis=1)
+        if rows.any():
+            parts.append(f"{np.count_nonzero(rows)} with log-scales outside [-{LOG_SCALE_LIMIT:g}, {LOG_SCALE_LIMIT:g}]")
+            bad |= rows
+    if parts:
+        raise InputError(f"{np.count_nonzero(bad)} of {n} splats are invalid: {'; '.join(parts)}")
 
 
 def split_integer_extras(extras: np.ndarray, layout: PlyLayout | None) -> tuple[np.ndarray, np.ndarray]:
@@ -217,9 +302,10 @@ def split_integer_extras(extras: np.ndarray, layout: PlyLayout | None) -> tuple[
     if not names or extras.shape[1] != len(layout.extra_names):
         return extras, np.zeros((n, 0), np.int64)
     where = {name: k for k, name in enumerate(layout.extra_names)}
+    dtypes = layout.extra_dtypes()
     columns = []
     for name in names:
-        info = np.iinfo(layout.extra_dtype(name))
+        info = np.iinfo(dtypes[name])
         with np.errstate(invalid="ignore"):
             values = np.rint(np.nan_to_num(extras[:, where[name]].astype(np.float64)))
         columns.append(np.clip(values, info.min, info.max).astype(np.int64))

@@ -1,6 +1,9 @@
 """The Python API as a library user meets it: several budgets in one call, configurations checked
 where they are built, the package's own error for a missing device."""
 
+import re
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import warp as wp
@@ -35,12 +38,15 @@ def test_several_counts_and_repeats(splats):
     assert [r.count for r in simplify(splats, count=[50])] == [50]
     assert simplify(splats, count=np.int64(20)).count == 20
     assert simplify(splats, ratio=np.float32(0.07)).count == 49  # ceil(0.07 * 700) exactly
+    assert simplify(splats, ratio=np.float64(0.07)).count == 49  # numpy's float64 is a float: its shortest repr
+    assert [r.count for r in simplify(splats, ratio=list(np.linspace(0.1, 0.3, 3)))] == [70, 140, 210]
 
 
 @pytest.mark.parametrize(
     "kwargs",
     [{}, {"ratio": 0.1, "count": 5}, {"ratio": 0.1, "ratios": [0.2]}, {"count": 5, "counts": [3]}, {"ratios": []},
-     {"count": 2.5}, {"ratio": [0.1, 2.0]}, {"count": [701]}],
+     {"count": 2.5}, {"ratio": [0.1, 2.0]}, {"count": [701]}, {"count": float("nan")}, {"count": float("inf")},
+     {"count": "5"}, {"ratio": np.float64("nan")}],
 )  # fmt: skip
 def test_bad_budgets(splats, kwargs):
     with pytest.raises(InputError):
@@ -50,7 +56,8 @@ def test_bad_budgets(splats, kwargs):
 @pytest.mark.parametrize(
     "kwargs",
     [{"operator": "nope"}, {"cost": "nope"}, {"k": 0}, {"k": 1000}, {"prune_opacity": 1.5}, {"samples": 0},
-     {"lambda_geo": -1.0}, {"lambda_app": float("nan")}],
+     {"lambda_geo": -1.0}, {"lambda_app": float("nan")}, {"k": "24"}, {"k": 2.0}, {"fit_size": 1}, {"cost": None},
+     {"seed": -1}, {"seed": 2**31}, {"pass_fraction": "0.3"}],
 )  # fmt: skip
 def test_bad_configuration_fails_when_built(kwargs):
     with pytest.raises(InputError):
@@ -68,3 +75,71 @@ def test_missing_gpu_is_the_packages_error(splats):
     with pytest.raises(InputError, match="expected auto, cpu, cuda or cuda:N"):
         simplify(splats, ratio=0.1, device="tpu")
     assert simplify(splats, ratio=0.1, device="cpu").device == wp.get_device("cpu")
+
+
+def test_arguments_of_the_wrong_kind_are_named(splats, tmp_path):
+    from nanogs_warp import refine
+
+    with pytest.raises(TypeError, match="expected a SplatSet .* got str"):
+        simplify(str(tmp_path / "scene.ply"), ratio=0.5)
+    with pytest.raises(TypeError, match="config must be a SimplifyConfig"):
+        simplify(splats, ratio=0.5, config={"k": 3})
+    with pytest.raises(TypeError, match="reference must be a SplatSet"):
+        refine(splats, None, steps=1)
+    with pytest.raises(InputError, match="RefineConfig.steps must be a whole number, got 2.5"):
+        refine(splats, splats, steps=2.5)
+    with pytest.raises(InputError, match="--seed must be between 0 and"):
+        refine(splats, splats, steps=1, seed=-1)
+
+
+def test_arrays_of_the_wrong_shape_are_refused_by_name(splats):
+    """A kernel handed an array shorter than the means would read and write memory it does not
+    own: every array is checked where a splat set is built."""
+    arrays = random_splat_arrays(50, sh_degree=1, seed=2)
+    cases = [
+        ({"rotations": arrays["rotations"][:1]}, "rotations must be an array of shape (N, 4) with N = 50"),
+        ({"log_scales": arrays["log_scales"][:, :2]}, "log_scales must be an array of shape (N, 3)"),
+        ({"opacities": arrays["opacities"][:49]}, "opacities must be an array of shape (N,) with N = 50"),
+        ({"features": arrays["features"][:, :5]}, "5 SH coefficients is not 3 * (d + 1)^2"),
+        ({"features": arrays["features"][:, 0]}, "features must be an array of shape (N, columns)"),
+        ({"means": arrays["means"].astype(str)}, "means must hold numbers"),
+        ({"extras": np.zeros((49, 2))}, "extras must be an array of shape (N, columns) with N = 50"),
+    ]
+    for change, message in cases:
+        with pytest.raises(ValueError) as caught:
+            SplatSet.from_numpy(**{**arrays, **change}, device="cpu")
+        assert message in str(caught.value), (change.keys(), str(caught.value))
+    assert SplatSet.from_numpy(**{**arrays, "opacities": arrays["opacities"].reshape(50, 1)}, device="cpu").count == 50
+
+    good = SplatSet.from_numpy(**arrays, device="cpu")
+    for field, array, message in [
+        ("log_scales", wp.zeros(5, dtype=wp.vec3), "SplatSet.log_scales has 5 rows, not one per splat (50"),
+        ("rotations", wp.zeros(50, dtype=wp.vec4), "SplatSet.rotations must be a 1-D Warp array of quat"),
+        ("opacities", wp.zeros(50, dtype=wp.float64), "SplatSet.opacities must be a 1-D Warp array of float32"),
+        ("features", wp.zeros((50, 7), dtype=wp.float32), "7 SH coefficients"),
+        ("extras", np.zeros((50, 0), np.float32), "SplatSet.extras must be a Warp array, got ndarray"),
+    ]:
+        with pytest.raises((ValueError, TypeError)) as caught:
+            replace(good, **{field: array})
+        assert message in str(caught.value), (field, str(caught.value))
+
+
+def test_values_a_file_may_not_hold_are_refused_unless_asked(splats):
+    arrays = random_splat_arrays(50, sh_degree=1, seed=2)
+    nan_features = arrays["features"].copy()
+    nan_features[3, 4] = np.nan
+    zero_quaternion = arrays["rotations"].copy()
+    zero_quaternion[[5, 6]] = 0
+    huge = arrays["log_scales"].copy()
+    huge[7, 0] = 200
+    for change, message in [
+        ({"features": nan_features}, "1 of 50 splats are invalid: 1 with NaN/Inf features"),
+        ({"rotations": zero_quaternion}, "2 of 50 splats are invalid: 2 with zero-norm quaternions"),
+        ({"log_scales": huge}, "1 of 50 splats are invalid: 1 with log-scales outside"),
+    ]:
+        with pytest.raises(InputError, match=re.escape(message)):
+            SplatSet.from_numpy(**{**arrays, **change}, device="cpu")
+        assert SplatSet.from_numpy(**{**arrays, **change}, device="cpu", validate=False).count == 50
+    logits = arrays["opacities"].copy()
+    logits[:2] = [np.inf, -np.inf]  # alpha 1 and 0: valid, as in a file
+    assert SplatSet.from_numpy(**{**arrays, "opacities": logits}, device="cpu").count == 50

@@ -44,10 +44,24 @@ def test_refine_each_budget(tmp_path):
         assert (tmp_path / f"plain_{budget}.ply").read_bytes() == (tmp_path / f"plain2_{budget}.ply").read_bytes()
 
 
+def test_no_loss_measured_is_null_in_the_json(tmp_path):
+    """JSON has no NaN: a refinement of no step measures no loss, and says so with null."""
+    scene = tmp_path / "scene.ply"
+    random_splats_ply(scene, 100, seed=6)
+    result = run("simplify", scene, "-o", tmp_path / "out.ply", "--ratio", "0.5", "--device", "cpu", "--refine-steps", "0", "--json")
+    assert result.exit_code == 0, result.output
+
+    def no_constant(name):
+        raise ValueError(f"{name} is not JSON")
+
+    report = json.loads(result.stdout, parse_constant=no_constant)["outputs"][0]["refine"]
+    assert report["steps"] == 0 and report["loss_before"] is None and report["validation_after"] is None
+
+
 def test_bad_refine_settings(tmp_path):
     scene = tmp_path / "scene.ply"
     random_splats_ply(scene, 50, seed=5)
-    for option, value in (("--refine-size", "8"), ("--refine-steps", "-2")):
+    for option, value in (("--refine-size", "8"), ("--refine-steps", "-2"), ("--seed", "-1")):
         result = run("simplify", scene, "-o", tmp_path / "out.ply", "--ratio", "0.5", "--device", "cpu", "--refine", option, value)
         assert result.exit_code == 2
         assert result.stderr.count("\n") == 1 and result.stderr.startswith("nanogs-warp: error: ")

@@ -36,7 +36,7 @@ def merge_pairs(arrays, integers, pairs_ij, operator, device):
     for value in poisoned.values():
         value[pairs_ij[:, 0]] = np.nan
     poisoned_integers[pairs_ij[:, 0]] = POISON
-    out = SplatSet.from_numpy(**poisoned, integer_extras=poisoned_integers, device=device)
+    out = SplatSet.from_numpy(**poisoned, integer_extras=poisoned_integers, device=device, validate=False)
     pairs = Pairs(wp.array(pairs_ij[:, 0].astype(np.int32), device=device),
                   wp.array(pairs_ij[:, 1].astype(np.int32), device=device), len(pairs_ij))  # fmt: skip
     OPERATORS[operator]()(source, pairs, out, wp.array(np.arange(n, dtype=np.int32), device=device))

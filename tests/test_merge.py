@@ -20,7 +20,7 @@ def merged(arrays, device, pairs_ij, operator=None):
     poisoned = {key: value.copy() for key, value in arrays.items()}
     for value in poisoned.values():
         value[pairs_ij[:, 0]] = np.nan
-    out = SplatSet.from_numpy(**poisoned, device=device)
+    out = SplatSet.from_numpy(**poisoned, device=device, validate=False)
     pi = wp.array(pairs_ij[:, 0].astype(np.int32), device=device)
     pj = wp.array(pairs_ij[:, 1].astype(np.int32), device=device)
     identity = wp.array(np.arange(n, dtype=np.int32), device=device)

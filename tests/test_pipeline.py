@@ -207,6 +207,18 @@ def test_pass_limit_grows_with_the_halvings():
     assert pass_limit(6_000_000, 6_000) == 32 + 8 * 10
 
 
+def test_as_many_budgets_as_passes_allow_and_more():
+    """A pass stops at the next budget, so each budget may add a pass: 150 budgets of a 400-splat
+    scene (more than pass_limit's 104 passes) all arrive, each with its exact count."""
+    from nanogs_warp.pipeline import pass_limit
+
+    splats = SplatSet.from_numpy(**clustered_scene(400, seed=3), device="cpu")
+    counts = list(range(1, 151))
+    assert pass_limit(400, 1) < len(counts)
+    for config in (SimplifyConfig.preset("fast"), SimplifyConfig()):
+        assert [s.count for s in simplify(splats, count=counts, config=config)] == counts
+
+
 @pytest.mark.parametrize("kept", [0, 1])
 def test_a_stuck_merge_stops_with_an_error(device, monkeypatch, kept):
     """A pass that merges nothing, or so little that the pass bound runs out, ends the run with an

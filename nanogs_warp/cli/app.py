@@ -3,7 +3,6 @@ in this package, the only one that knows about paths, terminals and exit codes."
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -249,7 +248,7 @@ def simplify(
                     "stages": {name: round(seconds, 4) for name, seconds in stages.items()}},
     }
     if json_output:
-        typer.echo(json.dumps(summary, indent=2))
+        typer.echo(opts.json_text(summary))
     elif not quiet:
         for out in written:
             level = f", level {out['level']}" if "level" in out else ""

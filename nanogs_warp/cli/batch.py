@@ -6,7 +6,6 @@ Registered in ``app.py`` as ``app.command("batch")(user_errors(batch_command))``
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -134,7 +133,7 @@ def batch_command(
         if sh_degree is not None:
             settings["sh_degree"] = sh_degree
         summary = {"schema": opts.JSON_SCHEMA, "command": "batch", "output": os.path.abspath(output), "settings": settings, **summary}
-        typer.echo(json.dumps(summary, indent=2))
+        typer.echo(opts.json_text(summary))
     elif not quiet:
         typer.echo(format_summary(results, seconds))
     sys.stdout.flush()
@@ -150,8 +149,8 @@ def _print_plan(plan: list[dict], output: Path, shard: tuple[int, int], json_out
             scene["input"] = os.path.abspath(scene["input"])
             scene["outputs"] = [os.path.abspath(path) for path in scene["outputs"]]
         totals = {action: sum(p["action"] == action for p in plan) for action in ("run", "skip", "fail")}
-        typer.echo(json.dumps({"schema": opts.JSON_SCHEMA, "command": "batch", "dry_run": True, "output": os.path.abspath(output),
-                               "shard": f"{shard[0]}/{shard[1]}", "scenes": plan, **totals}, indent=2))  # fmt: skip
+        typer.echo(opts.json_text({"schema": opts.JSON_SCHEMA, "command": "batch", "dry_run": True, "output": os.path.abspath(output),
+                                   "shard": f"{shard[0]}/{shard[1]}", "scenes": plan, **totals}))  # fmt: skip
     else:
         typer.echo(format_plan(plan))
 

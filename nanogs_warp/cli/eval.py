@@ -5,7 +5,6 @@ Registered in ``app.py`` as ``app.command("eval")(user_errors(eval_command))``.
 
 from __future__ import annotations
 
-import json
 import math
 import re
 import sys
@@ -32,18 +31,6 @@ def parse_background(text: str) -> tuple[float, float, float]:
     if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
         raise InputError(f"--background {text!r}: expected R,G,B with values in [0, 1], black or white")
     return values  # type: ignore[return-value]
-
-
-def _finite_or_none(value):
-    """JSON has no NaN or infinity: NaN (undefined, e.g. no foreground) and inf (identical images)
-    become null; ``identical`` in the output tells the two apart."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite_or_none(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_finite_or_none(v) for v in value]
-    return value
 
 
 def eval_command(
@@ -150,7 +137,7 @@ def eval_command(
                 print(f"wrote {count} images to {folder}", file=sys.stderr)
 
     if json_output:
-        typer.echo(json.dumps(_finite_or_none(result), indent=2))
+        typer.echo(opts.json_text(result))
     elif not quiet:
         typer.echo(format_table(result))
 

@@ -5,13 +5,13 @@ Registered in ``app.py`` as ``app.command("info")(user_errors(info_command))``.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from ..domain import LOG_SCALE_LIMIT
+from . import options as opts
 from .options import JSON_SCHEMA
 
 
@@ -25,7 +25,7 @@ def info_command(
     details = scene_info(input)
     if json_output:
         details = {"schema": JSON_SCHEMA, "command": "info", "path": str(input.resolve()), **details}
-    typer.echo(json.dumps(details, indent=2) if json_output else format_info(details))
+    typer.echo(opts.json_text(details) if json_output else format_info(details))
 
 
 def format_info(info: dict) -> str:

@@ -13,6 +13,25 @@ from ..refinement.config import RefineConfig
 # The version of every --json output's layout (docs/json.md): raised when a field changes meaning or goes.
 JSON_SCHEMA = 1
 
+
+def json_text(value) -> str:
+    """``value`` as every --json output prints it: indented, and JSON itself (which has no NaN or
+    infinity: a number that is not finite, such as an infinite PSNR of identical images or the loss
+    of a refinement that took no step, is written as null)."""
+    import json
+    import math
+
+    def finite(v):
+        if isinstance(v, float) and not math.isfinite(v):
+            return None
+        if isinstance(v, dict):
+            return {k: finite(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [finite(x) for x in v]
+        return v
+
+    return json.dumps(finite(value), indent=2, allow_nan=False)
+
 Ratio = Annotated[Optional[str], typer.Option("--ratio", metavar="RATIOS", help="Fraction of the input's splats to keep, in (0, 1]; several as 0.1,0.01,0.001. The output has exactly ceil(ratio x N) splats.")]
 Count = Annotated[Optional[str], typer.Option("--count", metavar="COUNTS", help="Number of splats to keep; several as 100000,10000.")]
 K = Annotated[

@@ -351,7 +351,9 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     n_rest = sum(1 for p in names if p.startswith("f_rest_"))
     known = set(REQUIRED_NAMES) | {f"f_rest_{i}" for i in range(n_rest)}
     extra_names = [p for p in names if p not in known]
-    integer_names = [p.name for p in vertex_h.props if p.name in extra_names and p.dtype.kind in "iu"]
+    extra_set = set(extra_names)
+    integer_names = [p.name for p in vertex_h.props if p.name in extra_set and p.dtype.kind in "iu"]
+    integer_set = set(integer_names)
     offset = _binary_offset(header, "vertex")
     # plyfile found the same first record at the offset: trust it (else use plyfile's array)
     direct = (offset is not None and data.flags.c_contiguous
@@ -363,7 +365,7 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
         "log_scales": SCALE_NAMES,
         "opacities": OPACITY_NAMES,
         "features": DC_NAMES + tuple(f"f_rest_{i}" for i in range(n_rest)),
-        "extras": tuple(p for p in extra_names if p not in integer_names),
+        "extras": tuple(p for p in extra_names if p not in integer_set),
         "integer_extras": tuple(integer_names),
     }
     arrays = {key: np.empty((n, len(group)), np.int64 if key == "integer_extras" else np.float32)

@@ -89,6 +89,7 @@ def parse_header(head: bytes, name: str) -> Header:
 
     fmt = None
     elements: list[Element] = []
+    prop_names: set[str] = set()  # the last element's property names so far
     lines = _NEWLINE.split(text)
     for lineno, raw in enumerate(lines[1:], start=2):
         line = raw.strip()
@@ -120,6 +121,7 @@ def parse_header(head: bytes, name: str) -> Header:
             if any(e.name == fields[0] for e in elements):
                 fail(lineno, f"element {fields[0]!r} appears twice")
             elements.append(Element(fields[0], count, []))
+            prop_names = set()
         elif keyword == "property":
             if not elements:
                 fail(lineno, "property before any element")
@@ -133,8 +135,9 @@ def parse_header(head: bytes, name: str) -> Header:
                 if fields[0] not in _TYPES:
                     fail(lineno, f"unknown property type {fields[0]!r}")
                 prop = Prop(fields[1], np.dtype(_TYPES[fields[0]]), type_name=fields[0])
-            if any(p.name == prop.name for p in elements[-1].props):
+            if prop.name in prop_names:
                 fail(lineno, f"property {prop.name!r} appears twice in element {elements[-1].name!r}")
+            prop_names.add(prop.name)
             elements[-1].props.append(prop)
         else:
             fail(lineno, f"unexpected line {line[:40]!r}")

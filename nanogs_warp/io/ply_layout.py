@@ -29,12 +29,18 @@ class PlyLayout:
     def extra_dtype(self, name: str) -> np.dtype:
         return np.dtype(dict(self.properties).get(name, "f4"))
 
+    def extra_dtypes(self) -> dict[str, np.dtype]:
+        """Each extra property's numpy dtype (float32 where the layout does not name its type), in
+        one pass over the properties: files may hold tens of thousands of them."""
+        types = dict(self.properties)
+        return {n: np.dtype(types.get(n, "f4")) for n in self.extra_names}
+
     @property
     def integer_extra_names(self) -> list[str]:
         """The extra properties of an integer type (char to uint), in file order."""
-        return [n for n in self.extra_names if self.extra_dtype(n).kind in "iu"]
+        return [n for n, t in self.extra_dtypes().items() if t.kind in "iu"]
 
     @property
     def float_extra_names(self) -> list[str]:
         """The other extra properties (float, double), in file order."""
-        return [n for n in self.extra_names if self.extra_dtype(n).kind not in "iu"]
+        return [n for n, t in self.extra_dtypes().items() if t.kind not in "iu"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..config import MAX_SEED, check_types
 from ..errors import InputError
 
 MIN_SIZE = 32  # the half-size training views must fit the 11-pixel SSIM window
@@ -32,6 +33,9 @@ class RefineConfig:
     logit_range: tuple[float, float] = (-20.0, 20.0)
 
     def validate(self) -> None:
+        check_types(self, {"steps": "int", "size": "int", "views_per_step": "int", "reference_views": "int", "seed": "int"})
+        if not 0 <= self.seed <= MAX_SEED:
+            raise InputError(f"--seed must be between 0 and {MAX_SEED}, got {self.seed}")
         if not 0 <= self.steps <= MAX_STEPS:
             raise InputError(f"--refine-steps must be in [0, {MAX_STEPS}], got {self.steps}")
         if not MIN_SIZE <= self.size <= MAX_SIZE:

@@ -245,6 +245,9 @@ def refine_with_report(
     ``views``: the original's renders shared with other refinements toward the same ``reference``
     with the same ``config`` and ``device`` (``ReferenceViews``; made here when None). The result
     is the same bytes either way."""
+    for name, value in (("simplified", simplified), ("reference", reference)):
+        if not isinstance(value, SplatSet):
+            raise TypeError(f"{name} must be a SplatSet (nanogs_warp.load_ply reads one from a file), got {type(value).__name__}")
     config = config or RefineConfig()
     config.validate()
     device = wp.get_device(device if device is not None else simplified.device)

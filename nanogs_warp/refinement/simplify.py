@@ -9,7 +9,7 @@ from collections.abc import Callable, Iterator, Sequence
 import warp as wp
 
 from ..config import SimplifyConfig
-from ..pipeline import PassReport
+from ..pipeline import PassReport, check_arguments
 from ..pipeline import simplify as simplify_merged
 from ..pipeline import simplify_progressively as merged_progressively
 from ..splats import SplatSet
@@ -26,6 +26,7 @@ def simplify_progressively(
 ) -> Iterator[tuple[int, SplatSet]]:
     """Yields (target, splats) for each target count, largest first, from one progressive merge
     (``pipeline.simplify_progressively``), each output fitted for size when ``config.fit_size``."""
+    check_arguments(splats, config)
     return merged_progressively(splats, targets, config, on_pass, clock, finish=size_fit_for(splats, config))
 
 
@@ -41,6 +42,7 @@ def simplify(
 ) -> SplatSet | list[SplatSet]:
     """``pipeline.simplify`` (budgets, devices and errors as documented there), each output fitted
     for size when ``config.fit_size``."""
+    check_arguments(splats, config)
     if isinstance(device, str):
         from ..device import resolve_device
 
