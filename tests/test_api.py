@@ -143,3 +143,16 @@ def test_values_a_file_may_not_hold_are_refused_unless_asked(splats):
     logits = arrays["opacities"].copy()
     logits[:2] = [np.inf, -np.inf]  # alpha 1 and 0: valid, as in a file
     assert SplatSet.from_numpy(**{**arrays, "opacities": logits}, device="cpu").count == 50
+
+
+@pytest.mark.parametrize("name", ["e.ply", "e.spz", "e.sog", "e.splat", "e.compressed.ply", "lod-meta.json"])
+def test_an_empty_splat_set_is_not_written(tmp_path, name):
+    """No reader takes a scene without splats, so no writer makes one: one clear error, no file."""
+    from nanogs_warp import save_ply
+    from nanogs_warp.io import save_splats
+
+    empty = SplatSet.from_numpy(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), device="cpu")
+    for save in (save_splats, save_ply) if name.endswith(".ply") else (save_splats,):
+        with pytest.raises(InputError, match="an empty splat set cannot be written"):
+            save(empty, tmp_path / name)
+    assert list(tmp_path.iterdir()) == []

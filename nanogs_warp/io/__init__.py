@@ -160,6 +160,8 @@ def save_levels(
     fmt = format_for_path(path, format)
     if fmt != "lod" and len(levels) != 1:
         raise ValueError("several levels need the lod format")
+    if any(level.count == 0 for level in levels):  # no reader takes a scene without splats
+        raise InputError(f"{path.name}: an empty splat set cannot be written (a scene file holds at least one splat)")
     staged = OutputSet(overwrite) if outputs is None else outputs
     try:
         if fmt == "ply":

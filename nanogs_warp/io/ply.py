@@ -163,6 +163,8 @@ def save_ply(splats: SplatSet, path, threads: int | None = None, overwrite: bool
     existing ``path`` is an InputError and stays as it is. With ``outputs`` the file is staged there
     (``OutputSet``) and appears when the set is published.
     """
+    if splats.count == 0:  # the reader refuses a vertex element without rows
+        raise InputError(f"{Path(path).name}: an empty splat set cannot be written (a scene file holds at least one splat)")
     host = _host_arrays(splats)
     props = output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1],
                               host["integer_extras"].shape[1])  # fmt: skip
