@@ -119,7 +119,8 @@ class SplatSet:
             extras, integer_extras = split_integer_extras(np.asarray(extras), layout)
 
         def f32(a, shape):
-            return np.ascontiguousarray(np.asarray(a, dtype=np.float32).reshape(shape))
+            with np.errstate(over="ignore", invalid="ignore"):  # unchecked (validate=False): taken as float32 holds it
+                return np.ascontiguousarray(np.asarray(a, dtype=np.float32).reshape(shape))
 
         def i64(a, shape):
             return np.ascontiguousarray(np.asarray(a, dtype=np.int64).reshape(shape))
@@ -276,6 +277,7 @@ def _check_values(means, rotations, log_scales, opacities, features) -> None:
     with np.errstate(all="ignore"):
         for name, values in (("means", means), ("rotations", rotations), ("log_scales", log_scales),
                              ("opacities", opacities), ("features", features)):  # fmt: skip
+            values = np.asarray(values, dtype=np.float32)  # as stored: a float64 beyond float32's range is infinite there
             rows = (np.isnan(values) if name == "opacities" else ~np.isfinite(values)).reshape(n, -1).any(axis=1)
             if rows.any():
                 parts.append(f"{np.count_nonzero(rows)} with NaN/Inf {name}")

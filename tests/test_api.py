@@ -132,10 +132,13 @@ def test_values_a_file_may_not_hold_are_refused_unless_asked(splats):
     zero_quaternion[[5, 6]] = 0
     huge = arrays["log_scales"].copy()
     huge[7, 0] = 200
+    beyond_float32 = arrays["means"].astype(np.float64)
+    beyond_float32[9, 1] = 1e300
     for change, message in [
         ({"features": nan_features}, "1 of 50 splats are invalid: 1 with NaN/Inf features"),
         ({"rotations": zero_quaternion}, "2 of 50 splats are invalid: 2 with zero-norm quaternions"),
         ({"log_scales": huge}, "1 of 50 splats are invalid: 1 with log-scales outside"),
+        ({"means": beyond_float32}, "1 of 50 splats are invalid: 1 with NaN/Inf means"),
     ]:
         with pytest.raises(InputError, match=re.escape(message)):
             SplatSet.from_numpy(**{**arrays, **change}, device="cpu")

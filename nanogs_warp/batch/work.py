@@ -288,7 +288,7 @@ RECORD_LIMIT = 16 << 20  # a scene's record is a few kB; a larger file (or no re
 def read_record(path: Path) -> dict | None:
     """The scene's record, or None where there is none that can be read (the scene is then redone):
     a FIFO or a device in its place is not read, nor more than RECORD_LIMIT bytes."""
-    from ..errors import InputError, out_of_memory
+    from ..errors import InputError
     from ..io.common import read_file_bytes
 
     try:

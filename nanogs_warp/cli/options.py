@@ -32,6 +32,7 @@ def json_text(value) -> str:
 
     return json.dumps(finite(value), indent=2, allow_nan=False)
 
+
 Ratio = Annotated[Optional[str], typer.Option("--ratio", metavar="RATIOS", help="Fraction of the input's splats to keep, in (0, 1]; several as 0.1,0.01,0.001. The output has exactly ceil(ratio x N) splats.")]
 Count = Annotated[Optional[str], typer.Option("--count", metavar="COUNTS", help="Number of splats to keep; several as 100000,10000.")]
 K = Annotated[
