@@ -259,12 +259,15 @@ def test_overwrite_never_replaces_what_is_not_a_regular_file(scene, tmp_path):
 
 
 def test_output_names_too_long_to_write_are_refused_first(scene, tmp_path):
-    """A name is written beside a temporary with 18 more bytes: 237 bytes at most (names of 238-255
-    bytes failed late, and longer ones were an internal error)."""
-    for length in (238, 300):
+    """A name is written beside a temporary with 26 more bytes: 229 bytes at most (longer names
+    failed late, and names beyond 255 bytes were an internal error)."""
+    from nanogs_warp.io.ply_write import TEMPORARY_EXTRA_BYTES
+
+    assert TEMPORARY_EXTRA_BYTES == 26
+    for length in (230, 300):
         result = run("simplify", scene, "-o", tmp_path / ("x" * (length - 4) + ".ply"), "--ratio", "0.5", "--device", "cpu")
-        assert result.exit_code == 2 and f"is {length} bytes long; at most 237 can be written" in result.output
-    assert run("simplify", scene, "-o", tmp_path / ("y" * 233 + ".ply"), "--ratio", "0.5", "--device", "cpu", "-q").exit_code == 0
+        assert result.exit_code == 2 and f"is {length} bytes long; at most 229 can be written" in result.output
+    assert run("simplify", scene, "-o", tmp_path / ("y" * 225 + ".ply"), "--ratio", "0.5", "--device", "cpu", "-q").exit_code == 0
 
 
 def _failing_write(monkeypatch, module: str, fail_on: int):

@@ -4,6 +4,7 @@ action, dying at once, left running)."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -70,3 +71,25 @@ def _running(pid: int) -> bool:
             return f.read().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def test_what_a_killed_simplify_left_goes_with_the_next_run(tmp_path):
+    """kill -9 runs no handler, so the temporary stays; the next run of the same outputs removes the
+    temporaries of writers that are gone (their process id is in the name), never a live one's."""
+    scene = tmp_path / "big.ply"
+    random_splats_ply(scene, 200_000, sh_degree=1, seed=3)
+    out = tmp_path / "out"
+    out.mkdir()
+    command = [sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out / "o.ply"), "--ratio", "0.5", "--device", "cpu", "-q"]
+    process = subprocess.Popen(command)
+    _wait_for(lambda: any(p.name.endswith(".tmp") for p in out.iterdir()) or process.poll() is not None)
+    process.kill()
+    process.wait(timeout=60)
+    left = [p.name for p in out.iterdir() if p.name.endswith(".tmp")]
+    assert left == [] or left[0].startswith(f".o.ply.{process.pid}-")  # [] if it had just finished
+    live = out / f".o.ply.{os.getppid()}-{'a' * 12}.tmp"  # a writer that is still there (pytest's parent)
+    others = [out / ".o.ply.tmp", out / f".o.ply.{process.pid}-xyz.tmp", out / f".p.ply.{process.pid}-{'b' * 12}.tmp"]
+    for path in (live, *others):
+        path.write_bytes(b"partial")
+    subprocess.run([*command, "-w"], check=True, timeout=300)
+    assert sorted(p.name for p in out.iterdir()) == sorted(["o.ply", live.name, *(p.name for p in others)])

@@ -149,6 +149,9 @@ def simplify(
         paths, folder = _output_paths(output, input, budgets, output_format)
     written = [f for p in dict.fromkeys(paths.values()) for f in output_files(p, fmt, len(budgets) if lod_set else 1)]
     _check_outputs(input, list(paths.values()), written, overwrite, folder)
+    from ..io.ply_write import remove_stale_temporaries
+
+    remove_stale_temporaries(written)  # what runs of these outputs killed on this machine left
     keep_freed_host_memory()
     notes = _Notes(quiet or json_output)
 
@@ -427,7 +430,7 @@ def _is_folder(path: str) -> bool:
         return False
 
 
-_LONGEST_OUTPUT_NAME = 255 - 18  # a file name's bytes on common file systems, less the temporary's additions
+_LONGEST_OUTPUT_NAME = 255 - 26  # a file name's bytes on common file systems, less io.ply_write.TEMPORARY_EXTRA_BYTES
 
 
 def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwrite: bool = False,
@@ -441,7 +444,7 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
     from ..io import input_files
     from ..io.open_file import open_regular
 
-    for path in written:  # written beside a temporary ".<name>.<12 hex>.tmp" (18 more bytes)
+    for path in written:  # written beside a temporary ".<name>.<pid>-<12 hex>.tmp"
         if len(os.fsencode(path.name)) > _LONGEST_OUTPUT_NAME:
             raise InputError(f"output name {path.name[:40]}... is {len(os.fsencode(path.name))} bytes long; "
                              f"at most {_LONGEST_OUTPUT_NAME} can be written")  # fmt: skip

@@ -339,7 +339,7 @@ def atomic_write(path: Path, write, overwrite: bool = True, outputs: OutputSet |
         raise InputError(f"{name}: is a directory")
     if not directory.is_dir():
         raise InputError(f"{name}: cannot write: directory {str(directory)!r} does not exist")
-    tmp = directory / f".{name}.{secrets.token_hex(6)}.tmp"
+    tmp = temporary_path(path)
     created = False
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
@@ -358,6 +358,55 @@ def atomic_write(path: Path, write, overwrite: bool = True, outputs: OutputSet |
     finally:
         if created:
             _remove(tmp)
+
+
+TEMPORARY_EXTRA_BYTES = 1 + 1 + 7 + 1 + 12 + 4  # ".<name>.<pid>-<12 hex>.tmp": pids below 10^7
+
+
+def temporary_path(path: Path) -> Path:
+    """Where ``path`` is written first: ``.<name>.<pid>-<12 hex>.tmp`` beside it. The writer's
+    process id in the name lets a later run tell what a killed writer left (``remove_stale_temporaries``)
+    from a live writer's file."""
+    return path.parent / f".{path.name}.{os.getpid()}-{secrets.token_hex(6)}.tmp"
+
+
+def remove_stale_temporaries(paths: list[Path]) -> list[Path]:
+    """Removes the temporary files of ``paths`` that writers killed on this machine left behind (a
+    kill -9, a lost power: no handler ran), those whose process is gone; a live writer's stays.
+    One scan per folder. Returns what was removed."""
+    removed = []
+    for folder in dict.fromkeys(p.parent for p in paths):
+        names = {p.name for p in paths if p.parent == folder}
+        try:
+            with os.scandir(folder) as entries:
+                stale = [e.path for e in entries if _killed_writers_temporary(e.name, names)]
+        except OSError:
+            continue
+        for path in stale:
+            try:
+                os.unlink(path)
+                removed.append(Path(path))
+            except OSError:
+                pass
+    return removed
+
+
+def _killed_writers_temporary(entry: str, names: set[str]) -> bool:
+    """Whether ``entry`` is ``temporary_path``'s name for one of ``names`` written by a process that
+    is gone."""
+    if not (entry.startswith(".") and entry.endswith(".tmp")):
+        return False
+    name, _, tag = entry[1:-4].rpartition(".")
+    pid, _, token = tag.partition("-")
+    if name not in names or not pid.isdigit() or len(token) != 12 or not all(c in "0123456789abcdef" for c in token):
+        return False
+    try:
+        os.kill(int(pid), 0)  # signal 0: only asks whether the process is there
+    except (ProcessLookupError, OverflowError):  # gone, or beyond any process id
+        return True
+    except OSError:  # there, but another user's
+        return False
+    return False
 
 
 def _linked(tmp: Path, path: Path) -> bool:
