@@ -261,6 +261,8 @@ def test_a_dry_run_says_what_a_run_would_do_and_writes_nothing(scenes, tmp_path)
         "fail  sub/b.ply  no such file",
         "2 scenes: 0 to run, 1 up to date, 1 would fail (dry run: nothing written)",
     ]
+    result = run(manifest, "-o", out / "room", "--ratio", "0.1", "--devices", "cpu")
+    assert result.exit_code == 1 and "failed: sub/b.ply: no such file\n" in result.stdout  # the scene named once
 
 
 @pytest.mark.parametrize(

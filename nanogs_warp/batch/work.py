@@ -195,16 +195,16 @@ def _read(scene: LoadedScene, force: bool) -> None:
     try:
         scene.size = job.input.stat().st_size
     except FileNotFoundError:
-        raise InputError(f"{job.relative}: no such file") from None
+        raise InputError("no such file") from None
     except OSError as e:
-        raise InputError(f"{job.relative}: cannot read the file: {e.strerror or e}") from None
+        raise InputError(f"cannot read the file: {e.strerror or e}") from None
     options = job.options()
     record = None if force else read_record(job.record_path)
     if record_matches(record, job, scene.size, None, options):  # all but the hash: hash to be sure
         try:
             scene.sha = input_hash(job.input)
         except OSError as e:
-            raise InputError(f"{job.relative}: cannot read the file: {e.strerror or e}") from None
+            raise InputError(f"cannot read the file: {e.strerror or e}") from None
         if record_matches(record, job, scene.size, scene.sha, options):
             result.status = "skipped"
             result.input_count = record["input_count"]
@@ -384,7 +384,7 @@ def _remove_leftovers(job: SceneJob) -> None:
     if not job.out_dir.is_dir():
         return
     if job.record_path.is_dir():
-        raise InputError(f"{job.relative}: its record {job.record_path} is a folder; move it away")
+        raise InputError(f"its record {job.record_path} is a folder; move it away")
     job.record_path.unlink(missing_ok=True)
     names = {job.record_path.name} | {job.output_path(b).name for b in job.budgets}
     for entry in os.scandir(job.out_dir):
