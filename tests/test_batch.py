@@ -252,14 +252,16 @@ def test_a_dry_run_says_what_a_run_would_do_and_writes_nothing(scenes, tmp_path)
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == {p: t for p, t in before.items() if p.name != "c_0.1.ply"}
 
     (scenes / "room" / "sub" / "b.ply").unlink()
+    os.mkfifo(scenes / "room" / "pipe.ply")  # a dry run neither reads nor waits on it
     manifest = tmp_path / "list.txt"
-    manifest.write_text(f"{scenes / 'room' / 'a.ply'}\n{scenes / 'room' / 'sub' / 'b.ply'}\n")
+    manifest.write_text("".join(f"{scenes / 'room' / name}\n" for name in ("a.ply", "sub/b.ply", "pipe.ply")))
     result = run(manifest, "-o", out / "room", "--ratio", "0.1", "--dry-run")
     assert result.exit_code == 0, result.output
     assert result.stdout.splitlines() == [
         "skip  a.ply      up to date",
+        "fail  pipe.ply   not a regular file",
         "fail  sub/b.ply  no such file",
-        "2 scenes: 0 to run, 1 up to date, 1 would fail (dry run: nothing written)",
+        "3 scenes: 0 to run, 1 up to date, 2 would fail (dry run: nothing written)",
     ]
     result = run(manifest, "-o", out / "room", "--ratio", "0.1", "--devices", "cpu")
     assert result.exit_code == 1 and "failed: sub/b.ply: no such file\n" in result.stdout  # the scene named once

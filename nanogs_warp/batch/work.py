@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import os
 import secrets
+import stat
 import time
 import traceback
 from collections.abc import Callable
@@ -336,19 +337,23 @@ def planned(job: SceneJob, force: bool) -> tuple[str, str | None]:
     """What a run would do with the scene, as ``_read`` decides it (the input hashed where its
     record could match): ("skip", None) when it is up to date, ("run", why) or ("fail", why)."""
     try:
-        size = job.input.stat().st_size
+        status = job.input.stat()
     except FileNotFoundError:
         return "fail", "no such file"
     except OSError as e:
         return "fail", f"cannot read the file: {e.strerror or e}"
+    if not stat.S_ISREG(status.st_mode):  # a folder, a FIFO, a device: a run refuses it (open_regular)
+        return "fail", "not a regular file"
     if force:
         return "run", "--force"
     options = job.options()
     record = read_record(job.record_path)
-    why = record_mismatch(record, job, size, None, options)
+    why = record_mismatch(record, job, status.st_size, None, options)
     if why is None:
         try:
-            why = record_mismatch(record, job, size, input_hash(job.input), options)
+            why = record_mismatch(record, job, status.st_size, input_hash(job.input), options)
+        except InputError as e:
+            return "fail", str(e)
         except OSError as e:
             return "fail", f"cannot read the file: {e.strerror or e}"
     return ("skip", None) if why is None else ("run", why)
