@@ -20,3 +20,33 @@ they are never clamped.
 """
 
 LOG_SCALE_LIMIT = 100.0
+
+
+# The rules of the domain, shared by the file readers' checks (``nanogs_warp.io.ply.check_values``)
+# and ``SplatSet.from_numpy``'s; numpy arrays in, boolean arrays out (numpy is imported here only when
+# a check runs: the command line's start reads LOG_SCALE_LIMIT alone).
+
+
+def not_finite(values, opacity: bool = False):
+    """Where ``values`` are outside the domain as numbers: NaN or infinite; for opacity logits NaN
+    only (+-Inf are alpha 1 and 0, valid)."""
+    import numpy as np
+
+    return np.isnan(values) if opacity else ~np.isfinite(values)
+
+
+def zero_quaternions(quaternions):
+    """Which rows of (N, 4) quaternions are all zero: their norm in float64, exact for float32
+    components (NaNs cast and compare quietly, as not zero)."""
+    import numpy as np
+
+    with np.errstate(all="ignore"):
+        q = np.asarray(quaternions, dtype=np.float64)
+        return np.einsum("ij,ij->i", q, q) == 0
+
+
+def outside_log_scales(log_scales):
+    """Where finite log-scales lie beyond +-LOG_SCALE_LIMIT (NaN compares false)."""
+    import numpy as np
+
+    return np.abs(log_scales) > LOG_SCALE_LIMIT

@@ -263,10 +263,10 @@ def _host_rows(name: str, array, width: int | None, rows: int | None = None) -> 
 
 
 def _check_values(means, rotations, log_scales, opacities, features) -> None:
-    """The value checks a file's rows get on reading (``nanogs_warp.io.ply.check_values``), as one
-    InputError naming the arrays: NaN/Inf (opacity logits of +-Inf are valid), quaternions of norm
-    0, finite log-scales beyond the numeric domain."""
-    from .domain import LOG_SCALE_LIMIT
+    """The value checks a file's rows get on reading (the rules of ``nanogs_warp.domain``, as
+    ``nanogs_warp.io.ply.check_values`` applies them), as one InputError naming the arrays; on the
+    values as float32 stores them (a float64 beyond its range is infinite there)."""
+    from .domain import LOG_SCALE_LIMIT, not_finite, outside_log_scales, zero_quaternions
     from .errors import InputError
 
     n = means.shape[0]
@@ -274,23 +274,21 @@ def _check_values(means, rotations, log_scales, opacities, features) -> None:
         return
     bad = np.zeros(n, bool)
     parts = []
+
+    def note(rows, what: str) -> None:
+        nonlocal bad
+        if rows.any():
+            parts.append(f"{np.count_nonzero(rows)} with {what}")
+            bad |= rows
+
     with np.errstate(all="ignore"):
         for name, values in (("means", means), ("rotations", rotations), ("log_scales", log_scales),
                              ("opacities", opacities), ("features", features)):  # fmt: skip
-            values = np.asarray(values, dtype=np.float32)  # as stored: a float64 beyond float32's range is infinite there
-            rows = (np.isnan(values) if name == "opacities" else ~np.isfinite(values)).reshape(n, -1).any(axis=1)
-            if rows.any():
-                parts.append(f"{np.count_nonzero(rows)} with NaN/Inf {name}")
-                bad |= rows
-        q = np.asarray(rotations, dtype=np.float64)
-        rows = np.einsum("ij,ij->i", q, q) == 0
-        if rows.any():
-            parts.append(f"{np.count_nonzero(rows)} with zero-norm quaternions")
-            bad |= rows
-        rows = (np.abs(np.asarray(log_scales, dtype=np.float64)) > LOG_SCALE_LIMIT).any(axis=1)
-        if rows.any():
-            parts.append(f"{np.count_nonzero(rows)} with log-scales outside [-{LOG_SCALE_LIMIT:g}, {LOG_SCALE_LIMIT:g}]")
-            bad |= rows
+            values = np.asarray(values, dtype=np.float32)
+            note(not_finite(values, opacity=name == "opacities").reshape(n, -1).any(axis=1), f"NaN/Inf {name}")
+        note(zero_quaternions(rotations), "zero-norm quaternions")
+        note(outside_log_scales(np.asarray(log_scales, dtype=np.float64)).any(axis=1),
+             f"log-scales outside [-{LOG_SCALE_LIMIT:g}, {LOG_SCALE_LIMIT:g}]")  # fmt: skip
     if parts:
         raise InputError(f"{np.count_nonzero(bad)} of {n} splats are invalid: {'; '.join(parts)}")
 

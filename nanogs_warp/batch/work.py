@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import secrets
 import stat
 import time
 import traceback
@@ -193,25 +192,14 @@ def _read(scene: LoadedScene, force: bool) -> None:
 
     job, result = scene.job, scene.result
     spin_if_asked(job)
-    try:
-        scene.size = job.input.stat().st_size
-    except FileNotFoundError:
-        raise InputError("no such file") from None
-    except OSError as e:
-        raise InputError(f"cannot read the file: {e.strerror or e}") from None
-    options = job.options()
-    record = None if force else read_record(job.record_path)
-    if record_matches(record, job, scene.size, None, options):  # all but the hash: hash to be sure
-        try:
-            scene.sha = input_hash(job.input)
-        except OSError as e:
-            raise InputError(f"cannot read the file: {e.strerror or e}") from None
-        if record_matches(record, job, scene.size, scene.sha, options):
-            result.status = "skipped"
-            result.input_count = record["input_count"]
-            result.outputs = [{"path": str(job.out_dir / o["path"]), "budget": o["budget"], "count": o["count"]}
-                              for o in record["outputs"]]  # fmt: skip
-            return
+    scene.size = _input_status(job).st_size
+    record, scene.sha, why = _freshness(job, scene.size, force)
+    if why is None:
+        result.status = "skipped"
+        result.input_count = record["input_count"]
+        result.outputs = [{"path": str(job.out_dir / o["path"]), "budget": o["budget"], "count": o["count"]}
+                          for o in record["outputs"]]  # fmt: skip
+        return
 
     _remove_leftovers(job)  # the old record first: from here on, no record describes these outputs
     if detect_format(job.input) == "ply":  # hashed as it is parsed, by the threads that read it
@@ -299,16 +287,10 @@ def read_record(path: Path) -> dict | None:
     return record if isinstance(record, dict) else None
 
 
-def record_matches(record: dict | None, job: SceneJob, size: int, sha: str | None, options: dict) -> bool:
-    """True when ``record`` was written by this tool version for these exact input bytes and
-    options, and every output it lists is still there with its recorded size (``sha`` None: any
-    input with this size)."""
-    return record_mismatch(record, job, size, sha, options) is None
-
-
 def record_mismatch(record: dict | None, job: SceneJob, size: int, sha: str | None, options: dict) -> str | None:
-    """Why ``record`` does not show the scene up to date (``record_matches``), in a few words; None
-    when it does."""
+    """Why ``record`` does not show the scene up to date, in a few words; None when it does: when it
+    was written by this tool version for these exact input bytes and options, and every output it
+    lists is still there with its recorded size (``sha`` None: any input with this size)."""
     if record is None:
         return "no record"
     try:
@@ -337,26 +319,41 @@ def planned(job: SceneJob, force: bool) -> tuple[str, str | None]:
     """What a run would do with the scene, as ``_read`` decides it (the input hashed where its
     record could match): ("skip", None) when it is up to date, ("run", why) or ("fail", why)."""
     try:
-        status = job.input.stat()
+        status = _input_status(job)
+        if not stat.S_ISREG(status.st_mode):  # a folder, a FIFO, a device: a run refuses it (open_regular)
+            return "fail", "not a regular file"
+        _, _, why = _freshness(job, status.st_size, force)
+    except InputError as e:
+        return "fail", str(e)
+    return ("skip", None) if why is None else ("run", why)
+
+
+def _input_status(job: SceneJob) -> os.stat_result:
+    """The scene file's status, or an InputError saying why it cannot be read."""
+    try:
+        return job.input.stat()
     except FileNotFoundError:
-        return "fail", "no such file"
+        raise InputError("no such file") from None
     except OSError as e:
-        return "fail", f"cannot read the file: {e.strerror or e}"
-    if not stat.S_ISREG(status.st_mode):  # a folder, a FIFO, a device: a run refuses it (open_regular)
-        return "fail", "not a regular file"
+        raise InputError(f"cannot read the file: {e.strerror or e}") from None
+
+
+def _freshness(job: SceneJob, size: int, force: bool) -> tuple[dict | None, str, str | None]:
+    """(the scene's record, the input's hash or "" where none was needed, why its outputs are not up
+    to date or None where they are). The record is compared without the hash first; the input is
+    hashed only where everything else matches (an InputError where it cannot be read)."""
     if force:
-        return "run", "--force"
+        return None, "", "--force"
     options = job.options()
     record = read_record(job.record_path)
-    why = record_mismatch(record, job, status.st_size, None, options)
-    if why is None:
-        try:
-            why = record_mismatch(record, job, status.st_size, input_hash(job.input), options)
-        except InputError as e:
-            return "fail", str(e)
-        except OSError as e:
-            return "fail", f"cannot read the file: {e.strerror or e}"
-    return ("skip", None) if why is None else ("run", why)
+    why = record_mismatch(record, job, size, None, options)
+    if why is not None:
+        return record, "", why
+    try:
+        sha = input_hash(job.input)
+    except OSError as e:
+        raise InputError(f"cannot read the file: {e.strerror or e}") from None
+    return record, sha, record_mismatch(record, job, size, sha, options)
 
 
 def _whole(value) -> bool:
@@ -371,7 +368,9 @@ def _plain_name(value) -> bool:
 
 def write_json_atomic(path: Path, data: dict) -> None:
     """Writes ``data`` to a temporary file beside ``path`` and renames it into place."""
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+    from ..io.ply_write import temporary_path
+
+    tmp = temporary_path(path)
     try:
         with open(tmp, "x", encoding="utf-8") as f:
             json.dump(data, f, indent=2)

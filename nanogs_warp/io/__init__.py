@@ -19,7 +19,7 @@ from ..errors import InputError
 from . import compressed_ply, lod, sog, spz, splat
 from .common import dropped_parts, plain_layout, read_file_bytes
 from .open_file import open_regular
-from .ply import PlyArrays, checked_rows, normalize_quaternions, read_ply_arrays, read_splats, save_ply, splats_from_host
+from .ply import PlyArrays, checked_rows, normalize_quaternions, read_ply_arrays, read_splats, refuse_empty, save_ply, splats_from_host
 from .ply_layout import PlyLayout
 from .ply_write import OutputSet, atomic_write
 
@@ -160,8 +160,8 @@ def save_levels(
     fmt = format_for_path(path, format)
     if fmt != "lod" and len(levels) != 1:
         raise ValueError("several levels need the lod format")
-    if any(level.count == 0 for level in levels):  # no reader takes a scene without splats
-        raise InputError(f"{path.name}: an empty splat set cannot be written (a scene file holds at least one splat)")
+    for level in levels:
+        refuse_empty(level, path)
     staged = OutputSet(overwrite) if outputs is None else outputs
     try:
         if fmt == "ply":

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import plyfile
 
-from ..domain import LOG_SCALE_LIMIT
+from ..domain import LOG_SCALE_LIMIT, not_finite, outside_log_scales, zero_quaternions
 from ..errors import InputError
 from .open_file import open_regular
 from .ply_header import (
@@ -150,6 +150,12 @@ def saturate_opacity_logits(logits: np.ndarray) -> np.ndarray:
     return out
 
 
+def refuse_empty(splats: SplatSet, path) -> None:
+    """An InputError for a splat set without splats: no reader takes a scene file without one."""
+    if splats.count == 0:
+        raise InputError(f"{Path(path).name}: an empty splat set cannot be written (a scene file holds at least one splat)")
+
+
 def save_ply(splats: SplatSet, path, threads: int | None = None, overwrite: bool = True, outputs: OutputSet | None = None) -> None:
     """Writes ``splats`` as a binary little-endian PLY file, atomically.
 
@@ -163,8 +169,7 @@ def save_ply(splats: SplatSet, path, threads: int | None = None, overwrite: bool
     existing ``path`` is an InputError and stays as it is. With ``outputs`` the file is staged there
     (``OutputSet``) and appears when the set is published.
     """
-    if splats.count == 0:  # the reader refuses a vertex element without rows
-        raise InputError(f"{Path(path).name}: an empty splat set cannot be written (a scene file holds at least one splat)")
+    refuse_empty(splats, path)
     host = _host_arrays(splats)
     props = output_properties(splats.layout, host["features"].shape[1] - 3, host["extras"].shape[1],
                               host["integer_extras"].shape[1])  # fmt: skip
@@ -306,15 +311,13 @@ def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = 
         values = arrays[key].reshape(n, -1)
         if np.isfinite(values).all():  # the common case, ~5x faster than the row-wise test
             continue
-        bad = np.isnan(values) if key == "opacities" else ~np.isfinite(values)  # +-Inf opacity: alpha 1 / 0
+        bad = not_finite(values, opacity=key == "opacities")
         rows |= bad.any(axis=1)
         for prop, count in zip(names, np.count_nonzero(bad, axis=0)):
             if count:
                 by_prop[prop] = int(count)
-    with np.errstate(all="ignore"):  # NaNs of any kind cast and compare quietly
-        q = arrays["rotations"].astype(np.float64)
-        zero = np.einsum("ij,ij->i", q, q) == 0  # exact in float64 for float32 inputs
-    outside = np.abs(arrays["log_scales"].reshape(n, -1)) > LOG_SCALE_LIMIT  # NaN compares false
+    zero = zero_quaternions(arrays["rotations"])
+    outside = outside_log_scales(arrays["log_scales"].reshape(n, -1))
     domain_by_prop = {p: int(c) for p, c in zip(SCALE_NAMES, np.count_nonzero(outside, axis=0)) if c}
     logits = arrays["opacities"].reshape(n)
     infinite = (int(np.count_nonzero(np.isposinf(logits))), int(np.count_nonzero(np.isneginf(logits))))
