@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from decimal import Decimal
 from fractions import Fraction
 from pathlib import Path
 
@@ -55,7 +56,7 @@ def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
                 exact = exact_ratio(token)
             except InputError:
                 raise InputError(f"--ratio {token!r} must be a number in (0, 1]") from None
-            value = float(exact)
+            value = float(Decimal(token))  # as typed: exact_ratio counts every ratio below 1e-60 as 1e-61
             if value == 0.0:
                 raise InputError(f"--ratio {token} is too small to use; give --count 1 instead")
             budgets.append(Budget(ratio=value, exact=exact))

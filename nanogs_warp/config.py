@@ -11,6 +11,16 @@ from fractions import Fraction
 
 from .errors import InputError
 
+
+def finite(value) -> bool:
+    """Whether ``value`` is a finite float or converts to one: False for an integer too large for a
+    float (where math.isfinite raises OverflowError)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 # Neighbours per splat when k is not set: more for small scenes, where they are cheap (docs/quality.md:
 # the one shared scene below the threshold, 4,721 splats, needs 24 at rho = 0.1 to beat the top-k
 # baseline; the four above it, 91k to 500k splats, measure the same mean PSNR at 16 and 24, and 16 is
@@ -100,7 +110,7 @@ class SimplifyConfig:
             raise InputError(f"--median-cost-factor must be 0 (no limit) or a finite number >= 1, got {self.median_cost_factor}")
         for name in ("lambda_geo", "lambda_app"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
+            if not (finite(value) and value >= 0):
                 raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}")
         if not 0 <= self.seed <= MAX_SEED:
             raise InputError(f"--seed must be between 0 and {MAX_SEED}, got {self.seed}")

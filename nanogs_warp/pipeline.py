@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import warp as wp
 
 from .compact import remove_rows
-from .config import K_LARGE_SCENE, K_SMALL_SCENE, PRESETS, SMALL_SCENE_SPLATS, SimplifyConfig, exact_ratio, target_count  # noqa: F401
+from .config import K_LARGE_SCENE, K_SMALL_SCENE, PRESETS, SMALL_SCENE_SPLATS, SimplifyConfig, exact_ratio, finite, target_count  # noqa: F401
 from .cost import COSTS, FieldCost
 from .errors import InputError, NanogsWarning
 from .operators import OPERATORS
@@ -217,7 +217,7 @@ def simplify(
     else:
         targets = []
         for c in budgets:
-            if isinstance(c, bool) or not isinstance(c, numbers.Real) or not math.isfinite(c) or int(c) != c:
+            if isinstance(c, bool) or not (isinstance(c, numbers.Integral) or isinstance(c, numbers.Real) and finite(c) and int(c) == c):
                 raise InputError(f"count must be a whole number, got {c!r}")
             targets.append(int(c))
     if isinstance(device, str):

@@ -197,13 +197,44 @@ def test_detection_is_by_content_and_names_pick_the_output(tmp_path):
     for name, fmt in (("x.splat", "splat"), ("x.compressed.ply", "compressed-ply"), ("x.spz", "spz"),
                       ("x.sog", "sog"), ("x.ply", "ply")):  # fmt: skip
         save_splats(SplatSet.from_numpy(**a), tmp_path / name)
+        assert detect_format(tmp_path / name) == fmt
         renamed = tmp_path / f"renamed_{fmt}.bin"
         (tmp_path / name).rename(renamed)
-        assert detect_format(renamed) == fmt
+        if fmt == "splat":  # no signature: known by its extension alone
+            with pytest.raises(InputError, match="known by their extension"):
+                detect_format(renamed)
+        else:
+            assert detect_format(renamed) == fmt
         assert format_for_path(tmp_path / name) == fmt
     assert format_for_path(tmp_path / "x.ply", "spz") == "spz"
     save_splats(SplatSet.from_numpy(**a), tmp_path / "forced.ply", format="spz")
     assert detect_format(tmp_path / "forced.ply") == "spz"
+    with pytest.raises(InputError, match="needs a name ending in .splat"):  # it could not be read back
+        save_splats(SplatSet.from_numpy(**a), tmp_path / "forced.spz", format="splat")
+    assert not (tmp_path / "forced.spz").exists()
+
+
+def test_detection_reads_structure_not_substrings(tmp_path):
+    """A file whose size is a multiple of 32 is no .splat file unless named so; a PLY comment that
+    mentions a compressed PLY's element, and a SOG meta.json whose value says "lodLevels", keep
+    their own formats."""
+    (tmp_path / "weights.npy").write_bytes(bytes(32 * 1000))
+    with pytest.raises(InputError, match="not a splat file"):
+        detect_format(tmp_path / "weights.npy")
+    a = scene(40, 1, seed=51)
+    save_splats(SplatSet.from_numpy(**a), tmp_path / "x.ply")
+    data = (tmp_path / "x.ply").read_bytes()
+    at = data.index(b"\n") + 1
+    at = data.index(b"\n", at) + 1  # after the format line
+    (tmp_path / "c.ply").write_bytes(data[:at] + b"comment from: element chunk / packed_position layout\n" + data[at:])
+    assert detect_format(tmp_path / "c.ply") == "ply"
+    (tmp_path / "s").mkdir()
+    save_splats(SplatSet.from_numpy(**a), tmp_path / "s" / "meta.json")
+    meta = json.loads((tmp_path / "s" / "meta.json").read_text())
+    meta["asset"] = {"generator": "lodLevels", "nested": {"lodLevels": 3}}
+    (tmp_path / "s" / "meta.json").write_text(json.dumps(meta))
+    assert detect_format(tmp_path / "s" / "meta.json") == "sog"
+    assert load_splats(tmp_path / "s" / "meta.json").count == 40
 
 
 def test_what_a_format_cannot_hold_is_said_once(tmp_path):

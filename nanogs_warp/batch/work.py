@@ -220,7 +220,10 @@ def _write(scene: LoadedScene) -> None:
     from ..io.ply_write import OutputSet
 
     job, result = scene.job, scene.result
-    job.out_dir.mkdir(parents=True, exist_ok=True)  # here: a scene that fails leaves no empty folder
+    try:
+        job.out_dir.mkdir(parents=True, exist_ok=True)  # here: a scene that fails leaves no empty folder
+    except OSError as e:
+        raise InputError(f"cannot make its output folder {job.out_dir}: {e.strerror or e}") from e
     files = OutputSet(keep=input_files(job.input))  # the scene's outputs appear together, or (a failure part way) none of them
     try:
         outputs = []
@@ -248,7 +251,12 @@ def _write(scene: LoadedScene) -> None:
         "device_kind": scene.device_kind,  # e.g. "NVIDIA H100 80GB HBM3" or the CPU's
         "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
-    write_json_atomic(job.record_path, record)
+    try:
+        write_json_atomic(job.record_path, record)
+    except OSError as e:  # outputs without their record would be redone anyway: none stays (a full disk)
+        for out in outputs:
+            (job.out_dir / out["path"]).unlink(missing_ok=True)
+        raise InputError(f"cannot write its record {job.record_path.name}: {e.strerror or e}") from e
     result.status = "done"
     result.outputs = [{"path": str(job.out_dir / o["path"]), "budget": o["budget"], "count": o["count"]} for o in outputs]
 
@@ -368,9 +376,9 @@ def _plain_name(value) -> bool:
 
 def write_json_atomic(path: Path, data: dict) -> None:
     """Writes ``data`` to a temporary file beside ``path`` and renames it into place."""
-    from ..io.ply_write import temporary_path
+    from ..io.ply_write import temporary_path, through_links
 
-    tmp = temporary_path(path)
+    tmp = temporary_path(path := through_links(path))
     try:
         with open(tmp, "x", encoding="utf-8") as f:
             json.dump(data, f, indent=2)

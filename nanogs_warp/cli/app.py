@@ -116,7 +116,7 @@ def simplify(
 ) -> None:
     """Simplify a 3DGS scene to one or several budgets in one progressive run."""
     from ..device import WarpStart, keep_freed_host_memory, process_age
-    from ..io import format_for_path, input_files, output_files, read_any_splats, save_levels
+    from ..io import check_output_name, format_for_path, input_files, output_files, read_any_splats, save_levels
     from ..io.ply_write import OutputSet
     from ..io.ply import splats_from_host
     from ..io.row_upload import RowUpload
@@ -147,6 +147,8 @@ def simplify(
         paths, folder = {b: Path(output) for b in budgets}, None
     else:
         paths, folder = _output_paths(output, input, budgets, output_format)
+    for path in paths.values():
+        check_output_name(path, fmt)
     written = [f for p in dict.fromkeys(paths.values()) for f in output_files(p, fmt, len(budgets) if lod_set else 1)]
     _check_outputs(input, list(paths.values()), written, overwrite, folder)
     from ..io.ply_write import remove_stale_temporaries

@@ -54,7 +54,7 @@ def eval_command(
     from ..eval.evaluate import evaluate, format_table, write_images
     from ..eval.units import render_offset, rescaled, rescaled_camera
     from ..folders import creatable_folder
-    from ..io import load_splats
+    from ..io import input_files, load_splats
     from ..io.open_file import open_regular
     from ..io.ply_write import OutputSet
     from ..kernel_cache import EVAL_MODULES, load_kernels
@@ -112,7 +112,7 @@ def eval_command(
         t["identical"] = all(v["psnr"] == math.inf for v in t["views"])
 
     if images is not None:  # every image under a temporary name, all moved into place at the end
-        image_files = OutputSet()
+        image_files = OutputSet(keep=[f for scene in (reference, *tests) for f in input_files(scene)])  # never an input
         try:
             image_files.make_folder(images)
             counts = []

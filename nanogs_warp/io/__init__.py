@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import InputError
 from . import compressed_ply, lod, sog, spz, splat
-from .common import dropped_parts, plain_layout, read_file_bytes
+from .common import check_decoded_memory, dropped_parts, plain_layout, read_file_bytes, top_level_keys
 from .open_file import open_regular
 from .ply import PlyArrays, checked_rows, normalize_quaternions, read_ply_arrays, read_splats, refuse_empty, save_ply, splats_from_host
 from .ply_layout import PlyLayout
@@ -76,16 +76,23 @@ def detect_format(path) -> str:
     if sog.looks_bundled(head):
         return "sog"
     if head.lstrip()[:1] == b"{":
-        if b'"lodLevels"' in head:
+        keys = top_level_keys(head)
+        if "lodLevels" in keys:
             return "lod"
-        if sog.looks_like_meta(head):
+        if {"means", "quats"} <= keys:
             return "sog"
     hinted = format_for_path(path)
     if name.lower().endswith(".ply") or hinted in ("spz", "sog", "lod", "splat") or name.lower().endswith(".json"):
         return hinted  # that reader says what is wrong with the file
-    if size % splat.ROW.itemsize == 0:
-        return "splat"
-    raise InputError(f"{name}: not a splat file this tool reads ({_READABLE})")
+    raise InputError(f"{name}: not a splat file this tool reads ({_READABLE}; .splat files are known by their extension)")
+
+
+def check_output_name(path: Path, fmt: str) -> None:
+    """Refuses to write a file that no reader would recognise again: a .splat file has no signature,
+    so only a name ending in .splat tells what it is."""
+    if fmt == "splat" and not path.name.lower().endswith(".splat"):
+        raise InputError(f"{path.name}: a .splat file needs a name ending in .splat (it has no signature: readers "
+                         "know it by its extension)")  # fmt: skip
 
 
 def read_splat_arrays(path) -> PlyArrays:
@@ -109,6 +116,8 @@ def _read_splat_arrays(path: Path) -> PlyArrays:
     elif fmt == "sog":
         arrays, label, size = sog.read_bundled(path), "SOG (.sog)", path.stat().st_size
     else:
+        if fmt == "splat":  # 32 bytes a splat, decoded to 17 values
+            check_decoded_memory(path.name, path.stat().st_size // 32, 3)
         data = read_file_bytes(path)
         module = {"spz": spz, "compressed-ply": compressed_ply, "splat": splat}[fmt]
         arrays, label, size = module.read_arrays(path, data), _TITLE[fmt], len(data)
@@ -158,6 +167,7 @@ def save_levels(
     together or not at all; with ``outputs`` they are staged there instead (``save_splats``)."""
     path = Path(path)
     fmt = format_for_path(path, format)
+    check_output_name(path, fmt)
     if fmt != "lod" and len(levels) != 1:
         raise ValueError("several levels need the lod format")
     for level in levels:
@@ -196,6 +206,10 @@ def _write_levels(hosts, levels, path: Path, fmt: str, on_loss, overwrite: bool,
         _write(path, data)
     elif fmt == "sog" and path.suffix.lower() == ".json":
         files = sog.encode(hosts[0], GENERATOR)
+        if overwrite:  # images of the SOG already there that this one does not write (its SH palette)
+            written = {os.path.realpath(path.with_name(name)) for name in files}
+            outputs.retire([m for m in sog.member_files(path)[1:]
+                            if m.suffix == ".webp" and m.is_file() and os.path.realpath(m) not in written])  # fmt: skip
         for name, data in files.items():  # meta.json last: the images are in place when it appears
             _write(path if name == "meta.json" else path.with_name(name), data)
     elif fmt == "sog":

@@ -114,16 +114,65 @@ def interleaved_to_channel_major(rest: np.ndarray) -> np.ndarray:
 
 
 def read_file_bytes(path: Path, limit: int | None = None) -> bytes:
-    """The whole file, with open/read errors as InputError (and a size limit, when given)."""
+    """The whole file, with open/read errors as InputError (and a size limit, when given); a file
+    larger than the machine's available memory is refused before it is read (a sparse file of
+    terabytes takes no room on a disk)."""
+    from ..device import available_host_memory
+
     name = path.name
     with open_regular(path) as f:
         try:
             size = os.fstat(f.fileno()).st_size
             if limit is not None and size > limit:
                 raise InputError(f"{name}: {size} bytes is more than the {limit} this format allows")
+            available = available_host_memory()
+            if available is not None and size > available:
+                raise InputError(f"{name}: {size:,} bytes is more than the {available:,} bytes of memory available")
             return f.read()
         except OSError as e:
             raise InputError(f"{name}: cannot read the file: {e.strerror or e}") from e
+
+
+def top_level_keys(head: bytes) -> set[str]:
+    """The keys of the JSON object that ``head`` starts (as far as ``head`` goes), those of the
+    outermost object only: a file is told by its own keys, not by a string that happens to sit in
+    a value or a nested object. Read as ASCII; escapes are kept as written."""
+    keys, depth, at, n = set(), 0, 0, len(head)
+    while at < n:
+        c = head[at]
+        if c == 0x22:  # a string: find its end, skipping escaped characters
+            end = at + 1
+            while end < n and head[end] != 0x22:
+                end += 2 if head[end] == 0x5C else 1
+            if depth == 1 and head[end + 1 :].lstrip()[:1] == b":":
+                keys.add(head[at + 1 : end].decode("ascii", "replace"))
+            at = end + 1
+            continue
+        if c in b"{[":
+            depth += 1
+        elif c in b"}]":
+            depth -= 1
+        at += 1
+    return keys
+
+
+# What decoding costs a value of a splat (its 14 values and its SH coefficients): the decoders' float64
+# arrays and their temporaries, then the float32 arrays they return.
+DECODE_BYTES_PER_VALUE = 24
+
+
+def check_decoded_memory(name: str, count: int, coefficients: int) -> None:
+    """Refuses, before any work, ``count`` splats of ``coefficients`` SH coefficients each whose
+    decoding (about DECODE_BYTES_PER_VALUE bytes a value) this machine's available memory could not
+    hold: a small compressed file that declares a huge scene ends in one line, not in exhausted
+    memory."""
+    from ..device import available_host_memory
+
+    need = count * (14 + coefficients) * DECODE_BYTES_PER_VALUE
+    available = available_host_memory()
+    if available is not None and need > available:
+        raise InputError(f"{name}: decoding its {count:,} splats needs about {need:,} bytes of memory, more than the "
+                         f"{available:,} available")  # fmt: skip
 
 
 # Deflate expands at most 1032 times (zlib's documented limit), plus the gzip header's few bytes.

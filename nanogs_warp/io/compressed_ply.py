@@ -41,8 +41,10 @@ SCALE_LIMIT = 20.0  # chunk scale bounds are clamped to [-20, 20], as PlayCanvas
 def looks_compressed(head: bytes) -> bool:
     """Whether a PLY header (the file's first bytes) is a compressed.ply one."""
     end = head.find(b"end_header")
-    text = head[: end if end >= 0 else len(head)]
-    return b"element chunk " in text and b"packed_position" in text
+    lines = [line.split() for line in head[: end if end >= 0 else len(head)].split(b"\n")]
+    return any(words[:2] == [b"element", b"chunk"] for words in lines) and any(
+        words[:1] == [b"property"] and words[-1:] == [b"packed_position"] for words in lines
+    )
 
 
 def read_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:

@@ -209,7 +209,8 @@ class OutputSet:
     ``discard``: a run that fails part way (a full disk at its third file, a signal) leaves none of
     them, and no folder it made for them. Without ``overwrite`` a file that appeared at one of the
     paths is an InputError at ``publish``. Files may be added from another thread. ``keep``: files
-    never retired (``retire``), whatever an older output says of them: the run's inputs."""
+    never written over nor retired (``retire``), whatever an older output says of them: the run's
+    inputs."""
 
     def __init__(self, overwrite: bool = True, keep=()):
         self.overwrite = overwrite
@@ -220,6 +221,10 @@ class OutputSet:
         self._lock = threading.Lock()
 
     def stage(self, tmp: Path, path: Path) -> None:
+        """Adds a written temporary file, to be moved to ``path``; InputError where ``path`` is one
+        of the files kept (the run's inputs: an output would replace what it was made from)."""
+        if os.path.realpath(path) in self._keep:
+            raise InputError(f"{path.name}: is one of the files the run reads ({path}); choose another output path")
         with self._lock:
             self._staged.append((tmp, path))
 
@@ -332,11 +337,16 @@ def atomic_write(path: Path, write, overwrite: bool = True, outputs: OutputSet |
     """Calls ``write(stream)`` on a new temporary file beside ``path`` and moves it into place;
     without ``overwrite`` only where no file is (a file that appeared since it was checked, say by
     another run writing the same name, is an InputError and stays as it is). With ``outputs`` the
-    temporary file is left to ``outputs.publish`` instead (``OutputSet``)."""
+    temporary file is left to ``outputs.publish`` instead (``OutputSet``). A symbolic link at
+    ``path`` is written through: the file it names is replaced and the link stays
+    (``through_links``)."""
+    path = through_links(path)
     name = path.name
     directory = path.parent
     if path.is_dir():
         raise InputError(f"{name}: is a directory")
+    if path.exists() and not path.is_file():
+        raise InputError(f"{name}: exists and is not a regular file")
     if not directory.is_dir():
         raise InputError(f"{name}: cannot write: directory {str(directory)!r} does not exist")
     tmp = temporary_path(path)
@@ -360,6 +370,14 @@ def atomic_write(path: Path, write, overwrite: bool = True, outputs: OutputSet |
             _remove(tmp)
 
 
+def through_links(path: Path) -> Path:
+    """The file that a symbolic link at ``path`` names, after every link (a shell's redirection
+    writes there too); ``path`` itself where it is no link. Renaming a new file over ``path`` would
+    replace the link, not the file: ``-o /dev/stdout`` would have replaced the machine's
+    ``/dev/stdout`` with a regular file."""
+    return Path(os.path.realpath(path)) if os.path.islink(path) else path
+
+
 TEMPORARY_EXTRA_BYTES = 1 + 1 + 7 + 1 + 12 + 4  # ".<name>.<pid>-<12 hex>.tmp": pids below 10^7
 
 
@@ -375,6 +393,7 @@ def remove_stale_temporaries(paths: list[Path]) -> list[Path]:
     kill -9, a lost power: no handler ran), those whose process is gone; a live writer's stays.
     One scan per folder. Returns what was removed."""
     removed = []
+    paths = [through_links(p) for p in paths]  # written beside the files their links name
     for folder in dict.fromkeys(p.parent for p in paths):
         names = {p.name for p in paths if p.parent == folder}
         try:

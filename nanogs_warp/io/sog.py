@@ -27,6 +27,7 @@ from ..errors import InputError
 from .codebook import kmeans_1d, kmeans_rows
 from .common import (
     SQRT1_2,
+    check_decoded_memory,
     byte_to_opacity_logit,
     from_smallest_three,
     host_arrays,
@@ -39,6 +40,7 @@ from .open_file import open_regular
 MAX_SH_DEGREE = 3
 PALETTE_LIMIT = 65536
 META_LIMIT = 64 << 20  # bytes of meta.json read at most
+IMAGE_BYTES_PER_PIXEL = 8  # an image read at most: twice a lossless WebP of incompressible RGBA, plus 1 MiB
 _REST = {0: 0, 1: 3, 2: 8, 3: 15}
 # The images ``encode`` writes beside meta.json (the last two only for SH bands beyond the DC term).
 IMAGE_FILES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp", "shN_centroids.webp", "shN_labels.webp")
@@ -46,12 +48,6 @@ IMAGE_FILES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0
 
 def looks_bundled(head: bytes) -> bool:
     return head[:4] == b"PK\x03\x04"
-
-
-def looks_like_meta(head: bytes) -> bool:
-    """A JSON object that names SOG's attributes."""
-    text = head.lstrip()
-    return text[:1] == b"{" and b'"means"' in head and b'"quats"' in head
 
 
 # ----------------------------------------------------------------------------------------------
@@ -179,8 +175,12 @@ def read_bundled(path: Path) -> dict[str, np.ndarray]:
                 raise InputError(f"{name}: {member} holds more than {limit} bytes")
             return data
 
+        def image(member: str, limit: int) -> tuple[bytes, int]:
+            data = load(member, min(limit, 64 * archive_bytes + (1 << 20)))
+            return data, min(len(data), members[member].compress_size)  # the bytes it takes in the archive
+
         archive_bytes = path.stat().st_size
-        return _decode(name, load("meta.json", META_LIMIT), lambda f: load(f, 64 * archive_bytes + (1 << 20)))
+        return _decode(name, load("meta.json", META_LIMIT), image)
 
 
 def read_unbundled(meta_path: Path) -> dict[str, np.ndarray]:
@@ -191,8 +191,9 @@ def read_unbundled(meta_path: Path) -> dict[str, np.ndarray]:
         meta_path = meta_path / "meta.json"
     folder = meta_path.parent
 
-    def load(member: str) -> bytes:
-        return read_file_bytes(folder / member)
+    def load(member: str, limit: int) -> tuple[bytes, int]:
+        data = read_file_bytes(folder / member, limit)
+        return data, len(data)
 
     return _decode(meta_path.name, read_file_bytes(meta_path, META_LIMIT), load)
 
@@ -233,6 +234,8 @@ def _decode(name: str, meta_bytes: bytes, load) -> dict[str, np.ndarray]:
     if meta.get("version") != 2:
         raise InputError(f"{name}: SOG version {meta.get('version')!r} is not supported (2 is)")
     n = _int(meta, "count", name, 1, 1 << 31)
+    bands = meta["shN"].get("bands") if isinstance(meta.get("shN"), dict) else 0
+    check_decoded_memory(name, n, 3 + 3 * (_REST[bands] if bands in (0, 1, 2, 3) else 0))
 
     def section(key: str) -> dict:
         value = meta.get(key)
@@ -256,7 +259,8 @@ def _decode(name: str, meta_bytes: bytes, load) -> dict[str, np.ndarray]:
         return np.asarray(book, dtype=np.float64)
 
     def pixels(member: str, min_pixels: int, width: int | None = None) -> np.ndarray:
-        return _decode_webp(name, member, load(member), min_pixels, width)
+        data, stored = load(member, IMAGE_BYTES_PER_PIXEL * min_pixels + (1 << 20))
+        return _decode_webp(name, member, data, stored, min_pixels, width)
 
     means_sec = section("means")
     lo, hi = _vector(means_sec, "mins", name), _vector(means_sec, "maxs", name)
@@ -305,9 +309,10 @@ def _decode(name: str, meta_bytes: bytes, load) -> dict[str, np.ndarray]:
     return host_arrays(means, rotations, log_scales, opacities, features)
 
 
-def _decode_webp(name: str, member: str, data: bytes, min_pixels: int, width: int | None) -> np.ndarray:
+def _decode_webp(name: str, member: str, data: bytes, stored: int, min_pixels: int, width: int | None) -> np.ndarray:
     """RGBA pixels (H * W, 4) of a WebP image, after checking its declared size against what the
-    scene needs (a small file never makes a large allocation)."""
+    scene needs and against ``stored``, the bytes it takes on disk (in a .sog, compressed): a small
+    file never makes a large allocation."""
     from PIL import Image
 
     try:
@@ -318,8 +323,10 @@ def _decode_webp(name: str, member: str, data: bytes, min_pixels: int, width: in
             limit = max(4 * min_pixels, 1 << 16) + (1 << 16)
             if w * h < min_pixels:
                 raise InputError(f"{name}: {member} is {w}x{h}, too small for {min_pixels} pixels")
-            if w * h > limit or w * h > 1024 * len(data) + (1 << 22):
+            if w * h > limit:
                 raise InputError(f"{name}: {member} declares {w}x{h} pixels, far more than the scene needs")
+            if w * h > 1024 * stored + (1 << 22):
+                raise InputError(f"{name}: {member} declares {w}x{h} pixels, far more than its {stored:,} bytes can hold")
             if width is not None and w != width:
                 raise InputError(f"{name}: {member} is {w} pixels wide, expected {width}")
             rgba = np.asarray(img.convert("RGBA"))
@@ -351,7 +358,13 @@ def _int(sec: dict, key: str, name: str, lo: int, hi: int) -> int:
 
 
 def _is_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    """A finite number that a float holds (an integer of 400 digits is not one)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:
+        return False
 
 
 def _short(e: BaseException) -> str:

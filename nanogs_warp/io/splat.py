@@ -3,7 +3,7 @@
 Each row: position float32 x3, linear scale float32 x3, colour RGBA uint8 (RGB = 255 (0.5 +
 SH_C0 f_dc), A = 255 sigmoid(opacity)), rotation uint8 x4 (w, x, y, z as 128 + 128 q). Positions
 and scales are exact (scales as exp of the log scales, float32); colour, opacity and rotation are
-8-bit. The file is recognised by its size (a multiple of 32 bytes) when nothing else matches.
+8-bit. The file has no signature: it is recognised by its name's .splat extension alone.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ def read_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
     scale = rows["scale"].astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         # a scale of exactly 0 is a splat too small for float32's exp: the smallest normal float32
-        log_scales = np.log(np.where(scale == 0.0, np.finfo(np.float32).tiny, scale))
+        log_scales = np.log(np.where((scale >= 0.0) & (scale < np.finfo(np.float32).tiny), np.finfo(np.float32).tiny, scale))
     rgba = rows["rgba"]
     features = (rgba[:, :3].astype(np.float64) / 255.0 - 0.5) / SH_C0
     rotations = (rows["rotation"].astype(np.float64) - 128.0) / 128.0

@@ -27,6 +27,7 @@ from .common import (
     channel_major_to_interleaved,
     clamped_scales_note,
     from_smallest_three,
+    check_decoded_memory,
     gunzip_bounded,
     host_arrays,
     interleaved_to_channel_major,
@@ -84,6 +85,7 @@ def read_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
     if HEADER.size + sum(sizes) > most_inflated(len(data)):
         raise InputError(f"{name}: truncated SPZ data: {n} splats need {HEADER.size + sum(sizes)} bytes, more than "
                          f"{len(data)} bytes of gzip data can hold")  # fmt: skip
+    check_decoded_memory(name, n, 3 + 3 * k)
     body = gunzip_bounded(data, HEADER.size + sum(sizes), name)  # never more than the header declares
     if len(body) < HEADER.size + sum(sizes):
         raise InputError(f"{name}: truncated SPZ data: {n} splats need {HEADER.size + sum(sizes)} bytes, "

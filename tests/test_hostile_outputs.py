@@ -1,0 +1,223 @@
+"""Outputs and inputs that a fifth round of hostile use found wrong: a symbolic link as the output,
+an output that is one of the files a scene is read from, a record that cannot be written, small
+files that declare huge scenes, numbers too large for a float, and budgets below 1e-60."""
+
+from __future__ import annotations
+
+import errno
+import io
+import json
+import os
+import subprocess
+import sys
+import zipfile
+
+import numpy as np
+import pytest
+import warp as wp
+from scene_factory import random_splat_arrays, random_splats_ply
+
+from nanogs_warp import InputError, SplatSet
+from nanogs_warp.batch import work
+from nanogs_warp.batch.scenes import find_scenes
+from nanogs_warp.budgets import parse_budgets
+from nanogs_warp.io import load_splats, save_splats
+from nanogs_warp.io.ply_write import atomic_write
+from nanogs_warp.pipeline import SimplifyConfig, simplify
+
+
+def cli(*args, **kwargs):
+    return subprocess.run([sys.executable, "-m", "nanogs_warp", *args], capture_output=True, text=True, timeout=300, **kwargs)
+
+
+def test_an_output_that_is_a_link_is_written_through(tmp_path):
+    """A link at the output's path keeps pointing where it did, and the file it names gets the
+    output; before, the link itself was replaced (``-o /dev/stdout -w`` replaced /dev/stdout)."""
+    scene = tmp_path / "s.ply"
+    random_splats_ply(scene, 200, seed=1)
+    target = tmp_path / "real.ply"
+    target.write_bytes(b"old")
+    (tmp_path / "link.ply").symlink_to("real.ply")
+    stdout_link = tmp_path / "stdout.ply"
+    stdout_link.symlink_to("/proc/self/fd/1")
+    common = ["--ratio", "0.5", "--device", "cpu", "--preset", "fast", "-w", "-q"]
+    assert cli("simplify", str(scene), "-o", str(tmp_path / "link.ply"), *common).returncode == 0
+    assert (tmp_path / "link.ply").is_symlink() and load_splats(target).count == 100
+    if os.path.exists("/proc/self/fd/1"):
+        with open(tmp_path / "captured", "wb") as captured:
+            done = subprocess.run([sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(stdout_link), *common],
+                                  stdout=captured, stderr=subprocess.PIPE, text=True, timeout=300)  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        assert stdout_link.is_symlink() and os.readlink(stdout_link) == "/proc/self/fd/1"
+        assert load_splats(tmp_path / "captured").count == 100
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    (tmp_path / "to_fifo.ply").symlink_to(fifo)
+    with pytest.raises(InputError, match="not a regular file"):
+        atomic_write(tmp_path / "to_fifo.ply", lambda stream: stream.write(b"x"))
+    assert (tmp_path / "to_fifo.ply").is_symlink() and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+
+
+def _job(tmp_path, scene):
+    (job,) = find_scenes(str(scene), tmp_path / "out", parse_budgets("0.5", None), SimplifyConfig.preset("fast"), False)
+    return job
+
+
+def test_a_batch_output_that_is_one_of_its_scenes_files_is_refused(tmp_path):
+    """An unbundled SOG whose image is named as the scene's output would be: the output would replace
+    the input's own image (simplify refused it; batch wrote over it)."""
+    arrays = random_splat_arrays(300, 1, seed=2)
+    folder = tmp_path / "scenes" / "sog"
+    folder.mkdir(parents=True)
+    save_splats(SplatSet.from_numpy(**arrays), folder / "meta.json")
+    meta = json.loads((folder / "meta.json").read_text())
+    (folder / "quats.webp").rename(folder / "meta_0.5.ply")
+    meta["quats"]["files"] = ["meta_0.5.ply"]
+    (folder / "meta.json").write_text(json.dumps(meta))
+    before = (folder / "meta_0.5.ply").read_bytes()
+    (tmp_path / "m.json").write_text(json.dumps([str(folder / "meta.json")]))
+    (job,) = find_scenes(str(tmp_path / "m.json"), folder, parse_budgets("0.5", None), SimplifyConfig.preset("fast"), False)
+    assert job.output_path(job.budgets[0]) == folder / "meta_0.5.ply"
+    result = work.process_scene(job, wp.get_device("cpu"))
+    assert result.status == "failed" and "is one of the files the run reads" in result.error
+    assert (folder / "meta_0.5.ply").read_bytes() == before and not job.record_path.exists()
+
+
+def test_a_record_that_cannot_be_written_leaves_no_outputs(tmp_path, monkeypatch):
+    """A full disk at the record: the scene fails in one line naming it, and its outputs go too
+    (outputs without a record were left, though the docs promise none)."""
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    random_splats_ply(scenes / "a.ply", 200, seed=3)
+    job = _job(tmp_path, scenes)
+
+    def full(path, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(work, "write_json_atomic", full)
+    result = work.process_scene(job, wp.get_device("cpu"))
+    assert result.status == "failed"
+    assert result.error == f"cannot write its record {job.record_path.name}: No space left on device"
+    assert not [p for p in job.out_dir.iterdir()]
+    (tmp_path / "blocked").write_text("a file where the output folder would go")
+    (job,) = find_scenes(str(scenes), tmp_path / "blocked", parse_budgets("0.5", None), SimplifyConfig.preset("fast"), False)
+    monkeypatch.undo()
+    result = work.process_scene(job, wp.get_device("cpu"))
+    assert result.status == "failed" and result.error.startswith("cannot make its output folder"), result.error
+
+
+def _webp(pixels: np.ndarray) -> bytes:
+    from PIL import Image
+
+    out = io.BytesIO()
+    Image.fromarray(pixels, "RGBA").save(out, format="WEBP", lossless=True, exact=True)
+    return out.getvalue()
+
+
+def test_a_sog_whose_images_hold_more_pixels_than_their_stored_bytes_can_is_refused(tmp_path):
+    """A 2 KB .sog of deflated, zero-padded constant images declared millions of splats: the pixel
+    bound counted the images' inflated bytes. It counts the bytes they take in the archive now."""
+    side = 4096
+    padding = b"\0" * 70_000  # deflates to almost nothing; counted inflated, it allowed 72M pixels
+    meta = {"version": 2, "count": side * side, "means": {"mins": [0, 0, 0], "maxs": [1, 1, 1], "files": ["l.webp", "u.webp"]},
+            "scales": {"codebook": [-3.0], "files": ["s.webp"]}, "quats": {"files": ["q.webp"]},
+            "sh0": {"codebook": [0.5], "files": ["c.webp"]}}  # fmt: skip
+    path = tmp_path / "bomb.sog"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("meta.json", json.dumps(meta))
+        for name, colour in (("l.webp", (1, 2, 3, 255)), ("u.webp", (1, 2, 3, 255)), ("q.webp", (128, 128, 128, 252)),
+                             ("s.webp", (0, 0, 0, 255)), ("c.webp", (0, 0, 0, 200))):  # fmt: skip
+            z.writestr(name, _webp(np.full((side, side, 4), colour, np.uint8)) + padding)
+    assert path.stat().st_size < 10_000
+    with pytest.raises(InputError, match="far more than its .* bytes can hold"):
+        load_splats(path)
+
+
+def test_small_files_that_declare_more_than_memory_holds_are_refused(tmp_path, monkeypatch):
+    """Decoding costs about 24 bytes a value: an SPZ, a .splat or a SOG that declares more splats
+    than the available memory could decode is one line before any work (an SPZ gzip bomb passed the
+    check on its inflated bytes and took 12 GB); so is a file larger than memory, and an unbundled
+    SOG's image is read only as far as its scene's pixels need (a sparse 4 GB image was read whole)."""
+    from nanogs_warp import device
+
+    arrays = random_splat_arrays(2000, 3, seed=4)
+    for name in ("s.spz", "s.splat", "s.sog"):
+        save_splats(SplatSet.from_numpy(**arrays), tmp_path / name)
+    folder = tmp_path / "u"
+    folder.mkdir()
+    save_splats(SplatSet.from_numpy(**arrays), folder / "meta.json")
+    with open(folder / "quats.webp", "r+b") as image:
+        image.truncate(4 << 30)  # sparse: no room taken on the disk
+    with pytest.raises(InputError, match="quats.webp: 4294967296 bytes is more than"):
+        load_splats(folder / "meta.json")
+    monkeypatch.setattr(device, "available_host_memory", lambda: 1 << 18)
+    for name in ("s.spz", "s.splat", "s.sog"):
+        with pytest.raises(InputError, match=f"{name}: (decoding its 2,000 splats needs about|.* more than the 262,144 bytes of memory)"):
+            load_splats(tmp_path / name)
+    monkeypatch.setattr(device, "available_host_memory", lambda: 1 << 30)
+    assert load_splats(tmp_path / "s.spz").count == 2000
+
+
+def test_numbers_too_large_for_a_float_are_refused_by_name(tmp_path):
+    """An integer of 400 digits in a SOG's meta.json, a count or a cost weight: math.isfinite
+    raised OverflowError (an internal error)."""
+    folder = tmp_path / "u"
+    folder.mkdir()
+    save_splats(SplatSet.from_numpy(**random_splat_arrays(100, 0, seed=5)), folder / "meta.json")
+    meta = json.loads((folder / "meta.json").read_text())
+    meta["scales"]["codebook"][0] = 10**400
+    (folder / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="scales.codebook must be 1 to 256 numbers"):
+        load_splats(folder / "meta.json")
+    splats = SplatSet.from_numpy(**random_splat_arrays(50, 0, seed=6))
+    with pytest.raises(InputError, match="target counts must be between 1 and the input's 50 splats"):
+        simplify(splats, count=10**400)
+    with pytest.raises(InputError, match="--lambda-geo must be a finite number"):
+        SimplifyConfig(lambda_geo=10**400).validate()
+
+
+def test_budgets_below_1e_60_keep_their_own_labels():
+    """Every ratio below 1e-60 targets one splat, but is named as typed (it was named 1e-61, and two
+    such ratios were "the same budget")."""
+    assert [b.label for b in parse_budgets("1e-300,2e-300,0.5", None)] == ["1e-300", "2e-300", "0.5"]
+    assert [b.target(10**6) for b in parse_budgets("1e-300", None)] == [1]
+
+
+def test_subnormal_splat_scales_read_as_zero_ones(tmp_path):
+    """A .splat scale of 0 reads as the smallest normal float32 (a splat too small for exp); a
+    subnormal one, smaller still, reads the same instead of being refused as beyond -100."""
+    arrays = random_splat_arrays(10, 0, seed=7)
+    save_splats(SplatSet.from_numpy(**arrays), tmp_path / "s.splat")
+    data = bytearray((tmp_path / "s.splat").read_bytes())
+    rows = np.frombuffer(data, np.float32).reshape(10, 8)
+    rows[0, 3], rows[1, 4] = 0.0, 1e-45
+    (tmp_path / "s.splat").write_bytes(bytes(data))
+    scales = load_splats(tmp_path / "s.splat").to_numpy()["log_scales"]
+    assert scales[0, 0] == scales[1, 1] == np.float32(np.log(np.finfo(np.float32).tiny))
+
+
+def test_an_unbundled_sog_written_again_leaves_none_of_the_older_ones_images(tmp_path):
+    """Writing an SH-0 SOG over an SH-3 one in its folder: the older SH palette's images went stale
+    beside the new meta.json. They go now, as a level-of-detail set's stale levels do."""
+    folder = tmp_path / "u"
+    folder.mkdir()
+    save_splats(SplatSet.from_numpy(**random_splat_arrays(200, 3, seed=8)), folder / "meta.json")
+    assert {"shN_centroids.webp", "shN_labels.webp"} <= set(os.listdir(folder))
+    (folder / "notes.webp").write_bytes(b"not the SOG's")
+    save_splats(SplatSet.from_numpy(**random_splat_arrays(200, 0, seed=8)), folder / "meta.json")
+    assert sorted(os.listdir(folder)) == ["means_l.webp", "means_u.webp", "meta.json", "notes.webp", "quats.webp", "scales.webp", "sh0.webp"]
+    assert load_splats(folder / "meta.json").count == 200
+
+
+def test_eval_images_never_replace_an_input(tmp_path):
+    """A test scene at the path of one of eval's images (``--images d`` with the scene at
+    d/<its label>/view_000.png) was replaced by the PNG."""
+    scene = tmp_path / "s.ply"
+    random_splats_ply(scene, 100, seed=9)
+    inside = tmp_path / "d" / "view_000.png"
+    inside.mkdir(parents=True)
+    (inside / "view_000.png").write_bytes(scene.read_bytes())
+    done = cli("eval", str(scene), str(inside / "view_000.png"), "--images", str(tmp_path / "d"), "--device", "cpu",
+               "--views", "2", "--size", "32", "-q")  # fmt: skip
+    assert done.returncode == 2 and "is one of the files the run reads" in done.stderr, done.stderr
+    assert (inside / "view_000.png").read_bytes() == scene.read_bytes()
