@@ -21,7 +21,7 @@ from nanogs_warp import InputError, SplatSet
 from nanogs_warp.batch import work
 from nanogs_warp.batch.scenes import find_scenes
 from nanogs_warp.budgets import parse_budgets
-from nanogs_warp.io import load_splats, save_splats
+from nanogs_warp.io import load_splats, save_levels, save_splats
 from nanogs_warp.io.ply_write import atomic_write
 from nanogs_warp.pipeline import SimplifyConfig, simplify
 
@@ -221,3 +221,14 @@ def test_eval_images_never_replace_an_input(tmp_path):
                "--views", "2", "--size", "32", "-q")  # fmt: skip
     assert done.returncode == 2 and "is one of the files the run reads" in done.stderr, done.stderr
     assert (inside / "view_000.png").read_bytes() == scene.read_bytes()
+
+
+def test_a_missing_level_of_a_lod_set_is_named(tmp_path):
+    """"meta.json: no such file" did not say which level of the set was missing."""
+    arrays = random_splat_arrays(100, 0, seed=10)
+    folder = tmp_path / "lod"
+    folder.mkdir()
+    save_levels([SplatSet.from_numpy(**arrays), simplify(SplatSet.from_numpy(**arrays), count=20)], folder / "lod-meta.json")
+    (folder / "0_0" / "meta.json").unlink()
+    with pytest.raises(InputError, match=r"^lod-meta.json: its finest level 0_0/meta.json: meta.json: no such file$"):
+        load_splats(folder / "lod-meta.json")

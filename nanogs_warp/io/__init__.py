@@ -108,7 +108,10 @@ def _read_splat_arrays(path: Path) -> PlyArrays:
     if fmt == "lod":
         meta_path = path / "lod-meta.json" if path.is_dir() else path
         inner = lod.finest_level_meta(meta_path, read_file_bytes(meta_path, lod.META_LIMIT))
-        arrays = sog.read_unbundled(inner)
+        try:
+            arrays = sog.read_unbundled(inner)
+        except InputError as e:  # named from the set: "meta.json: no such file" said not which
+            raise InputError(f"{meta_path.name}: its finest level {inner.relative_to(meta_path.parent)}: {e}") from None
         label, size = "SOG LOD set, level 0", meta_path.stat().st_size
     elif fmt == "sog" and (path.is_dir() or not sog.looks_bundled(_head(path))):
         arrays = sog.read_unbundled(path)
