@@ -27,8 +27,8 @@ from ..errors import InputError
 from .codebook import kmeans_1d, kmeans_rows
 from .common import (
     SQRT1_2,
-    check_decoded_memory,
     byte_to_opacity_logit,
+    check_decoded_memory,
     from_smallest_three,
     host_arrays,
     morton_order,

@@ -30,8 +30,9 @@ def read_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
     rows = np.frombuffer(data, ROW)
     scale = rows["scale"].astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
-        # a scale of exactly 0 is a splat too small for float32's exp: the smallest normal float32
-        log_scales = np.log(np.where((scale >= 0.0) & (scale < np.finfo(np.float32).tiny), np.finfo(np.float32).tiny, scale))
+        # a scale of 0 (or subnormal) is a splat too small for float32's exp: the smallest normal float32
+        tiny = np.finfo(np.float32).tiny
+        log_scales = np.log(np.where((scale >= 0.0) & (scale < tiny), tiny, scale))
     rgba = rows["rgba"]
     features = (rgba[:, :3].astype(np.float64) / 255.0 - 0.5) / SH_C0
     rotations = (rows["rotation"].astype(np.float64) - 128.0) / 128.0
