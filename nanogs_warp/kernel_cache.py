@@ -132,10 +132,13 @@ def warmup(devices: list, archs: list[int], names=ALL_MODULES) -> list[tuple[str
     them there; the shipped binaries are copied instead where they serve) and, with no GPU needed,
     for each CUDA architecture in ``archs``, both as the CUBIN and as the PTX that Warp picks on
     that GPU with an older or a newer driver (PTX for an older architecture, ``default_ptx_arch``,
-    which serves every later one). Returns (target, binaries compiled, seconds) per target."""
+    which serves every later one). An architecture whose binaries ship with the package is not
+    compiled again. Returns (target, binaries compiled, seconds) per target."""
     from concurrent.futures import ThreadPoolExecutor
 
     import warp as wp
+
+    from .shipped_kernels import shipped_archs
 
     modules = warp_modules(names)
     report = []
@@ -147,7 +150,11 @@ def warmup(devices: list, archs: list[int], names=ALL_MODULES) -> list[tuple[str
     from warp._src.context import runtime
 
     ptx_archs = {arch: min(arch, wp.config.ptx_target_arch or runtime.default_ptx_arch) for arch in archs}
+    shipped = shipped_archs()
     for arch in archs:
+        if arch in shipped:
+            report.append((f"sm_{arch} (shipped with the package)", 0, 0.0))
+            continue
         started = time.perf_counter()
         jobs = [(m, arch, False) for m in modules] + [(m, ptx_archs[arch], True) for m in modules]
         with ThreadPoolExecutor(os.cpu_count() or 1) as pool:

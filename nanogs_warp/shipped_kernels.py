@@ -56,6 +56,14 @@ def shipped_dir(version: str | None = None) -> Path:
     return PACKAGE_ROOT / f"warp-{version}"
 
 
+def shipped_archs() -> tuple[int, ...]:
+    """The CUDA architectures whose binaries ship for the running Warp (a command copies them into
+    its kernel cache when it needs them); none where shipped kernels are switched off."""
+    if os.environ.get(SWITCH_VARIABLE, "").strip() == "0" or not shipped_dir().is_dir():
+        return ()
+    return SHIPPED_ARCHS
+
+
 def archive_name(module) -> str:
     """The archive of a Warp module: its kernel file's name (``nanogs_warp.kernels.knn`` -> ``knn.tar.xz``)."""
     return module.name.rsplit(".", 1)[-1] + ".tar.xz"

@@ -360,7 +360,7 @@ def test_missing_ray_is_one_line(scenes, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
     result = run(scenes, "-o", tmp_path / "out", "--ratio", "0.1", "--ray", "auto")
     assert result.exit_code == 2
-    assert result.stderr.strip() == "nanogs-warp: error: --ray needs Ray, which is not installed: pip install 'nanogs-warp[ray]'"
+    assert result.stderr.strip() == "nanogs-warp: error: --ray needs Ray, which is not installed: pip install 'ray>=2.9' (or, from the source tree, pip install '.[ray]')"
 
 
 @pytest.fixture(scope="module")

@@ -145,3 +145,28 @@ def test_sh_degree_of_the_outputs(tmp_path):
         result = run(*command, "--ratio", "0.1", "--sh-degree", "4", "--device" if command[0] == "simplify" else "--devices", "cpu")
         assert result.exit_code == 2 and result.stderr.strip() == "nanogs-warp: error: --sh-degree must be 0, 1, 2 or 3, got 4"
     assert not (tmp_path / "bad.ply").exists() and not (tmp_path / "bad").exists()
+
+
+def test_outputs_are_listed_in_the_order_the_budgets_were_given(scene, tmp_path):
+    """The JSON and the lines list the budgets as given, as batch and the Python API do (they were
+    listed as reached, largest first)."""
+    result = run("simplify", scene, "-o", tmp_path / "o.ply", "--ratio", "0.01,0.5,0.1", "--device", "cpu", "--json")
+    assert result.exit_code == 0, result.output
+    summary = json.loads(result.stdout)
+    assert [o["budget"] for o in summary["outputs"]] == ["0.01", "0.5", "0.1"]
+    assert [o["count"] for o in summary["outputs"]] == [4, 200, 40]
+    lines = run("simplify", scene, "-o", tmp_path / "o.ply", "--ratio", "0.01,0.5", "--device", "cpu", "-w").stdout.splitlines()
+    assert "(budget 0.01" in lines[0] and "(budget 0.5" in lines[1]
+
+
+def test_a_set_of_files_gets_its_own_folder(scene, tmp_path):
+    """A lod-meta.json set and an unbundled SOG are folders of files: theirs is made as -o DIR/'s
+    is (the README's `-o web/lod-meta.json` failed in a fresh folder); a plain file's is not."""
+    assert run("simplify", scene, "-o", tmp_path / "web" / "lod-meta.json", "--ratio", "0.5,0.1", "--device", "cpu", "-q").exit_code == 0
+    assert (tmp_path / "web" / "lod-meta.json").is_file() and (tmp_path / "web" / "1_0" / "meta.json").is_file()
+    assert run("simplify", scene, "-o", tmp_path / "ub" / "meta.json", "--ratio", "0.5", "--device", "cpu", "-q").exit_code == 0
+    assert (tmp_path / "ub" / "quats.webp").is_file()
+    missing = run("simplify", scene, "-o", tmp_path / "x" / "y" / "lod-meta.json", "--ratio", "0.5", "--device", "cpu")
+    assert missing.exit_code == 2 and "cannot be created" in missing.stderr and not (tmp_path / "x").exists()
+    plain = run("simplify", scene, "-o", tmp_path / "nd" / "s.ply", "--ratio", "0.5", "--device", "cpu")
+    assert plain.exit_code == 2 and "does not exist" in plain.stderr and not (tmp_path / "nd").exists()

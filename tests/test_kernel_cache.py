@@ -75,6 +75,25 @@ def test_warmup_loads_every_module_for_the_cpu():
     assert result.stdout.startswith("cpu: ") and "module(s) compiled" in result.stdout
 
 
+def test_warmup_does_not_compile_the_shipped_architectures_again(monkeypatch):
+    """Their binaries ship with the package: compiling all seven again took minutes on a machine
+    without a GPU (the default there). With shipped kernels switched off they are compiled."""
+    from nanogs_warp import kernel_cache
+    from nanogs_warp.shipped_kernels import SHIPPED_ARCHS, SWITCH_VARIABLE, shipped_archs
+
+    assert shipped_archs() == SHIPPED_ARCHS
+    result = CliRunner().invoke(app, ["warmup", "--device", "cpu", "--arch", "75,90"])
+    assert result.exit_code == 0, result.output
+    assert "sm_75 (shipped with the package): 0 module(s)" in result.stdout
+    assert "sm_90 (shipped with the package): 0 module(s)" in result.stdout
+    monkeypatch.setenv(SWITCH_VARIABLE, "0")
+    assert shipped_archs() == ()
+    compiled = []
+    monkeypatch.setattr(wp, "compile_aot_module", lambda module, arch, use_ptx: compiled.append((arch, use_ptx)))
+    report = kernel_cache.warmup([], [75], names=("prune",))
+    assert report[0][:2] == ("sm_75", 2) and sorted(compiled) == [(75, False), (75, True)]
+
+
 def test_warmup_bad_arguments_exit_2():
     for args, message in ((["--arch", "9x"], "--arch '9x'"), (["--device", "tpu"], "--device 'tpu'")):
         result = CliRunner().invoke(app, ["warmup", *args])

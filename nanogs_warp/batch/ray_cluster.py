@@ -12,7 +12,7 @@ from ..errors import InputError
 from .scenes import SceneJob, largest_first, scene_timeout
 from .work import SceneResult
 
-INSTALL_HINT = "pip install 'nanogs-warp[ray]'"
+INSTALL_HINT = "pip install 'ray>=2.9' (or, from the source tree, pip install '.[ray]')"
 
 
 def import_ray():

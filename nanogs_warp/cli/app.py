@@ -147,6 +147,8 @@ def simplify(
         paths, folder = {b: Path(output) for b in budgets}, None
     else:
         paths, folder = _output_paths(output, input, budgets, output_format)
+    if folder is None and (lod_set or fmt == "sog" and Path(output).suffix.lower() == ".json"):
+        folder = Path(output).parent  # a set of files in a folder of its own: made as -o DIR/ makes one
     for path in paths.values():
         check_output_name(path, fmt)
     written = [f for p in dict.fromkeys(paths.values()) for f in output_files(p, fmt, len(budgets) if lod_set else 1)]
@@ -237,6 +239,9 @@ def simplify(
         elif not quiet:
             typer.echo(f"nanogs-warp: warning: {warning.message}", err=True)
     finished = time.perf_counter()
+    if not lod_set:  # reached largest first; listed as given (a set's by level, finest first)
+        labels = [budget.label for budget in budgets]
+        written.sort(key=lambda out: labels.index(out["budget"]))
     after_prune = passes[0].count_before if passes else (written[0]["count"] if written else splats.count)
     summary = {
         "schema": opts.JSON_SCHEMA,

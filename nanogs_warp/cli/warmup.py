@@ -16,7 +16,7 @@ from ..errors import InputError
 
 def warmup_command(
     device: Annotated[str, typer.Option("--device", help="Devices to compile for: auto (the CPU and every GPU), cpu, cuda (every GPU), cuda:N, or a list such as cpu,cuda:0.", metavar="DEVICE")] = "auto",
-    arch: Annotated[Optional[str], typer.Option("--arch", help="Also compile for these CUDA architectures, with or without such a GPU, e.g. 75,80,86,89,90,100,120 (Turing to Blackwell), or none. [default: none with a GPU present; 75,80,86,89,90,100,120 on a machine without one]", show_default=False, metavar="ARCH")] = None,
+    arch: Annotated[Optional[str], typer.Option("--arch", help="Also compile for these CUDA architectures, with or without such a GPU, e.g. 75,80,86,89,90,100,120 (Turing to Blackwell), or none. Architectures whose binaries ship with the package (75,80,86,89,90,100,120 for this Warp) are not compiled again. [default: none with a GPU present; the shipped list on a machine without one]", show_default=False, metavar="ARCH")] = None,
     cache_dir: Annotated[Optional[str], typer.Option("--cache-dir", metavar="DIRECTORY", help="The kernel cache to fill. Commands use it when NANOGS_WARP_CACHE (or Warp's WARP_CACHE_PATH) names it. [default: NANOGS_WARP_CACHE, else Warp's cache]", show_default=False)] = None,
     quiet: Annotated[bool, typer.Option("-q", "--quiet", help="Print nothing but errors.")] = False,
 ) -> None:
