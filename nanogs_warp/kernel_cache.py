@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+from .errors import InputError
 from .shipped_kernels import SHIPPED_ARCHS
 
 CACHE_VARIABLE = "NANOGS_WARP_CACHE"
@@ -49,6 +50,14 @@ def cache_dir_from_environment() -> str | None:
     return os.environ.get(CACHE_VARIABLE) or None
 
 
+def _home_expanded(path: str | os.PathLike, what: str) -> Path:
+    """``path`` with a leading ``~`` or ``~user`` expanded; InputError where that home is unknown."""
+    try:
+        return Path(path).expanduser()
+    except RuntimeError:  # "Could not determine home directory"
+        raise InputError(f"{what} {os.fspath(path)}: its '~' names no home directory known here") from None
+
+
 def use_cache_dir(path: str | os.PathLike | None) -> None:
     """Points Warp's kernel cache at ``path`` (created if needed); call before Warp initialises.
     None leaves Warp's own choice ($WARP_CACHE_PATH or its default), after checking that a
@@ -60,10 +69,10 @@ def use_cache_dir(path: str | os.PathLike | None) -> None:
     if path is None:
         chosen = os.environ.get("WARP_CACHE_PATH")
         if chosen:
-            folder = Path(chosen).expanduser() / wp.config.version
+            folder = _home_expanded(chosen, "WARP_CACHE_PATH") / wp.config.version
             writable_folder(folder, f"WARP_CACHE_PATH {chosen}: kernel cache {folder}")
         return
-    path = Path(path).expanduser()
+    path = _home_expanded(path, "kernel cache")
     writable_folder(path, f"kernel cache {path}")
     wp.config.kernel_cache_dir = str(path.resolve())
 

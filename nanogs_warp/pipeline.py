@@ -67,28 +67,15 @@ def check_index_limits(splat_count: int, k: int, limit: int | None = None) -> No
         )
 
 
-# Other PLY elements that refer to vertices by row (meshes' faces and edges): simplification renumbers
-# the vertices, so these would point at the wrong splats.
-_VERTEX_INDEX_PROPERTIES = {"vertex_indices", "vertex_index", "vertex1", "vertex2", "vertex"}
-_VERTEX_INDEXED_ELEMENTS = {"face", "edge", "tristrips"}
-
-
 def without_vertex_indexed(layout: PlyLayout | None) -> PlyLayout | None:
-    """``layout`` without the other elements that index vertices (``face``, ``edge``, ``tristrips``
-    or any element with a ``vertex_indices``-like property), with a one-line warning naming them;
-    ``layout`` itself when it has none."""
+    """``layout`` without the other elements that index vertices (``PlyLayout.without_vertex_indexed``),
+    with a one-line warning naming them; ``layout`` itself when it has none."""
     if layout is None:
         return None
-    stale = [
-        e for e in layout.other_elements
-        if e.name in _VERTEX_INDEXED_ELEMENTS or any(p.name in _VERTEX_INDEX_PROPERTIES for p in e.properties)
-    ]  # fmt: skip
-    if not stale:
-        return layout
-    names = ", ".join(f"'{e.name}' ({e.count:,} rows)" for e in stale)
-    warnings.warn(f"dropped PLY element(s) {names}: they index vertices, which simplification renumbers",
-                  NanogsWarning, stacklevel=3)  # fmt: skip
-    return replace(layout, other_elements=[e for e in layout.other_elements if e not in stale])
+    kept, dropped = layout.without_vertex_indexed()
+    if dropped is not None:
+        warnings.warn(f"{dropped}: they index vertices, which simplification renumbers", NanogsWarning, stacklevel=3)
+    return kept
 
 
 def simplify_progressively(

@@ -13,9 +13,10 @@ import sys
 import zipfile
 
 import numpy as np
+import plyfile
 import pytest
 import warp as wp
-from scene_factory import random_splat_arrays, random_splats_ply
+from scene_factory import random_splat_arrays, random_splats_ply, write_splats_ply
 
 from nanogs_warp import InputError, SplatSet
 from nanogs_warp.batch import work
@@ -232,3 +233,75 @@ def test_a_missing_level_of_a_lod_set_is_named(tmp_path):
     (folder / "0_0" / "meta.json").unlink()
     with pytest.raises(InputError, match=r"^lod-meta.json: its finest level 0_0/meta.json: meta.json: no such file$"):
         load_splats(folder / "lod-meta.json")
+
+
+def _faces(rows: list[list[int]]) -> plyfile.PlyElement:
+    data = np.empty(len(rows), [("vertex_indices", "O")])
+    data["vertex_indices"] = [np.array(r, np.int32) for r in rows]
+    return plyfile.PlyElement.describe(data, "face")
+
+
+def test_rows_dropped_on_load_take_the_elements_that_index_them(tmp_path):
+    """--drop-invalid at ratio 1: no merge renumbered the rows, but the load did, and a face element
+    kept its indices (to the wrong splats, one past the end). It goes now, in one note."""
+    arrays = random_splat_arrays(5, 0, seed=11)
+    arrays["means"][1, 0] = np.nan
+    write_splats_ply(tmp_path / "f.ply", arrays, other_elements=[_faces([[2, 3, 4]])])
+    lines = []
+    splats = load_splats(tmp_path / "f.ply", drop_invalid=True, on_drop=lines.append)
+    assert splats.count == 4 and splats.layout.other_elements == []
+    assert lines[-1] == "f.ply: dropped PLY element(s) 'face' (1 rows): they index vertices, which dropping rows renumbers"
+    with pytest.raises(InputError, match="1 of 5 splats are invalid"):
+        load_splats(tmp_path / "f.ply")
+
+
+def test_mapped_rows_of_a_file_that_shrank_are_one_line(tmp_path):
+    """plyfile maps elements of fixed-size rows; reading a mapped page beyond the end of a file
+    that shrank kills the process (SIGBUS). Such rows are read from the file instead: a short
+    read is one line. A list element before the vertices no longer sends them through the map."""
+    from nanogs_warp.io.ply import _detached
+
+    arrays = random_splat_arrays(300, 1, seed=13)
+    values = np.empty(1000, [("v", "f4")])
+    values["v"] = np.arange(1000)
+    extra = plyfile.PlyElement.describe(values, "extra")
+    write_splats_ply(tmp_path / "e.ply", arrays, other_elements=[extra])
+    ply = plyfile.PlyData.read(str(tmp_path / "e.ply"), mmap="r")
+    mapped = ply["extra"].data
+    assert isinstance(mapped, np.memmap)
+    with open(tmp_path / "e.ply", "rb") as f:
+        assert np.array_equal(_detached(mapped, f, "e.ply")["v"], values["v"])
+    os.truncate(tmp_path / "e.ply", mapped.offset + 100)
+    with open(tmp_path / "e.ply", "rb") as f, pytest.raises(InputError, match="the file changed while it was read"):
+        _detached(mapped, f, "e.ply")
+    meta = np.empty(1, [("idx", "O")])
+    meta["idx"] = [np.array([5, 6], np.int32)]
+    first = tmp_path / "listfirst.ply"
+    write_splats_ply(tmp_path / "plain.ply", arrays)
+    plain = plyfile.PlyData.read(str(tmp_path / "plain.ply"))
+    plyfile.PlyData([plyfile.PlyElement.describe(meta, "meta"), plain["vertex"]], text=False).write(str(first))
+    a, b = load_splats(first).to_numpy(), load_splats(tmp_path / "plain.ply").to_numpy()
+    assert all(np.array_equal(a[k], b[k]) for k in ("means", "rotations", "log_scales", "opacities", "features"))
+
+
+def test_batch_says_what_the_merge_dropped_in_the_scene_notes(tmp_path):
+    """The warning that vertex-indexing elements went was printed raw (a Python warning with its
+    source line) and even with -q; it is the scene's note now."""
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    write_splats_ply(scenes / "f.ply", random_splat_arrays(100, 0, seed=14), other_elements=[_faces([[0, 1, 2]])])
+    done = cli("batch", str(scenes), "-o", str(tmp_path / "out"), "--ratio", "0.5", "--preset", "fast", "--devices", "cpu", "-q", "--json")
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == ""
+    (scene,) = json.loads(done.stdout)["scenes"]
+    assert scene["notes"] == ["dropped PLY element(s) 'face' (1 rows): they index vertices, which simplification renumbers"]
+
+
+@pytest.mark.parametrize("args, message", [
+    (["warmup", "--device", "cpu", "--arch", "73"], "--arch 73: this Warp's NVRTC compiles for "),
+    (["warmup", "--device", "cpu", "--arch", "none", "--cache-dir", "~nosuchuser/x"], "kernel cache ~nosuchuser/x: its '~' names no home"),
+])  # fmt: skip
+def test_kernel_cache_arguments_warp_would_fail_on_are_one_line(args, message, tmp_path):
+    done = cli(*args, cwd=tmp_path)
+    assert done.returncode == 2 and done.stderr.startswith(f"nanogs-warp: error: {message}"), done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1

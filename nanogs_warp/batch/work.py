@@ -16,13 +16,14 @@ import os
 import stat
 import time
 import traceback
+import warnings
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from .. import __version__
-from ..errors import InputError, out_of_memory
+from ..errors import InputError, NanogsWarning, out_of_memory
 from .scenes import SceneJob
 
 RECORD_FORMAT = 2  # 2: the input's hash is its PieceHash ("sha256_pieces"), no longer its plain SHA-256
@@ -119,30 +120,47 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
         return
     download = 0.0
     with _stage(scene, "simplify"):
-        from ..refinement.simplify import simplify_progressively
-
         by_target: dict[int, list] = {}
         for budget in job.budgets:
             by_target.setdefault(budget.target(on_device.count), []).append(budget)
         views = None  # the input's renders that refinement trains on: made once, shared by every budget
         if job.refine_steps > 0:
             from ..refinement.config import RefineConfig
-            from ..refinement.refine import ReferenceViews, refine_with_report
+            from ..refinement.refine import ReferenceViews
 
             views = ReferenceViews(on_device, RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed))
-        for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
-            if job.sh_degree is not None:  # the bands above it dropped from the output, before refinement
-                simplified = simplified.with_sh_degree(job.sh_degree)
-            if views is not None:
-                simplified = refine_with_report(simplified, on_device, views.config, views=views)[0]
-            # to the host here, so that the writer thread never touches the GPU (and its memory is freed)
-            begun = time.perf_counter()
-            scene.simplified.append((target, simplified.to("cpu"), by_target[target]))
-            download += time.perf_counter() - begun
+        with warnings.catch_warnings(record=True) as caught:  # the package's own go to the scene's notes
+            warnings.simplefilter("always", NanogsWarning)
+            download = _simplify_budgets(scene, on_device, by_target, views, on_pass)
+        for warning in caught:
+            if issubclass(warning.category, NanogsWarning):
+                _note_once(scene.result, str(warning.message))
+            else:
+                warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
         del views
     if "simplify" in scene.result.stages:
         scene.result.stages["simplify"] = round(scene.result.stages["simplify"] - download, 4)
         scene.result.stages["download"] = round(download, 4)
+
+
+def _simplify_budgets(scene: LoadedScene, on_device, by_target: dict, views, on_pass) -> float:
+    """``simplify_scene``'s progressive run: each result (its SH degree dropped, refined, where
+    asked) copied to the host; returns the seconds the copies took."""
+    from ..refinement.refine import refine_with_report
+    from ..refinement.simplify import simplify_progressively
+
+    job = scene.job
+    download = 0.0
+    for target, simplified in simplify_progressively(on_device, list(by_target), job.config, on_pass=on_pass):
+        if job.sh_degree is not None:  # the bands above it dropped from the output, before refinement
+            simplified = simplified.with_sh_degree(job.sh_degree)
+        if views is not None:
+            simplified = refine_with_report(simplified, on_device, views.config, views=views)[0]
+        # to the host here, so that the writer thread never touches the GPU (and its memory is freed)
+        begun = time.perf_counter()
+        scene.simplified.append((target, simplified.to("cpu"), by_target[target]))
+        download += time.perf_counter() - begun
+    return download
 
 
 def _synchronize(device) -> None:

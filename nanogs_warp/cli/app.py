@@ -236,8 +236,8 @@ def simplify(
     for warning in caught:
         if not issubclass(warning.category, NanogsWarning):
             warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
-        elif not quiet:
-            typer.echo(f"nanogs-warp: warning: {warning.message}", err=True)
+        else:  # on stderr unless silenced, and in the --json summary's notes
+            notes(str(warning.message))
     finished = time.perf_counter()
     if not lod_set:  # reached largest first; listed as given (a set's by level, finest first)
         labels = [budget.label for budget in budgets]

@@ -33,6 +33,13 @@ def warmup_command(
     import warp as wp
 
     devices = _parse_devices(device, wp)
+    from warp._src.context import runtime
+
+    supported = getattr(runtime, "nvrtc_supported_archs", None)
+    unknown = [a for a in archs or () if supported and a not in supported]
+    if unknown:  # NVRTC would fail on each module, leaving its staging folders in the cache
+        raise InputError(f"--arch {arch}: this Warp's NVRTC compiles for {','.join(map(str, sorted(supported)))}, "
+                         f"not {','.join(map(str, unknown))}")  # fmt: skip
     if archs is None:
         archs = [] if wp.get_cuda_device_count() > 0 else list(DEFAULT_ARCHS)
     if not quiet:

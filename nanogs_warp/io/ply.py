@@ -100,9 +100,16 @@ def read_splats(path, drop_invalid: bool = False, digest=None, on_drop=None, fil
         return a, data.layout
     if "quats_xyzw" in a:  # a value to look at row by row: the exact checks, as for any file
         a["rotations"] = a.pop("quats_xyzw")[:, [3, 0, 1, 2]]
-    a = checked_rows(a, name, drop_invalid, on_drop, data.layout.float_extra_names)
+    count = a["means"].shape[0]
+    wide = [n for n, t in data.layout.properties if np.dtype(t) == np.float64]
+    a = checked_rows(a, name, drop_invalid, on_drop, data.layout.float_extra_names, wide)
     a["rotations"] = normalize_quaternions(a["rotations"])
-    return a, data.layout
+    layout = data.layout
+    if a["means"].shape[0] != count:  # rows dropped: what indexes them by row goes too
+        layout, dropped = layout.without_vertex_indexed()
+        if dropped is not None and on_drop is not None:
+            on_drop(f"{name}: {dropped}: they index vertices, which dropping rows renumbers")
+    return a, layout
 
 
 def splats_from_host(arrays: dict[str, np.ndarray], layout: PlyLayout, device="cpu") -> SplatSet:
@@ -112,17 +119,19 @@ def splats_from_host(arrays: dict[str, np.ndarray], layout: PlyLayout, device="c
 
 
 def checked_rows(
-    a: dict[str, np.ndarray], name: str, drop_invalid: bool, on_drop=None, extra_names: list[str] | None = None
+    a: dict[str, np.ndarray], name: str, drop_invalid: bool, on_drop=None, extra_names: list[str] | None = None,
+    wide: list[str] = (),
 ) -> dict[str, np.ndarray]:
     """The host arrays with invalid rows refused (InputError) or dropped, and infinite opacity
     logits saturated; shared by every format's reader. ``extra_names``: the names of the float
-    extras' columns (a PLY's other properties), which must be finite too."""
+    extras' columns (a PLY's other properties), which must be finite too; ``wide``: properties the
+    file stores as double (held as float32: a finite double beyond its range becomes infinite)."""
     count = a["means"].shape[0]
     check = check_values(a, extra_names)
     bad = check.nonfinite_rows | check.zero_quat_rows | check.out_of_domain_rows
     n_bad = int(np.count_nonzero(bad))
     if n_bad:
-        what = _describe_invalid(check)
+        what = _describe_invalid(check, wide)
         if not drop_invalid:
             raise InputError(f"{name}: {n_bad} of {count} splats are invalid ({what}); {DROP_HINT}")
         if n_bad == count:
@@ -360,9 +369,15 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     integer_names = [p.name for p in vertex_h.props if p.name in extra_set and p.dtype.kind in "iu"]
     integer_set = set(integer_names)
     offset = _binary_offset(header, "vertex")
-    # plyfile found the same first record at the offset: trust it (else use plyfile's array)
-    direct = (offset is not None and data.flags.c_contiguous
-              and os.pread(f.fileno(), itemsize, offset) == data[:1].view(np.uint8).tobytes())  # fmt: skip
+    if offset is None and isinstance(data, np.memmap) and data.flags.c_contiguous:
+        # after a list element: at the offset plyfile parsed its way to. The rows are read from the
+        # file, never through plyfile's map: a mapped page beyond the end of a file that shrinks
+        # while it is read kills the process (SIGBUS), where a read comes back short
+        direct = True
+        offset = data.offset
+    else:  # plyfile found the same first record at the offset: trust it (else use plyfile's array)
+        direct = (offset is not None and data.flags.c_contiguous
+                  and os.pread(f.fileno(), itemsize, offset) == data[:1].view(np.uint8).tobytes())  # fmt: skip
     quats = ("quats_xyzw", ROT_NAMES[1:] + ROT_NAMES[:1]) if direct and prepare else ("rotations", ROT_NAMES)
     groups = {
         "means": MEAN_NAMES,
@@ -401,7 +416,7 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     others = []
     for e in ply.elements:
         if e.name != "vertex":
-            e.data = np.array(e.data)  # detach from the memory map
+            e.data = _detached(e.data, f, path.name)
             others.append(e)
     layout = PlyLayout(
         properties=[(p.name, p.dtype.str[1:]) for p in vertex_h.props],
@@ -431,6 +446,18 @@ def _runs(fields, names) -> list[tuple[int, int, np.dtype, int]]:
     return runs
 
 
+def _detached(data: np.ndarray, f, name: str) -> np.ndarray:
+    """An element's rows in memory of their own: those plyfile mapped are read from the file (a
+    file that shrank since is one line, where a mapped page beyond its end would kill the process)."""
+    if not isinstance(data, np.memmap):
+        return np.array(data)
+    size = data.size * data.dtype.itemsize
+    raw = os.pread(f.fileno(), size, data.offset)
+    if len(raw) != size:
+        raise InputError(f"{name}: malformed PLY file: the file changed while it was read")
+    return np.frombuffer(raw, data.dtype).reshape(data.shape).copy()
+
+
 def _binary_offset(header: Header, name: str) -> int | None:
     """Byte offset of element ``name`` in a binary file, when no list property comes before it."""
     if header.format == "ascii":
@@ -456,13 +483,14 @@ def _looks_truncated(e: plyfile.PlyElementParseError, header: Header | None, pat
         return f.read(1) not in (b"\n", b"\r")
 
 
-def _describe_invalid(check: ValueCheck) -> str:
+def _describe_invalid(check: ValueCheck, wide=()) -> str:
     parts = []
     n_nf = int(np.count_nonzero(check.nonfinite_rows))
     if n_nf:
         props = sorted(check.nonfinite_by_property, key=_natural_prop)
         shown = ", ".join(props[:8]) + (f", ... ({len(props)} properties)" if len(props) > 8 else "")
-        parts.append(f"{n_nf} with NaN/Inf values in {shown}")
+        beyond = " (a double beyond float32's +-3.4e38 counts as Inf)" if set(props) & set(wide) else ""
+        parts.append(f"{n_nf} with NaN/Inf values{beyond} in {shown}")
     n_zq = int(np.count_nonzero(check.zero_quat_rows))
     if n_zq:
         parts.append(f"{n_zq} with zero-norm quaternions")

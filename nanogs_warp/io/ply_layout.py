@@ -3,9 +3,14 @@ keeps the input's names, order and types. No Warp here: ``info`` reads layouts w
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+
+# Other PLY elements that refer to vertices by row (meshes' faces and edges): a run that renumbers
+# the vertices (merging, or rows dropped as invalid) would leave them pointing at the wrong splats.
+_VERTEX_INDEX_PROPERTIES = {"vertex_indices", "vertex_index", "vertex1", "vertex2", "vertex"}
+_VERTEX_INDEXED_ELEMENTS = {"face", "edge", "tristrips"}
 
 
 @dataclass
@@ -44,3 +49,16 @@ class PlyLayout:
     def float_extra_names(self) -> list[str]:
         """The other extra properties (float, double), in file order."""
         return [n for n, t in self.extra_dtypes().items() if t.kind not in "iu"]
+
+    def without_vertex_indexed(self) -> tuple[PlyLayout, str | None]:
+        """This layout without the other elements that index vertices (``face``, ``edge``,
+        ``tristrips`` or any element with a ``vertex_indices``-like property), and a line naming
+        them (None, and the layout itself, where there are none)."""
+        stale = [
+            e for e in self.other_elements
+            if e.name in _VERTEX_INDEXED_ELEMENTS or any(p.name in _VERTEX_INDEX_PROPERTIES for p in e.properties)
+        ]  # fmt: skip
+        if not stale:
+            return self, None
+        names = ", ".join(f"'{e.name}' ({e.count:,} rows)" for e in stale)
+        return replace(self, other_elements=[e for e in self.other_elements if e not in stale]), f"dropped PLY element(s) {names}"
