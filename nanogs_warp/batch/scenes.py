@@ -290,7 +290,7 @@ def _make_job(path, overrides, root, out_dir, budgets, config, drop_invalid, out
     scene_budgets = budgets
     if "ratio" in overrides or "count" in overrides:
         try:
-            scene_budgets = parse_budgets(_budget_text(overrides.get("ratio"), where), _budget_text(overrides.get("count"), where))
+            scene_budgets = parse_budgets(_budget_text(overrides.get("ratio")), _budget_text(overrides.get("count")))
         except InputError as e:
             raise InputError(f"{where}: {e}") from None
     if scene_budgets is None:
@@ -344,13 +344,14 @@ def _output_settings(overrides: dict, job: SceneJob) -> dict:
     return changes
 
 
-def _budget_text(value, where: str) -> str | None:
-    """A JSON budget: a number, a list of numbers or the command line's "0.1,0.01"."""
+def _budget_text(value) -> str | None:
+    """A JSON budget: a number, a list of numbers or the command line's "0.1,0.01" (the caller
+    names the scene in an error)."""
     if value is None or isinstance(value, str):
         return value
     values = value if isinstance(value, list) else [value]
     if not values or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
-        raise InputError(f"{where}: a budget must be a number, a list of numbers or a string like \"0.1,0.01\"")
+        raise InputError('a budget must be a number, a list of numbers or a string like "0.1,0.01"')
     return ",".join(repr(v) for v in values)
 
 

@@ -59,7 +59,7 @@ def _parse_archs(text: str | None) -> list[int] | None:
         if not part.isdigit() or not 50 <= int(part) <= 200:
             raise InputError(f"--arch {text!r}: expected compute capabilities such as 75,80,86,89,90")
         archs.append(int(part))
-    return archs
+    return list(dict.fromkeys(archs))  # each once
 
 
 def _parse_devices(text: str, wp) -> list:
