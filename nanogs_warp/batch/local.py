@@ -235,7 +235,7 @@ def run_local(
                     limit = deadline(worker)
                     if limit is not None and now >= limit:
                         seconds = now - worker.head_since
-                        error = f"timed out after {seconds:.3g} s (--scene-timeout); its worker process was replaced"
+                        error = f"timed out after {seconds:.0f} s (--scene-timeout); its worker process was replaced"
                         worker.process.kill()
                         worker.process.join()
                         reap(worker, timed_out=(worker.jobs[0], error, seconds))

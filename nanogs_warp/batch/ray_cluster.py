@@ -86,7 +86,7 @@ def run_ray(jobs: list[SceneJob], address: str, gpu: bool | None, force: bool, p
                     del running[ref]
                     seconds = now - limit + scene_timeout(job, gpu, timeout_s)
                     finish(SceneResult(str(job.input), job.relative, "failed", "ray", round(seconds, 4),
-                                       error=f"timed out after {seconds:.3g} s (--scene-timeout); its Ray task was cancelled"))  # fmt: skip
+                                       error=f"timed out after {seconds:.0f} s (--scene-timeout); its Ray task was cancelled"))  # fmt: skip
         return results
     finally:
         if own:
