@@ -104,7 +104,7 @@ def test_a_record_that_cannot_be_written_leaves_no_outputs(tmp_path, monkeypatch
     (job,) = find_scenes(str(scenes), tmp_path / "blocked", parse_budgets("0.5", None), SimplifyConfig.preset("fast"), False)
     monkeypatch.undo()
     result = work.process_scene(job, wp.get_device("cpu"))
-    assert result.status == "failed" and result.error.startswith("cannot make its output folder"), result.error
+    assert result.status == "failed" and result.error.endswith("cannot create the directory: File exists"), result.error
 
 
 def _webp(pixels: np.ndarray) -> bytes:
@@ -305,3 +305,22 @@ def test_kernel_cache_arguments_warp_would_fail_on_are_one_line(args, message, t
     done = cli(*args, cwd=tmp_path)
     assert done.returncode == 2 and done.stderr.startswith(f"nanogs-warp: error: {message}"), done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
+
+
+def test_a_scene_stopped_while_written_leaves_no_folder(tmp_path, monkeypatch):
+    """Ctrl-C while a batch scene's outputs are written: they go, and so does the output folder the
+    scene made (an interrupted batch left its empty output root)."""
+    import nanogs_warp.io as io
+
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    random_splats_ply(scenes / "a.ply", 200, seed=15)
+    job = _job(tmp_path, scenes)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(io, "save_splats", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        work.process_scene(job, wp.get_device("cpu"))
+    assert not (tmp_path / "out").exists()

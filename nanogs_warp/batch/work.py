@@ -238,12 +238,9 @@ def _write(scene: LoadedScene) -> None:
     from ..io.ply_write import OutputSet
 
     job, result = scene.job, scene.result
-    try:
-        job.out_dir.mkdir(parents=True, exist_ok=True)  # here: a scene that fails leaves no empty folder
-    except OSError as e:
-        raise InputError(f"cannot make its output folder {job.out_dir}: {e.strerror or e}") from e
     files = OutputSet(keep=input_files(job.input))  # the scene's outputs appear together, or (a failure part way) none of them
     try:
+        files.make_folder(job.out_dir)  # here, and removed with the outputs: a scene that fails or is stopped leaves no empty folder
         outputs = []
         for _, simplified, budgets in scene.simplified:
             for budget in budgets:
