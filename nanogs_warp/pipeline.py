@@ -94,7 +94,9 @@ def simplify_progressively(
     the merged one; the merging goes on from the merged one.
     """
     check_arguments(splats, config)
-    targets = sorted(set(int(t) for t in targets), reverse=True)
+    if isinstance(targets, (str, bytes)):  # its characters would read as digits
+        raise InputError(f"targets must be whole numbers, got {targets!r}")
+    targets = sorted(set(whole_count(t) for t in targets), reverse=True)
     if not targets or targets[-1] < 1 or targets[0] > splats.count:
         raise InputError(f"target counts must be between 1 and the input's {splats.count} splats, got {targets}")
     cost = COSTS[config.cost](config.lambda_geo, config.lambda_app, config.samples, config.seed)
@@ -155,6 +157,14 @@ def simplify_progressively(
         yield target, (current if finish is None else finish(current))
 
 
+def whole_count(c) -> int:
+    """A splat count given to the API: a whole number (an int, or a float such as 5.0); InputError
+    for a bool, a string, a fraction or a value that is not finite."""
+    if isinstance(c, bool) or not (isinstance(c, numbers.Integral) or isinstance(c, numbers.Real) and finite(c) and int(c) == c):
+        raise InputError(f"count must be a whole number, got {c!r}")
+    return int(c)
+
+
 def check_arguments(splats, config) -> None:
     """A TypeError where the splat set or the configuration handed to the API is something else."""
     if not isinstance(splats, SplatSet):
@@ -202,11 +212,7 @@ def simplify(
     if ratio is not None:
         targets = [target_count(splats.count, r) for r in budgets]
     else:
-        targets = []
-        for c in budgets:
-            if isinstance(c, bool) or not (isinstance(c, numbers.Integral) or isinstance(c, numbers.Real) and finite(c) and int(c) == c):
-                raise InputError(f"count must be a whole number, got {c!r}")
-            targets.append(int(c))
+        targets = [whole_count(c) for c in budgets]
     if isinstance(device, str):
         from .device import resolve_device
 

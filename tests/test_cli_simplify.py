@@ -3,6 +3,7 @@ with examples and word placeholders."""
 
 import json
 import re
+from pathlib import Path
 
 import pytest
 from scene_factory import random_splats_ply
@@ -170,3 +171,17 @@ def test_a_set_of_files_gets_its_own_folder(scene, tmp_path):
     assert missing.exit_code == 2 and "cannot be created" in missing.stderr and not (tmp_path / "x").exists()
     plain = run("simplify", scene, "-o", tmp_path / "nd" / "s.ply", "--ratio", "0.5", "--device", "cpu")
     assert plain.exit_code == 2 and "does not exist" in plain.stderr and not (tmp_path / "nd").exists()
+
+
+def test_a_lod_set_named_in_capitals_and_refine_size_alone(scene, tmp_path):
+    """-o LOD-META.JSON wrote lod-meta.json but reported LOD-META.JSON, which no reader found; and
+    --refine-size without --refine was silently ignored (it implies --refine, as --refine-steps does)."""
+    result = run("simplify", scene, "-o", tmp_path / "LOD-META.JSON", "--ratio", "0.5,0.1", "--device", "cpu", "--json")
+    assert result.exit_code == 0, result.output
+    assert {Path(o["path"]).name for o in json.loads(result.stdout)["outputs"]} == {"lod-meta.json"}
+    assert (tmp_path / "lod-meta.json").is_file()
+    result = run("simplify", scene, "-o", tmp_path / "r.ply", "--ratio", "0.1", "--refine-size", "64", "--refine-steps", "2",
+                 "--device", "cpu", "--json")  # fmt: skip
+    assert json.loads(result.stdout)["outputs"][0]["refine"]["steps"] == 2
+    result = run("simplify", scene, "-o", tmp_path / "r2.ply", "--ratio", "0.1", "--refine-size", "64", "--device", "cpu", "--json")
+    assert "refine" in json.loads(result.stdout)["outputs"][0]

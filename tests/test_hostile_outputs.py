@@ -17,11 +17,13 @@ import plyfile
 import pytest
 import warp as wp
 from scene_factory import random_splat_arrays, random_splats_ply, write_splats_ply
+from typer.testing import CliRunner
 
 from nanogs_warp import InputError, SplatSet
 from nanogs_warp.batch import work
 from nanogs_warp.batch.scenes import find_scenes
 from nanogs_warp.budgets import parse_budgets
+from nanogs_warp.cli.app import app
 from nanogs_warp.io import load_splats, save_levels, save_splats
 from nanogs_warp.io.ply_write import atomic_write
 from nanogs_warp.pipeline import SimplifyConfig, simplify
@@ -324,3 +326,43 @@ def test_a_scene_stopped_while_written_leaves_no_folder(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         work.process_scene(job, wp.get_device("cpu"))
     assert not (tmp_path / "out").exists()
+
+
+def test_eval_views_the_host_cannot_hold_are_refused_first(tmp_path, monkeypatch):
+    """An 8192 x 8192 eval of a 1-splat scene took 17.5 GB and 107 s; views whose comparison needs
+    more than the available memory are one line now, before any rendering."""
+    from nanogs_warp import device
+    from nanogs_warp.eval.cameras import load_cameras_json
+
+    scene = tmp_path / "s.ply"
+    random_splats_ply(scene, 50, seed=16)
+    monkeypatch.setattr(device, "available_host_memory", lambda: 1 << 30)
+    result = CliRunner().invoke(app, ["eval", str(scene), str(scene), "--device", "cpu", "--size", "4096", "--views", "1"])
+    assert result.exit_code == 2, result.output
+    assert "1 view(s) of up to 16,777,216 pixels for 2 scenes need about 4,999,610,368 bytes of memory, more than the 1,073,741,824 available" in result.stderr
+    huge = tmp_path / "cams.json"
+    huge.write_text(json.dumps([{"img_name": "v", "width": 10**400, "height": 64, "position": [0, 0, -5],
+                                 "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "fx": 60, "fy": 60}]))  # fmt: skip
+    with pytest.raises(InputError, match="camera 0 declares .* x 64 pixels, beyond 2,147,483,648 a side"):
+        load_cameras_json(huge, size=256)
+
+
+def test_api_levels_and_targets_are_checked(tmp_path):
+    """save_levels([]) wrote a LOD set no reader took (with Infinity in its JSON); levels out of order
+    were written as a set whose "finest" level was the smallest; simplify_progressively read '21'
+    as the targets 2 and 1, and 100.9 as 100."""
+    from nanogs_warp import simplify_progressively
+
+    splats = SplatSet.from_numpy(**random_splat_arrays(60, 0, seed=17))
+    small = simplify(splats, count=10)
+    with pytest.raises(InputError, match="no levels to write"):
+        save_levels([], tmp_path / "lod-meta.json")
+    with pytest.raises(InputError, match=r"levels go finest first \(counts that never grow\), got counts \[10, 60\]"):
+        save_levels([small, splats], tmp_path / "lod-meta.json")
+    with pytest.raises(TypeError, match="each level must be a SplatSet, got str"):
+        save_levels(["a.ply"], tmp_path / "a.ply")
+    assert not (tmp_path / "lod-meta.json").exists()
+    for targets, message in (("21", "targets must be whole numbers"), ([100.9], "count must be a whole number"),
+                             ([True], "count must be a whole number")):  # fmt: skip
+        with pytest.raises(InputError, match=message):
+            list(simplify_progressively(splats, targets))

@@ -106,7 +106,7 @@ def simplify(
     drop_invalid: opts.DropInvalid = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
-    refine_size: opts.RefineSize = RefineConfig.size,
+    refine_size: opts.RefineSizeImplied = None,
     output_format: opts.Format = None,
     sh_degree: opts.ShDegree = None,
     sample: Annotated[bool, typer.Option("--sample", help="Use the shipped 20,000-splat sample scene as the input.")] = False,
@@ -129,8 +129,9 @@ def simplify(
     config.validate()  # before anything is started or read
     opts.check_sh_degree(sh_degree)
     refine_config = None
-    if refine or refine_steps is not None:
-        refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size, seed=config.seed)
+    if refine or refine_steps is not None or refine_size is not None:
+        refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps,
+                                     size=RefineConfig.size if refine_size is None else refine_size, seed=config.seed)  # fmt: skip
         refine_config.validate()
     budgets = parse_budgets(ratio, count)
     input = _input_path(input, sample)
@@ -140,6 +141,8 @@ def simplify(
     lod_set = fmt == "lod"
     if lod_set and _is_folder(output):
         output = str(Path(output) / "lod-meta.json")
+    elif lod_set:  # the set's file is lod-meta.json, whatever case the name was given in
+        output = str(Path(output).with_name("lod-meta.json"))
     if fmt == "sog" and Path(output).suffix.lower() == ".json" and len(budgets) > 1:
         raise InputError(f"{Path(output).name}: several budgets cannot share one unbundled SOG folder; "
                          "write .sog files or a lod-meta.json set")  # fmt: skip
@@ -250,7 +253,7 @@ def simplify(
         "input_count": splats.count,
         "after_prune_count": after_prune,
         "device": str(target_device),
-        "settings": _settings(config, after_prune, target_device, sh_degree),
+        "settings": _settings(config, after_prune, target_device, None if sh_degree is None else min(sh_degree, splats.sh_degree)),
         "passes": len(passes),
         "outputs": written,
         "notes": notes.lines,

@@ -51,7 +51,7 @@ def eval_command(
     foreground PSNR and colour shift (mean and worst view)."""
     from ..device import resolve_device
     from ..eval.cameras import load_cameras_json, orbit_cameras, parse_up
-    from ..eval.evaluate import evaluate, format_table, write_images
+    from ..eval.evaluate import check_host_memory, evaluate, format_table, write_images
     from ..eval.units import render_offset, rescaled, rescaled_camera
     from ..folders import creatable_folder
     from ..io import input_files, load_splats
@@ -94,6 +94,7 @@ def eval_command(
         camera_list = [rescaled_camera(c, 1.0, offset) for c in load_cameras_json(cameras, size=size or None)]
     else:
         camera_list = orbit_cameras(ref_splats, views=views, size=size, up=up)
+    check_host_memory(camera_list, 1 + len(tests))
     rendered: dict = {}
     progress = _Progress(sys.stderr.isatty() and not quiet)
     result = evaluate(ref_splats, test_splats, camera_list, target, bg, names=[str(p) for p in tests], images=rendered,
@@ -143,14 +144,16 @@ def eval_command(
 
 
 def image_folders(labels: list[str]) -> list[str]:
-    """A folder name inside ``--images`` for each test scene's label: at most 100 characters, no
+    """A folder name inside ``--images`` for each test scene's label: at most 100 bytes in UTF-8, no
     separator, never '.', '..' or hidden (a scene file named '...ply'), and each its own (labels
-    that only differ before their last 100 characters get a number)."""
+    that only differ before their last 100 bytes get a number)."""
+    from ..eval.evaluate import fit_bytes
+
     names: list[str] = []
     for k, label in enumerate(labels):
-        name = label.replace("/", "_").replace("\\", "_")[-100:].lstrip(".") or f"scene_{k + 1}"
+        name = fit_bytes(label.replace("/", "_").replace("\\", "_"), 100, keep_end=True).lstrip(".") or f"scene_{k + 1}"
         while name in names:
-            name = f"{name[-90:]}_{k + 1}"
+            name = f"{fit_bytes(name, 90, keep_end=True)}_{k + 1}"
         names.append(name)
     return names
 

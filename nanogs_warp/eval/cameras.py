@@ -167,6 +167,9 @@ def orbit_cameras(
     ]
 
 
+MAX_DECLARED_SIDE = 1 << 31  # a camera's own image side, before --size scales it
+
+
 def load_cameras_json(path: Path | str, size: int | None = None) -> list[Camera]:
     """Cameras from the ``cameras.json`` the INRIA trainer writes: a list of {id, img_name, width,
     height, position, rotation (3x3 camera-to-world, rows), fx, fy}, principal point at the image
@@ -201,6 +204,8 @@ def load_cameras_json(path: Path | str, size: int | None = None) -> list[Camera]
             raise InputError(f"cameras {path}: camera {k} has a non-positive size or focal length or a non-finite pose")
         if np.abs(position).max() >= limit or np.abs(c2w @ c2w.T - np.eye(3)).max() > 1e-3 or np.linalg.det(c2w) < 0:
             raise InputError(f"cameras {path}: camera {k}'s rotation is not a rotation or its position is beyond float32")
+        if max(width, height) > MAX_DECLARED_SIDE:  # beyond any image; and width * scale would overflow a float
+            raise InputError(f"cameras {path}: camera {k} declares {width} x {height} pixels, beyond {MAX_DECLARED_SIDE:,} a side")
         if size is not None:
             scale = size / max(width, height)
             new_w, new_h = max(1, round(width * scale)), max(1, round(height * scale))

@@ -171,10 +171,20 @@ def save_levels(
     path = Path(path)
     fmt = format_for_path(path, format)
     check_output_name(path, fmt)
+    from ..splats import SplatSet  # a SplatSet exists: Warp is loaded already
+
+    levels = list(levels)
+    if not levels:
+        raise InputError(f"{path.name}: no levels to write")
+    for level in levels:
+        if not isinstance(level, SplatSet):
+            raise TypeError(f"each level must be a SplatSet, got {type(level).__name__}")
+        refuse_empty(level, path)
     if fmt != "lod" and len(levels) != 1:
         raise ValueError("several levels need the lod format")
-    for level in levels:
-        refuse_empty(level, path)
+    counts = [level.count for level in levels]
+    if any(a < b for a, b in zip(counts, counts[1:])):
+        raise InputError(f"{path.name}: levels go finest first (counts that never grow), got counts {counts}")
     staged = OutputSet(overwrite) if outputs is None else outputs
     try:
         if fmt == "ply":
