@@ -366,3 +366,14 @@ def test_api_levels_and_targets_are_checked(tmp_path):
                              ([True], "count must be a whole number")):  # fmt: skip
         with pytest.raises(InputError, match=message):
             list(simplify_progressively(splats, targets))
+
+
+def test_image_names_fit_a_file_name_in_bytes():
+    """Names were cut to 100 characters: 100 CJK letters are 300 bytes, past a file name's 255, and
+    eval --images failed after rendering with 'File name too long'."""
+    from nanogs_warp.cli.eval import image_folders
+    from nanogs_warp.eval.evaluate import _safe_name
+
+    assert len(_safe_name("中" * 100).encode()) <= 100 and _safe_name("中" * 100).startswith("中")
+    folders = image_folders(["文" * 40 + "/" + "名" * 70, "字" * 40 + "/" + "名" * 70])
+    assert all(len(f.encode()) <= 100 for f in folders) and len(set(folders)) == 2
