@@ -58,22 +58,28 @@ def _home_expanded(path: str | os.PathLike, what: str) -> Path:
         raise InputError(f"{what} {os.fspath(path)}: its '~' names no home directory known here") from None
 
 
-def use_cache_dir(path: str | os.PathLike | None) -> None:
+def use_cache_dir(path: str | os.PathLike | None, must_write: bool = False) -> None:
     """Points Warp's kernel cache at ``path`` (created if needed); call before Warp initialises.
     None leaves Warp's own choice ($WARP_CACHE_PATH or its default), after checking that a
-    $WARP_CACHE_PATH can hold it (Warp would fail on its own with a traceback)."""
+    $WARP_CACHE_PATH can hold it (Warp would fail on its own with a traceback). An existing folder
+    that cannot be written (a cache baked into a read-only image) is used as it is, unless
+    ``must_write`` (``warmup``): ``load_kernels`` then says so in one line if it lacks a module."""
     import warp as wp
 
     from .folders import writable_folder
+
+    def usable(folder: Path, what: str) -> None:
+        if must_write or not (folder.is_dir() and os.access(folder, os.R_OK | os.X_OK)):
+            writable_folder(folder, what)
 
     if path is None:
         chosen = os.environ.get("WARP_CACHE_PATH")
         if chosen:
             folder = _home_expanded(chosen, "WARP_CACHE_PATH") / wp.config.version
-            writable_folder(folder, f"WARP_CACHE_PATH {chosen}: kernel cache {folder}")
+            usable(folder, f"WARP_CACHE_PATH {chosen}: kernel cache {folder}")
         return
     path = _home_expanded(path, "kernel cache")
-    writable_folder(path, f"kernel cache {path}")
+    usable(path, f"kernel cache {path}")
     wp.config.kernel_cache_dir = str(path.resolve())
 
 
@@ -128,6 +134,10 @@ def load_kernels(device, names=SIMPLIFY_MODULES, announce: bool = True) -> float
     started = time.perf_counter()
     modules = warp_modules(names)
     missing = missing_after_shipped(modules, device)
+    if missing and wp.config.kernel_cache_dir and not os.access(wp.config.kernel_cache_dir, os.W_OK):
+        raise InputError(f"kernel cache {wp.config.kernel_cache_dir} is read-only and lacks {len(missing)} compiled kernel "
+                         f"module(s) for {device}: fill it with 'nanogs-warp warmup --cache-dir DIR' where it can be "
+                         "written, or point NANOGS_WARP_CACHE at a writable folder")  # fmt: skip
     if missing and announce:
         print(f"nanogs-warp: compiling {len(missing)} kernel module(s) for {device} (once; they are kept in "
               f"{wp.config.kernel_cache_dir}; 'nanogs-warp warmup' does this ahead of time)", file=sys.stderr)  # fmt: skip

@@ -16,8 +16,8 @@ from nanogs_warp.kernel_cache import SIMPLIFY_MODULES, load_kernels, missing_mod
 SAMPLE = "nanogs_warp/data/plant_crop.ply"
 
 
-def python(code: str, **env) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, **env},
+def python(code: str, *argv: str, **env) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, env={**os.environ, **env},
                           cwd=__file__.rsplit("/tests/", 1)[0])  # fmt: skip
 
 
@@ -49,6 +49,28 @@ def test_a_warp_cache_path_that_cannot_hold_the_cache_is_one_line(tmp_path):
                             env={**os.environ, "NANOGS_WARP_CACHE": "", "WARP_CACHE_PATH": str(tmp_path / "afile")})  # fmt: skip
     assert result.returncode == 2 and result.stderr.startswith("nanogs-warp: error: WARP_CACHE_PATH ")
     assert "cannot create the directory" in result.stderr and not (tmp_path / "o.ply").exists()
+
+
+def test_a_read_only_cache_serves_what_it_holds(tmp_path):
+    """A kernel cache baked into a read-only image: refused as 'not writable' even when it held
+    every module. It is used now, and one that lacks a module says so in one line."""
+    full, empty = tmp_path / "full", tmp_path / "empty"
+    empty.mkdir()
+    code = ("import os, sys\nfrom nanogs_warp.cli.entry import main\naccess = os.access\n"
+            "os.access = lambda p, m, **k: False if (m & os.W_OK and str(p).startswith(os.environ['NANOGS_WARP_CACHE'])) else access(p, m, **k)\n"
+            "sys.argv = ['nanogs-warp', 'simplify', '--sample', '-o', sys.argv[1], '--ratio', '0.1', '--device', 'cpu', '-q', '--preset', 'fast']\n"
+            "main()")  # fmt: skip
+    fill = subprocess.run([sys.executable, "-m", "nanogs_warp", "simplify", "--sample", "-o", str(tmp_path / "a.ply"), "--ratio", "0.1",
+                           "--device", "cpu", "-q", "--preset", "fast"], capture_output=True, text=True,
+                          env={**os.environ, "NANOGS_WARP_CACHE": str(full)})  # fmt: skip
+    assert fill.returncode == 0, fill.stderr
+    served = python(code, str(tmp_path / "b.ply"), NANOGS_WARP_CACHE=str(full))
+    assert served.returncode == 0, served.stderr
+    assert (tmp_path / "b.ply").read_bytes() == (tmp_path / "a.ply").read_bytes()
+    lacking = python(code, str(tmp_path / "c.ply"), NANOGS_WARP_CACHE=str(empty), NANOGS_WARP_SHIPPED_KERNELS="0")
+    assert lacking.returncode == 2 and lacking.stderr.startswith(f"nanogs-warp: error: kernel cache {empty}/")
+    assert "is read-only and lacks " in lacking.stderr and len(lacking.stderr.splitlines()) == 1
+    assert not (tmp_path / "c.ply").exists()
 
 
 def test_missing_modules_sees_the_cache(tmp_path):

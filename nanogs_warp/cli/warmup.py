@@ -28,7 +28,7 @@ def warmup_command(
     archs = _parse_archs(arch)
     if cache_dir is not None and not cache_dir.strip():
         raise InputError("--cache-dir: give a directory")
-    use_cache_dir(Path(cache_dir) if cache_dir is not None else cache_dir_from_environment())
+    use_cache_dir(Path(cache_dir) if cache_dir is not None else cache_dir_from_environment(), must_write=True)
     init_warp()
     import warp as wp
 
