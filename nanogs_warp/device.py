@@ -32,6 +32,13 @@ def available_host_memory() -> int | None:
         return None
 
 
+def memory_short(need: int) -> int | None:
+    """The host memory available now where ``need`` bytes are more than it (the caller refuses the
+    work in one line, naming both); None where they fit, or where the system does not say."""
+    available = available_host_memory()
+    return available if available is not None and need > available else None
+
+
 def quiet_warp() -> None:
     """Warp's start-up banner and module-load lines off (on with NANOGS_DEBUG=1), and the kernel
     cache at $NANOGS_WARP_CACHE when that is set and no directory was chosen before."""

@@ -345,12 +345,12 @@ KEPT_BYTES_PER_PIXEL = 14
 def check_host_memory(cameras: Sequence, scenes: int) -> None:
     """Refuses, before any rendering, views whose comparison would need more host memory than is
     available (``scenes``: the reference and the test scenes): 8192 x 8192 views took 17 GB."""
-    from ..device import available_host_memory
+    from ..device import memory_short
 
     largest = max(c.width * c.height for c in cameras)
     need = largest * VIEW_BYTES_PER_PIXEL + sum(c.width * c.height for c in cameras) * KEPT_BYTES_PER_PIXEL * scenes
-    available = available_host_memory()
-    if available is not None and need > available:
+    available = memory_short(need)
+    if available is not None:
         raise InputError(f"{len(cameras)} view(s) of up to {largest:,} pixels for {scenes} scenes need about {need:,} bytes "
                          f"of memory, more than the {available:,} available: give a smaller --size or fewer views")  # fmt: skip
 

@@ -117,7 +117,7 @@ def read_file_bytes(path: Path, limit: int | None = None) -> bytes:
     """The whole file, with open/read errors as InputError (and a size limit, when given); a file
     larger than the machine's available memory is refused before it is read (a sparse file of
     terabytes takes no room on a disk)."""
-    from ..device import available_host_memory
+    from ..device import memory_short
 
     name = path.name
     with open_regular(path) as f:
@@ -125,8 +125,8 @@ def read_file_bytes(path: Path, limit: int | None = None) -> bytes:
             size = os.fstat(f.fileno()).st_size
             if limit is not None and size > limit:
                 raise InputError(f"{name}: {size} bytes is more than the {limit} this format allows")
-            available = available_host_memory()
-            if available is not None and size > available:
+            available = memory_short(size)
+            if available is not None:
                 raise InputError(f"{name}: {size:,} bytes is more than the {available:,} bytes of memory available")
             return f.read()
         except OSError as e:
@@ -166,11 +166,11 @@ def check_decoded_memory(name: str, count: int, coefficients: int) -> None:
     decoding (about DECODE_BYTES_PER_VALUE bytes a value) this machine's available memory could not
     hold: a small compressed file that declares a huge scene ends in one line, not in exhausted
     memory."""
-    from ..device import available_host_memory
+    from ..device import memory_short
 
     need = count * (14 + coefficients) * DECODE_BYTES_PER_VALUE
-    available = available_host_memory()
-    if available is not None and need > available:
+    available = memory_short(need)
+    if available is not None:
         raise InputError(f"{name}: decoding its {count:,} splats needs about {need:,} bytes of memory, more than the "
                          f"{available:,} available")  # fmt: skip
 
@@ -189,11 +189,11 @@ def gunzip_bounded(data: bytes, limit: int, name: str) -> bytes:
     and refusing before any work a ``limit`` (of what ``data`` can hold: ``most_inflated``) that
     this machine's available memory could not hold: a small file that declares a huge scene
     ends in one line, not in exhausted memory."""
-    from ..device import available_host_memory
+    from ..device import memory_short
 
     need = min(limit, most_inflated(len(data)))
-    available = available_host_memory()
-    if available is not None and need > available:
+    available = memory_short(need)
+    if available is not None:
         raise InputError(f"{name}: its header declares {limit:,} bytes of data, more than the {available:,} bytes of memory "
                          "available")  # fmt: skip
     d = zlib.decompressobj(16 + zlib.MAX_WBITS)
