@@ -1,6 +1,9 @@
 """The one exception type that user-facing code turns into a one-line message and exit code 2."""
 
 import re
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 
 class InputError(Exception):
@@ -10,6 +13,21 @@ class InputError(Exception):
 class NanogsWarning(UserWarning):
     """Something the user should know that does not stop the work (e.g. PLY elements dropped): the
     commands show it as one line on stderr."""
+
+
+@contextmanager
+def package_warnings(note: Callable[[str], None]) -> Iterator[None]:
+    """Runs the block with the package's own warnings (``NanogsWarning``) recorded, then hands each
+    to ``note`` as a line for the user (on stderr, in a summary); any other warning is shown as
+    Python would. When the block raises, its warnings go with it."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", NanogsWarning)
+        yield
+    for warning in caught:
+        if issubclass(warning.category, NanogsWarning):
+            note(str(warning.message))
+        else:
+            warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
 
 
 def printable(message: str) -> str:

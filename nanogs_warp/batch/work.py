@@ -16,14 +16,13 @@ import os
 import stat
 import time
 import traceback
-import warnings
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from .. import __version__
-from ..errors import InputError, NanogsWarning, out_of_memory
+from ..errors import InputError, out_of_memory, package_warnings
 from .scenes import SceneJob
 
 RECORD_FORMAT = 2  # 2: the input's hash is its PieceHash ("sha256_pieces"), no longer its plain SHA-256
@@ -129,14 +128,8 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
             from ..refinement.refine import ReferenceViews
 
             views = ReferenceViews(on_device, RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed))
-        with warnings.catch_warnings(record=True) as caught:  # the package's own go to the scene's notes
-            warnings.simplefilter("always", NanogsWarning)
+        with package_warnings(lambda line: _note_once(scene.result, line)):  # the scene's notes, not stderr
             download = _simplify_budgets(scene, on_device, by_target, views, on_pass)
-        for warning in caught:
-            if issubclass(warning.category, NanogsWarning):
-                _note_once(scene.result, str(warning.message))
-            else:
-                warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
         del views
     if "simplify" in scene.result.stages:
         scene.result.stages["simplify"] = round(scene.result.stages["simplify"] - download, 4)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import sys
 import time
-import warnings
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -14,7 +13,7 @@ import typer
 
 from .. import __version__
 from ..budgets import Budget, output_paths, parse_budgets
-from ..errors import InputError, NanogsWarning
+from ..errors import InputError, package_warnings
 from ..refinement.config import RefineConfig
 from . import options as opts
 from .batch import batch_command
@@ -220,8 +219,7 @@ def simplify(
     writer = _Writer()
     try:
         try:
-            with warnings.catch_warnings(record=True) as caught:  # the package's own: one line each, below
-                warnings.simplefilter("always", NanogsWarning)
+            with package_warnings(notes):  # on stderr unless silenced, and in the --json summary's notes
                 _simplify_and_save(on_device, budgets_for_target, config, paths, passes, progress, loaded, written, fmt, notes,
                                    levels, refine_config, writer, stages, overwrite, outputs, sh_degree)  # fmt: skip
             writer.finish(stages)
@@ -236,11 +234,6 @@ def simplify(
     except BaseException:
         outputs.discard()
         raise
-    for warning in caught:
-        if not issubclass(warning.category, NanogsWarning):
-            warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
-        else:  # on stderr unless silenced, and in the --json summary's notes
-            notes(str(warning.message))
     finished = time.perf_counter()
     if not lod_set:  # reached largest first; listed as given (a set's by level, finest first)
         labels = [budget.label for budget in budgets]
