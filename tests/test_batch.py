@@ -17,6 +17,7 @@ from scene_factory import random_splats_ply
 from typer.testing import CliRunner
 
 from nanogs_warp.batch.run import BatchProgress, SceneJob, SceneResult, find_scenes, select_shard
+from nanogs_warp.batch.scenes import timed_out_error
 from nanogs_warp.cli.batch import batch_command
 from nanogs_warp.cli.errors import user_errors
 from nanogs_warp.io.ply import load_ply
@@ -483,6 +484,13 @@ def test_a_batch_whose_last_scene_times_out_ends(scenes_and_a_spinner, tmp_path)
     assert done.returncode == 1, done.stderr
     (scene,) = json.loads(done.stdout)["scenes"]
     assert scene["status"] == "failed" and "timed out after 3 s" in scene["error"]
+
+
+def test_a_time_limit_below_ten_seconds_keeps_its_digits():
+    assert timed_out_error(0.5, "x") == "timed out after 0.5 s (--scene-timeout); x"
+    assert timed_out_error(3.0, "x").startswith("timed out after 3 s ")
+    assert timed_out_error(2.125, "x").startswith("timed out after 2.12 s ")
+    assert timed_out_error(300.4, "x").startswith("timed out after 300 s ")
 
 
 def test_more_workers_than_scenes_start_one_per_scene(scenes, tmp_path):

@@ -4,6 +4,7 @@ without the flag, and one line with exit code 2 for bad refinement settings."""
 import json
 
 import numpy as np
+import pytest
 import typer
 from scene_factory import random_splats_ply
 from typer.testing import CliRunner
@@ -66,6 +67,25 @@ def test_bad_refine_settings(tmp_path):
         assert result.exit_code == 2
         assert result.stderr.count("\n") == 1 and result.stderr.startswith("nanogs-warp: error: ")
         assert not (tmp_path / "out.ply").exists()
+
+
+def test_refinement_views_beyond_the_memory_are_refused_first(tmp_path, monkeypatch):
+    """--refine-size 4096 at the default 300 steps would render 136 reference views of 16.8 M pixels
+    (about 44 GB with a step's buffers): refused in one line before any rendering, no output written."""
+    import nanogs_warp.refinement.refine as refine
+
+    scene, out = tmp_path / "scene.ply", tmp_path / "out.ply"
+    random_splats_ply(scene, 50, seed=5)
+    monkeypatch.setattr(refine, "device_memory", lambda device: 10**9)
+    monkeypatch.setattr(refine, "_render_views", lambda *a: pytest.fail("rendered before the memory check"))
+    result = run("simplify", scene, "-o", out, "--ratio", "0.5", "--device", "cpu", "--refine-size", "4096")
+    assert result.exit_code == 2 and result.stderr.count("\n") == 1
+    assert result.stderr.startswith("nanogs-warp: error: refining with 136 reference views of 4096x4096 pixels needs about 44,")
+    assert "more than the 1,000,000,000 available: give a smaller --refine-size" in result.stderr
+    assert not out.exists()
+    monkeypatch.undo()
+    result = run("simplify", scene, "-o", out, "--ratio", "0.5", "--device", "cpu", "--refine-size", "64", "--refine-steps", "2")
+    assert result.exit_code == 0, result.stderr  # 64 x 64 views fit
 
 
 def test_batch_refine(tmp_path):

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 
 from ..errors import InputError
-from .scenes import SceneJob, largest_first, scene_timeout
+from .scenes import SceneJob, largest_first, scene_timeout, timed_out_error
 from .work import SceneResult
 
 _PASS_EVENT_EVERY_S = 0.25
@@ -235,7 +235,7 @@ def run_local(
                     limit = deadline(worker)
                     if limit is not None and now >= limit:
                         seconds = now - worker.head_since
-                        error = f"timed out after {seconds:.0f} s (--scene-timeout); its worker process was replaced"
+                        error = timed_out_error(limit - worker.head_since, "its worker process was replaced")
                         worker.process.kill()
                         worker.process.join()
                         reap(worker, timed_out=(worker.jobs[0], error, seconds))

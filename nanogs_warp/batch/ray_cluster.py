@@ -9,7 +9,7 @@ import time
 from collections import deque
 
 from ..errors import InputError
-from .scenes import SceneJob, largest_first, scene_timeout
+from .scenes import SceneJob, largest_first, scene_timeout, timed_out_error
 from .work import SceneResult
 
 INSTALL_HINT = "pip install 'ray>=2.9' (or, from the source tree, pip install '.[ray]')"
@@ -86,7 +86,7 @@ def run_ray(jobs: list[SceneJob], address: str, gpu: bool | None, force: bool, p
                     del running[ref]
                     seconds = now - limit + scene_timeout(job, gpu, timeout_s)
                     finish(SceneResult(str(job.input), job.relative, "failed", "ray", round(seconds, 4),
-                                       error=f"timed out after {seconds:.0f} s (--scene-timeout); its Ray task was cancelled"))  # fmt: skip
+                                       error=timed_out_error(scene_timeout(job, gpu, timeout_s), "its Ray task was cancelled")))  # fmt: skip
         return results
     finally:
         if own:

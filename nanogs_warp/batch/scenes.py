@@ -168,6 +168,13 @@ def scene_timeout(job: SceneJob, on_gpu: bool, seconds: float | None = None) -> 
     return TIMEOUT_BASE_S + TIMEOUT_PER_MB_S["gpu" if on_gpu else "cpu"] * max(job.size, 0) / 1e6
 
 
+def timed_out_error(limit: float, what: str) -> str:
+    """A scene's error past its time limit of ``limit`` seconds: whole seconds from 10 s on, three
+    digits below (a 0.5 s limit is not "0 s")."""
+    shown = f"{limit:.0f}" if limit >= 10 else f"{limit:.3g}"
+    return f"timed out after {shown} s (--scene-timeout); {what}"
+
+
 def largest_first(jobs: list[SceneJob]) -> list[SceneJob]:
     """The order in which workers take scenes: biggest file first (ties by name), so that one
     large scene does not start last and hold up the end of the batch."""

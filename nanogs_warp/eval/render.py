@@ -45,12 +45,16 @@ ONE_WALK = 2**31 - 1  # a chunk no tile exceeds: every tile composited in one wa
 CHUNKS_PER_WORKER = 4
 
 
+def device_memory(device) -> int | None:
+    """Bytes of ``device``'s memory free now: a GPU's, or for the CPU the host's available memory
+    (page cache included as the kernel counts it); None where the system does not say."""
+    device = wp.get_device(device)
+    return int(device.free_memory) if device.is_cuda else available_host_memory()
+
+
 def entry_memory(device) -> int:
-    """Bytes a view's entry buffers may take on ``device``: half of the memory free now (a GPU's,
-    or for the CPU the host's available memory, page cache included as the kernel counts it)."""
-    if device.is_cuda:
-        return int(device.free_memory) // 2
-    available = available_host_memory()
+    """Bytes a view's entry buffers may take on ``device``: half of the memory free now."""
+    available = device_memory(device)
     if available is None:  # not on this system: no memory bound but int32's
         return INDEX_LIMIT * ENTRY_BYTES
     return available // 2

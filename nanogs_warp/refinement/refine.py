@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from ..eval.render import _Rasteriser
+from ..errors import InputError
+from ..eval.render import _Rasteriser, device_memory
 from ..eval.units import render_offset, render_units, rescaled
 from ..kernels import adam as adam_kernels
 from ..parallel import launch_rows_from
@@ -33,6 +34,25 @@ from .render_grad import GradRasteriser, SplatGradients
 LOSS_VIEWS = 8  # pool views on which the training loss before and after is measured
 VALIDATION_VIEWS = 8  # held-out views (never trained on) that choose which checkpoint to return
 CHECKPOINTS = (0.25, 0.5, 0.75, 1.0)  # fractions of the run at which the held-out loss is measured
+# Memory a refinement takes on its device, measured on the CPU (the bundled sample, --refine-size 512
+# and 1024): about 930 bytes a pixel of a training view for a step's renders, gradients and SSIM maps,
+# and 12 (RGB float32) a pixel for every reference view kept. 4096-pixel views at the default 128
+# reference views need about 44 GB.
+STEP_BYTES_PER_PIXEL = 1000
+VIEW_BYTES_PER_PIXEL = 12
+
+
+def check_memory(config: RefineConfig, pool: int, device) -> None:
+    """Refuses, before any rendering, a refinement whose views would not fit ``device``'s memory
+    (a GPU's free memory, the host's available memory for the CPU)."""
+    pixels = config.size * config.size
+    need = pixels * (STEP_BYTES_PER_PIXEL + VIEW_BYTES_PER_PIXEL * (pool + VALIDATION_VIEWS))
+    available = device_memory(device)
+    if available is not None and need > available:
+        memory = "memory" if device.is_cpu else f"{device}'s memory"
+        raise InputError(f"refining with {pool + VALIDATION_VIEWS} reference views of {config.size}x{config.size} pixels needs about "
+                         f"{need:,} bytes of {memory}, more than the {available:,} available: give a smaller "
+                         f"--refine-size or fewer --refine-steps")  # fmt: skip
 
 
 @dataclass
@@ -148,6 +168,7 @@ class ReferenceViews:
         _, p90, _ = scene_spread(means)
         self.extent = 2.2 * p90  # the scene's extent, which scales the means' learning rate
         pool = max(1, min(c.reference_views, c.steps * c.views_per_step))
+        check_memory(c, pool, self.device)
         cameras = training_cameras(means, pool, c.size, c.seed)
         self.targets = _render_views(self.reference, cameras, self.device)
         # held-out views, drawn like the training views from another stream
