@@ -1,7 +1,8 @@
 """nanogs-warp: training-free simplification of 3D Gaussian Splatting scenes (NanoGS) with Warp.
 
 Importing the package is quick and quiet: the names below load their modules (and Warp) on first
-use, with Warp's start-up and module-load messages off (NANOGS_DEBUG=1 turns them on).
+use, with Warp's start-up and module-load messages off, and its notice that a machine has no CUDA
+driver dropped (NANOGS_DEBUG=1 turns them on).
 """
 
 __version__ = "0.1.0"
@@ -31,7 +32,7 @@ def __getattr__(name: str):
     import importlib
 
     if module in ("refinement.simplify", "io.ply", "splats", "io", "refinement.refine"):
-        importlib.import_module(".device", __name__).quiet_warp()
+        importlib.import_module(".device", __name__).init_warp()  # quiet: no "no CUDA driver" notice on a CPU machine
     value = getattr(importlib.import_module(f".{module}", __name__), name)
     globals()[name] = value
     return value

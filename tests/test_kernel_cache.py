@@ -26,6 +26,13 @@ def test_import_is_quiet_and_loads_no_warp():
     assert result.returncode == 0 and result.stdout.split() == ["False", "0.1.0"] and result.stderr == ""
 
 
+def test_the_api_is_quiet_on_a_machine_without_a_gpu():
+    """Warp's own "Could not find or load the NVIDIA CUDA driver" notice was printed by the first call."""
+    code = ("import nanogs_warp as n\ns = n.load_ply(%r)\nprint(n.simplify(s, ratio=0.1, device='cpu').count)") % SAMPLE
+    result = python(code)
+    assert result.returncode == 0 and result.stdout.split() == ["2000"] and result.stderr == "", result.stderr
+
+
 def test_info_imports_neither_warp_nor_pydantic():
     """pydantic: typer 0.29 and later import it to validate options (pyproject.toml pins typer below)."""
     code = ("import sys\nfrom nanogs_warp.cli.app import app\nsys.argv = ['nanogs-warp', 'info', %r]\n"
