@@ -68,6 +68,12 @@ class SimplifyConfig:
 
     def __post_init__(self):
         self.validate()  # a bad configuration fails where it is built, not where it runs
+        for name, kind in _FIELD_KINDS.items():  # NumPy's integers and floats as Python's: Warp takes those
+            value = getattr(self, name)
+            if kind.startswith("int") and value is not None and type(value) is not int:
+                object.__setattr__(self, name, int(value))
+            elif kind == "number" and type(value) is not float:
+                object.__setattr__(self, name, float(value))
 
     @staticmethod
     def paper(**overrides) -> SimplifyConfig:
@@ -106,7 +112,7 @@ class SimplifyConfig:
             raise InputError(f"--cost field scores the mpmm and coverage operators, not {self.operator!r}")
         if not (MIN_PASS_FRACTION <= self.pass_fraction <= 0.5):
             raise InputError(f"--pass-fraction must be in [{MIN_PASS_FRACTION}, 0.5], got {self.pass_fraction}")
-        if not (self.median_cost_factor == 0.0 or 1.0 <= self.median_cost_factor < math.inf):
+        if not (self.median_cost_factor == 0.0 or 1.0 <= self.median_cost_factor and finite(self.median_cost_factor)):
             raise InputError(f"--median-cost-factor must be 0 (no limit) or a finite number >= 1, got {self.median_cost_factor}")
         for name in ("lambda_geo", "lambda_app"):
             value = getattr(self, name)

@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
+import numpy as np
 import warp as wp
 
 from .compact import remove_rows
@@ -197,16 +198,17 @@ def simplify(
     if ratios is not None:
         if ratio is not None:
             raise InputError("give ratio or ratios, not both")
-        ratio = list(ratios)
+        ratio = budget_list(ratios, "ratios")
     if counts is not None:
         if count is not None:
             raise InputError("give count or counts, not both")
-        count = list(counts)
+        count = budget_list(counts, "counts")
     check_arguments(splats, config)
     if (ratio is None) == (count is None):
         raise InputError("give exactly one of ratio or count")
-    several = not isinstance(ratio if ratio is not None else count, (str, numbers.Number))
-    budgets = list(ratio if ratio is not None else count) if several else [ratio if ratio is not None else count]
+    given = scalar(ratio if ratio is not None else count)
+    several = not isinstance(given, (str, numbers.Number))
+    budgets = budget_list(given, "ratio" if ratio is not None else "count")
     if not budgets:
         raise InputError("give at least one budget")
     if ratio is not None:
@@ -219,4 +221,25 @@ def simplify(
         device = resolve_device(device)
     on_device = splats.to(wp.get_device(device) if device is not None else splats.device)
     results = dict(simplify_progressively(on_device, targets, config, finish=finish))
-    return [results[t] for t in targets] if several else results[targets[0]]
+    outputs = [results[t].clone() if results[t] is splats else results[t] for t in targets]  # never the caller's own set
+    return outputs if several else outputs[0]
+
+
+def scalar(value):
+    """A 0-d NumPy array as the NumPy scalar it holds (a float32 keeps its own shortest repr, which
+    ``target_count`` reads), NumPy's bool as Python's; anything else as it is."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    return bool(value) if isinstance(value, np.bool_) else value
+
+
+def budget_list(value, name: str) -> list:
+    """The budgets of ``ratio``/``ratios``/``count``/``counts``: one number or string is one budget
+    (``ratios="0.1"`` is not three of them), anything else is iterated; InputError for bytes and for
+    values that are neither."""
+    value = scalar(value)
+    if isinstance(value, (bytes, bytearray)) or not isinstance(value, (str, numbers.Number)) and not hasattr(value, "__iter__"):
+        raise InputError(f"{name} must be a number, a string or a list of them, got {type(value).__name__}")
+    if isinstance(value, (str, numbers.Number)):
+        return [value]
+    return [scalar(v) for v in value]

@@ -101,7 +101,7 @@ class SplatSet:
         with ``validate`` (the default), values a scene file may not hold either raise InputError,
         as on reading a file: NaN or infinite values (opacity logits of +-Inf are valid: alpha 1
         or 0), quaternions of norm 0, log-scales beyond the numeric domain."""
-        device = wp.get_device(device)
+        device = _warp_device(device)
         means = _host_rows("means", means, 3)
         n = means.shape[0]
         rotations = _host_rows("rotations", rotations, 4, n)
@@ -112,11 +112,13 @@ class SplatSet:
         extras = np.zeros((n, 0), np.float32) if extras is None else _host_rows("extras", extras, 0, n)
         if integer_extras is not None:
             integer_extras = _host_rows("integer_extras", integer_extras, 0, n)
-        if validate:
-            _check_values(means, rotations, log_scales, opacities, features)
-        quat_xyzw = np.ascontiguousarray(np.asarray(rotations, dtype=np.float32)[:, [1, 2, 3, 0]])
-        if integer_extras is None:
+        if integer_extras is not None:
+            integer_extras = _whole_numbers("integer_extras", integer_extras)
+        else:  # integer columns given as floats are rounded and clipped (NaN as 0)
             extras, integer_extras = split_integer_extras(np.asarray(extras), layout)
+        if validate:
+            _check_values(means, rotations, log_scales, opacities, features, extras)
+        quat_xyzw = np.ascontiguousarray(np.asarray(rotations, dtype=np.float32)[:, [1, 2, 3, 0]])
 
         def f32(a, shape):
             with np.errstate(over="ignore", invalid="ignore"):  # unchecked (validate=False): taken as float32 holds it
@@ -145,9 +147,9 @@ class SplatSet:
             "rotations": np.ascontiguousarray(quat[:, [3, 0, 1, 2]]),
             "log_scales": self.log_scales.numpy().reshape(-1, 3).copy(),
             "opacities": self.opacities.numpy().reshape(-1).copy(),
-            "features": self.features.numpy().reshape(self.count, -1).copy(),
-            "extras": self.extras.numpy().reshape(self.count, -1).copy(),
-            "integer_extras": self.integer_extras.numpy().reshape(self.count, -1).copy(),
+            "features": self.features.numpy().copy(),
+            "extras": self.extras.numpy().copy(),
+            "integer_extras": self.integer_extras.numpy().copy(),
         }
 
     def to_gsplat_numpy(self) -> dict[str, np.ndarray]:
@@ -184,7 +186,7 @@ class SplatSet:
 
     def to(self, device) -> SplatSet:
         """This splat set on ``device`` (itself when it is already there)."""
-        device = wp.get_device(device)
+        device = _warp_device(device)
         if device == self.device:
             return self
         return self.clone(device)
@@ -246,6 +248,16 @@ _ARRAY_LAYOUT = {"means": (wp.vec3, 1), "rotations": (wp.quat, 1), "log_scales":
                  "features": (wp.float32, 2), "extras": (wp.float32, 2), "integer_extras": (wp.int64, 2)}  # fmt: skip
 
 
+def _warp_device(device) -> wp.Device:
+    """``device`` as a Warp device; a name ("auto", "cpu", "cuda", "cuda:N") as ``--device`` reads
+    it, so that a GPU this machine lacks is the package's InputError, not Warp's RuntimeError."""
+    if isinstance(device, str):
+        from .device import resolve_device
+
+        return resolve_device(device)
+    return wp.get_device(device)
+
+
 def _host_rows(name: str, array, width: int | None, rows: int | None = None) -> np.ndarray:
     """``array`` as a numpy array of ``rows`` rows (any count when None) of ``width`` columns (any
     number when 0; one value a row, (N,) or (N, 1), when None), or a ValueError naming it."""
@@ -257,15 +269,16 @@ def _host_rows(name: str, array, width: int | None, rows: int | None = None) -> 
         got = "x".join(map(str, a.shape)) or "a scalar"
         raise ValueError(f"{name} must be an array of shape {expected}" + (f" with N = {rows} (as means)" if rows is not None else "")
                          + f", got shape {got}")  # fmt: skip
-    if not np.issubdtype(a.dtype, np.number):
-        raise ValueError(f"{name} must hold numbers, got {a.dtype}")
+    if not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):  # no bool, complex, timedelta
+        raise ValueError(f"{name} must hold real numbers, got {a.dtype}")
     return a
 
 
-def _check_values(means, rotations, log_scales, opacities, features) -> None:
+def _check_values(means, rotations, log_scales, opacities, features, extras) -> None:
     """The value checks a file's rows get on reading (the rules of ``nanogs_warp.domain``, as
-    ``nanogs_warp.io.ply.check_values`` applies them), as one InputError naming the arrays; on the
-    values as float32 stores them (a float64 beyond its range is infinite there)."""
+    ``nanogs_warp.io.ply.check_values`` applies them, extra properties included), as one InputError
+    naming the arrays; on the values as float32 stores them (a float64 beyond its range is infinite
+    there, one below its smallest subnormal is 0)."""
     from .domain import LOG_SCALE_LIMIT, not_finite, outside_log_scales, zero_quaternions
     from .errors import InputError
 
@@ -282,15 +295,32 @@ def _check_values(means, rotations, log_scales, opacities, features) -> None:
             bad |= rows
 
     with np.errstate(all="ignore"):
+        stored = {}
         for name, values in (("means", means), ("rotations", rotations), ("log_scales", log_scales),
-                             ("opacities", opacities), ("features", features)):  # fmt: skip
-            values = np.asarray(values, dtype=np.float32)
-            note(not_finite(values, opacity=name == "opacities").reshape(n, -1).any(axis=1), f"NaN/Inf {name}")
-        note(zero_quaternions(rotations), "zero-norm quaternions")
-        note(outside_log_scales(np.asarray(log_scales, dtype=np.float64)).any(axis=1),
-             f"log-scales outside [-{LOG_SCALE_LIMIT:g}, {LOG_SCALE_LIMIT:g}]")  # fmt: skip
+                             ("opacities", opacities), ("features", features), ("extras", extras)):  # fmt: skip
+            stored[name] = values = np.asarray(values, dtype=np.float32)
+            if values.size:
+                note(not_finite(values, opacity=name == "opacities").reshape(n, -1).any(axis=1), f"NaN/Inf {name}")
+        note(zero_quaternions(stored["rotations"]), "zero-norm quaternions")
+        note(outside_log_scales(stored["log_scales"]).any(axis=1), f"log-scales outside [-{LOG_SCALE_LIMIT:g}, {LOG_SCALE_LIMIT:g}]")
     if parts:
         raise InputError(f"{np.count_nonzero(bad)} of {n} splats are invalid: {'; '.join(parts)}")
+
+
+def _whole_numbers(name: str, values: np.ndarray) -> np.ndarray:
+    """``values`` (integer columns) as int64, or a ValueError where one is not a whole number that
+    int64 holds (NaN, 1e30, 0.5, a uint64 above 2^63 - 1): a cast would turn them into other numbers."""
+    if np.issubdtype(values.dtype, np.integer):
+        if values.dtype == np.uint64 and values.size and values.max() > np.iinfo(np.int64).max:
+            raise ValueError(f"{name} holds values above int64's largest, {np.iinfo(np.int64).max}")
+        return values.astype(np.int64, copy=False)
+    with np.errstate(all="ignore"):
+        as_float = values.astype(np.float64)
+        bad = ~np.isfinite(as_float) | (np.rint(as_float) != as_float) | (np.abs(as_float) >= 2.0**63)
+    if bad.any():
+        row, column = np.argwhere(bad)[0]
+        raise ValueError(f"{name} must hold whole numbers within int64; row {row}, column {column} holds {values[row, column]}")
+    return as_float.astype(np.int64)
 
 
 def split_integer_extras(extras: np.ndarray, layout: PlyLayout | None) -> tuple[np.ndarray, np.ndarray]:

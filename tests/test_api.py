@@ -75,6 +75,10 @@ def test_missing_gpu_is_the_packages_error(splats):
     with pytest.raises(InputError, match="expected auto, cpu, cuda or cuda:N"):
         simplify(splats, ratio=0.1, device="tpu")
     assert simplify(splats, ratio=0.1, device="cpu").device == wp.get_device("cpu")
+    with pytest.raises(InputError, match=rf"^--device {missing}: "):  # Warp's RuntimeError before
+        splats.to(missing)
+    with pytest.raises(InputError, match=rf"^--device {missing}: "):
+        SplatSet.from_numpy(**random_splat_arrays(5, sh_degree=0, seed=1), device=missing)
 
 
 def test_arguments_of_the_wrong_kind_are_named(splats, tmp_path):
@@ -102,7 +106,7 @@ def test_arrays_of_the_wrong_shape_are_refused_by_name(splats):
         ({"opacities": arrays["opacities"][:49]}, "opacities must be an array of shape (N,) with N = 50"),
         ({"features": arrays["features"][:, :5]}, "5 SH coefficients is not 3 * (d + 1)^2"),
         ({"features": arrays["features"][:, 0]}, "features must be an array of shape (N, columns)"),
-        ({"means": arrays["means"].astype(str)}, "means must hold numbers"),
+        ({"means": arrays["means"].astype(str)}, "means must hold real numbers"),
         ({"extras": np.zeros((49, 2))}, "extras must be an array of shape (N, columns) with N = 50"),
     ]
     for change, message in cases:
@@ -134,11 +138,17 @@ def test_values_a_file_may_not_hold_are_refused_unless_asked(splats):
     huge[7, 0] = 200
     beyond_float32 = arrays["means"].astype(np.float64)
     beyond_float32[9, 1] = 1e300
+    below_float32 = arrays["rotations"].astype(np.float64)
+    below_float32[4] = [1e-50, 0, 0, 0]  # 0 in float32: the output's file would be refused
+    nan_extras = np.zeros((50, 2), np.float32)
+    nan_extras[[1, 2], 1] = [np.nan, np.inf]
     for change, message in [
         ({"features": nan_features}, "1 of 50 splats are invalid: 1 with NaN/Inf features"),
         ({"rotations": zero_quaternion}, "2 of 50 splats are invalid: 2 with zero-norm quaternions"),
         ({"log_scales": huge}, "1 of 50 splats are invalid: 1 with log-scales outside"),
         ({"means": beyond_float32}, "1 of 50 splats are invalid: 1 with NaN/Inf means"),
+        ({"rotations": below_float32}, "1 of 50 splats are invalid: 1 with zero-norm quaternions"),
+        ({"extras": nan_extras}, "2 of 50 splats are invalid: 2 with NaN/Inf extras"),
     ]:
         with pytest.raises(InputError, match=re.escape(message)):
             SplatSet.from_numpy(**{**arrays, **change}, device="cpu")
@@ -146,6 +156,42 @@ def test_values_a_file_may_not_hold_are_refused_unless_asked(splats):
     logits = arrays["opacities"].copy()
     logits[:2] = [np.inf, -np.inf]  # alpha 1 and 0: valid, as in a file
     assert SplatSet.from_numpy(**{**arrays, "opacities": logits}, device="cpu").count == 50
+
+
+def test_integer_extras_must_be_whole_numbers_int64_holds():
+    """NaN became INT64_MIN and 2^64 - 1 became -1, silently."""
+    arrays = random_splat_arrays(20, sh_degree=0, seed=2)
+    for values, message in [(np.full((20, 1), np.nan), "row 0, column 0 holds nan"), (np.full((20, 1), 0.5), "holds 0.5"),
+                            (np.full((20, 1), 1e30), "whole numbers within int64"),
+                            (np.full((20, 1), 2**64 - 1, np.uint64), "above int64's largest")]:  # fmt: skip
+        with pytest.raises(ValueError, match=re.escape(message)):
+            SplatSet.from_numpy(**arrays, integer_extras=values, device="cpu")
+    kept = SplatSet.from_numpy(**arrays, integer_extras=np.full((20, 1), 7.0), device="cpu")
+    assert kept.to_numpy()["integer_extras"].ravel().tolist() == [7] * 20
+
+
+def test_budgets_and_settings_as_numpy_values(splats):
+    """A string is one budget, bytes are refused, 0-d arrays and NumPy's integers are numbers, and the
+    result of a budget that keeps every splat is a copy, never the caller's own splat set."""
+    assert [r.count for r in simplify(splats, ratios="0.1")] == [70]
+    assert simplify(splats, ratio=np.array(0.1)).count == simplify(splats, count=np.array(70)).count == 70
+    for kwargs in ({"ratio": b"0.1"}, {"ratio": object()}, {"count": np.bool_(True)}):
+        with pytest.raises(InputError):
+            simplify(splats, **kwargs)
+    whole = simplify(splats, ratio=1)
+    assert whole is not splats and same(whole, splats)
+    config = SimplifyConfig(k=np.int64(8), cost="idiv", samples=np.int32(2), prune_opacity=np.float32(0.25))
+    assert config == SimplifyConfig(k=8, cost="idiv", samples=2, prune_opacity=float(np.float32(0.25)))
+    assert type(config.k) is int and simplify(splats, count=100, config=config).count == 100
+    with pytest.raises(InputError, match="median-cost-factor"):
+        SimplifyConfig(median_cost_factor=10**400)
+
+
+def test_an_empty_splat_set_converts_to_host_arrays():
+    empty = SplatSet.from_numpy(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), device="cpu")
+    shapes = {k: v.shape for k, v in empty.to_numpy().items()}
+    assert shapes == {"means": (0, 3), "rotations": (0, 4), "log_scales": (0, 3), "opacities": (0,), "features": (0, 3),
+                      "extras": (0, 0), "integer_extras": (0, 0)}  # fmt: skip
 
 
 @pytest.mark.parametrize("name", ["e.ply", "e.spz", "e.sog", "e.splat", "e.compressed.ply", "lod-meta.json"])

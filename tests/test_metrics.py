@@ -15,7 +15,7 @@ from nanogs_warp.cli.eval import eval_command, parse_background
 from nanogs_warp.errors import InputError
 from nanogs_warp.eval import metrics
 from nanogs_warp.eval.cameras import orbit_cameras
-from nanogs_warp.eval.evaluate import evaluate, format_table, write_images, write_png
+from nanogs_warp.eval.evaluate import IDENTICAL_VIEW_DB, compare_images, evaluate, format_table, write_images, write_png
 from nanogs_warp.io import ply
 from nanogs_warp.splats import SplatSet
 
@@ -127,6 +127,10 @@ def test_evaluate_identical_and_degraded_scenes(device, rng, tmp_path):
     assert all(0.0 <= im.min() and im.max() <= 1.0 for im in images["reference"])  # clamped like saved images
     table = format_table(result)
     assert "same" in table and "half" in table and "inf" in table
+    # one identical view among others: counted as 100 dB in the mean, not inf (which hid the rest)
+    mixed = compare_images(images["reference"], [images["reference"][0], *images["tests"][1][1:]], result["view_names"])
+    assert mixed["views"][0]["psnr"] == math.inf and mixed["psnr"]["worst"] == pytest.approx(min(per_view[1:]))
+    assert mixed["psnr"]["mean"] == pytest.approx(np.mean([IDENTICAL_VIEW_DB, *per_view[1:]]))
 
     paths = write_images(tmp_path / "out", images["reference"], images["tests"][1], result["view_names"])
     assert [p.name for p in paths] == ["view_000.png", "view_001.png", "view_002.png", "contact_sheet.png"]

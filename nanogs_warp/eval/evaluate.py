@@ -41,12 +41,22 @@ def render_all(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0.0
     return images  # type: ignore[return-value]
 
 
-def _summary(values: list[float], names: list[str], worst=min) -> dict:
+# In a mean over views, a view that both scenes render identically (PSNR inf) counts as this many dB
+# (a mean squared error of 1e-10) where another view differs: one such view (a far view that sees
+# nothing of either scene, say) would otherwise make the mean infinite and hide every other view.
+# Only when every view is identical is the mean inf.
+IDENTICAL_VIEW_DB = 100.0
+
+
+def _summary(values: list[float], names: list[str], worst=min, identical_as: float | None = None) -> dict:
     finite = [(v, n) for v, n in zip(values, names) if not math.isnan(v)]
     if not finite:
         return {"mean": math.nan, "worst": math.nan, "worst_view": None}
     worst_value, worst_name = worst(finite, key=lambda vn: vn[0])
-    return {"mean": float(np.mean([v for v, _ in finite])), "worst": float(worst_value), "worst_view": worst_name}
+    counted = [v for v, _ in finite]
+    if identical_as is not None and not all(math.isinf(v) for v in counted):
+        counted = [identical_as if v == math.inf else v for v in counted]
+    return {"mean": float(np.mean(counted)), "worst": float(worst_value), "worst_view": worst_name}
 
 
 def compare_images(
@@ -82,9 +92,9 @@ def compare_images(
     else:
         shift = {"mean": [math.nan] * 3, "worst": [math.nan] * 3, "worst_view": None}
     return {
-        "psnr": _summary([v["psnr"] for v in per_view], names),
+        "psnr": _summary([v["psnr"] for v in per_view], names, identical_as=IDENTICAL_VIEW_DB),
         "ssim": _summary([v["ssim"] for v in per_view], names),
-        "fg_psnr": _summary([v["fg_psnr"] for v in per_view], names),
+        "fg_psnr": _summary([v["fg_psnr"] for v in per_view], names, identical_as=IDENTICAL_VIEW_DB),
         "colour_shift": shift,
         "views": per_view,
     }
