@@ -471,6 +471,19 @@ def test_a_scene_past_its_time_limit_fails_alone(scenes_and_a_spinner, tmp_path,
     check_spinner_timed_out(summary, clean, out, 6, "its worker process was replaced")
 
 
+@pytest.mark.parametrize("stderr", ["2>/dev/full", "2>&-"])
+def test_a_batch_whose_stderr_cannot_be_written_finishes(scenes, tmp_path, stderr):
+    """A full or closed stderr: the progress falls silent and every scene is done. The first hung:
+    the progress's write error was taken for the worker's pipe closing. With the second, every
+    worker failed to start Warp (its sys.stderr was None)."""
+    out = tmp_path / "out"
+    command = f"{sys.executable} -m nanogs_warp batch {scenes} -o {out} --ratio 0.1 --devices cpu --json {stderr}"
+    done = subprocess.run(["bash", "-c", command], capture_output=False, stdout=subprocess.PIPE, text=True, timeout=120)
+    assert done.returncode == 0
+    assert {s["status"] for s in json.loads(done.stdout)["scenes"]} == {"done"}
+    assert len(list(out.rglob("*.ply"))) == len(SCENES)
+
+
 def test_a_batch_whose_last_scene_times_out_ends(scenes_and_a_spinner, tmp_path):
     """The only worker is stopped at the time limit with nothing left to do: the batch ends (it used
     to wait for ever on no worker at all). In a child process, so that a regression fails, not hangs."""

@@ -14,6 +14,7 @@ import multiprocessing
 import os
 import queue
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -170,12 +171,17 @@ def run_local(
             feed(worker)
 
     def receive(worker: _Worker) -> None:
-        """Handles whatever the worker has sent; EOF just means it has exited."""
-        try:
-            while not worker.closed and worker.conn.poll():
-                handle(worker, worker.conn.recv())
-        except (EOFError, OSError):
-            worker.closed = True
+        """Handles whatever the worker has sent; EOF just means it has exited. (Only the pipe's own
+        errors close it: one of the progress's, caught here, left a batch waiting on a live worker.)"""
+        while not worker.closed:
+            try:
+                if not worker.conn.poll():
+                    return
+                event = worker.conn.recv()
+            except (EOFError, OSError):
+                worker.closed = True
+                return
+            handle(worker, event)
 
     def reap(worker: _Worker, timed_out: tuple[SceneJob, str, float] | None = None) -> None:
         """A worker has exited (or was killed because a scene ran past its time limit:
@@ -269,6 +275,9 @@ def default_readers(workers: int) -> int:
 def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bool, readers: int = 1) -> None:
     """A worker process: pins its GPU, initialises Warp, then simplifies the scenes it is sent
     until it is sent None or its parent is gone; each input is read on ``readers`` threads."""
+    for stream in ("stdout", "stderr"):  # the batch started with one closed (>&-): discarded, as there
+        if getattr(sys, stream) is None:
+            setattr(sys, stream, open(os.devnull, "w"))  # noqa: SIM115 - the process's own stream
     if visible_gpu is not None:
         os.environ["CUDA_VISIBLE_DEVICES"] = visible_gpu  # before Warp initialises CUDA
     from ..io.ply_read import set_read_threads

@@ -8,6 +8,7 @@ summary table or JSON.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 
@@ -54,7 +55,8 @@ def run_batch(
 
 class BatchProgress:
     """Progress on stderr. On a terminal: one overall line and a line per worker, redrawn in place
-    (failures stay above them); otherwise one plain line per scene started and finished."""
+    (failures stay above them); otherwise one plain line per scene started and finished. A stream
+    that cannot be written (a closed pipe, a full disk) silences it: the batch goes on."""
 
     def __init__(self, total: int, stream=None, live: bool | None = None, quiet: bool = False):
         self.stream = stream or sys.stderr
@@ -90,35 +92,41 @@ class BatchProgress:
         line = f"{result.relative}: {_describe(result)}"
         if self.live:
             if result.status == "failed":
-                self._clear()
-                self.stream.write(f"nanogs-warp batch: {printable(line)}\n")
+                self._write(self._clear_text() + f"nanogs-warp batch: {printable(line)}\n")
             self._draw()
         elif not self.quiet or result.status == "failed":  # quiet: the failures still, as errors
             self._log(line)
 
     def close(self) -> None:
         if self.live:
-            self._clear()
+            self._write(self._clear_text())
+
+    def _write(self, text: str) -> None:
+        """``text`` to the stream, flushed; on an error the progress stops, the batch does not."""
+        if not text:
+            return
+        try:
+            self.stream.write(text)
             self.stream.flush()
+        except (OSError, ValueError):  # EPIPE, ENOSPC, a closed file
+            self.live, self.quiet = False, True
+            self.stream = open(os.devnull, "w")  # noqa: SIM115 - lives as long as the progress
 
     def _log(self, text: str) -> None:
-        self.stream.write(f"nanogs-warp batch: [{sum(self.counts.values())}/{self.total}] {printable(text)}\n")
-        self.stream.flush()
+        self._write(f"nanogs-warp batch: [{sum(self.counts.values())}/{self.total}] {printable(text)}\n")
 
     def _draw(self) -> None:
         c = self.counts
         lines = [f"batch: {sum(c.values())}/{self.total} scenes ({c['done']} done, {c['skipped']} skipped, "
                  f"{c['failed']} failed), {time.monotonic() - self.started_at:.0f} s"]  # fmt: skip
         lines += [printable(f"  {name} {status}") for name, status in sorted(self.workers.items())]
-        self._clear()
-        self.stream.write("".join(f"{line[:200]}\033[K\n" for line in lines))
-        self.stream.flush()
+        self._write(self._clear_text() + "".join(f"{line[:200]}\033[K\n" for line in lines))
         self._drawn, self._drawn_at = len(lines), time.monotonic()
 
-    def _clear(self) -> None:
-        if self._drawn:
-            self.stream.write(f"\033[{self._drawn}F\033[J")
-            self._drawn = 0
+    def _clear_text(self) -> str:
+        """What erases the lines drawn last ("" when none are)."""
+        drawn, self._drawn = self._drawn, 0
+        return f"\033[{drawn}F\033[J" if drawn else ""
 
 
 def _describe(result: SceneResult) -> str:
