@@ -231,12 +231,12 @@ class OutputSet:
     def make_folder(self, folder: Path) -> None:
         """Makes ``folder`` and its missing parents, remembered for ``discard``; InputError if it cannot."""
         missing = [f for f in (folder, *folder.parents) if not f.exists()][::-1]
+        with self._lock:  # remembered first: a signal during mkdir must not leave them
+            self._folders += [f for f in missing if f not in self._folders]
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise InputError(f"{folder}: cannot create the directory: {e.strerror or e}") from e
-        with self._lock:
-            self._folders += [f for f in missing if f not in self._folders]
 
     def retire(self, paths) -> None:
         """Files of an older output that the staged ones replace as a whole without writing over
@@ -255,11 +255,11 @@ class OutputSet:
         cannot be moved, the rest are removed, and so are the files already moved that replaced
         nothing (InputError); one that replaced an older file (``overwrite``) stays, as the older
         one is gone, and the retired files stay."""
-        with self._lock:
-            staged, self._staged = self._staged, []
         placed = []  # the paths moved into place that replaced nothing
         done = 0
         with signals_held():
+            with self._lock:  # taken inside: a signal just before would have found nothing to discard
+                staged, self._staged = self._staged, []
             try:
                 for tmp, path in staged:
                     existed = os.path.lexists(path)
@@ -322,8 +322,12 @@ def signals_held():
     finally:
         for number, handler in previous.items():
             signal.signal(number, handler)
-        if pending:
-            signal.raise_signal(pending[0])
+        if pending:  # the handler's exception raised here, not in whatever runs next (a __del__ would swallow it)
+            handler = previous[pending[0]]
+            if callable(handler):
+                handler(pending[0], None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(pending[0])
 
 
 def _remove(path: Path) -> None:
@@ -350,10 +354,13 @@ def atomic_write(path: Path, write, overwrite: bool = True, outputs: OutputSet |
     if not directory.is_dir():
         raise InputError(f"{name}: cannot write: directory {str(directory)!r} does not exist")
     tmp = temporary_path(path)
-    created = False
+    created = True  # before the file exists: a signal just after os.open must not leave it behind
     try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-        created = True
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+        except FileExistsError:  # another writer's (the names are random): not this one's to remove
+            created = False
+            raise
         with os.fdopen(fd, "wb") as f:
             write(f)
         if outputs is not None:
