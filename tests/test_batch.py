@@ -484,6 +484,44 @@ def test_a_batch_whose_stderr_cannot_be_written_finishes(scenes, tmp_path, stder
     assert len(list(out.rglob("*.ply"))) == len(SCENES)
 
 
+def _children(pid: int) -> set[int]:
+    found = set()
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        found |= {int(c) for c in (task / "children").read_text().split()}
+    return found
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir() or not sys.platform.startswith("linux"), reason="Linux's /proc")
+def test_workers_end_with_their_batch(scenes_and_a_spinner, tmp_path):
+    """A batch killed with SIGKILL (no handler runs) left its workers simplifying the scenes they
+    held; now the kernel sends them SIGTERM, and a worker stuck in a scene ends too."""
+    root, _ = scenes_and_a_spinner
+    command = [sys.executable, "-m", "nanogs_warp", "batch", str(root), "-o", str(tmp_path / "out"), "--ratio", "0.1",
+               "--devices", "cpu", "--workers", "1", "--scene-timeout", "0"]  # fmt: skip
+    batch = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env={**os.environ, SPIN: "spin.ply"})
+    children: set[int] = set()
+    try:
+        for line in batch.stderr:
+            if "spin.ply: started" in line:
+                break
+        children = _children(batch.pid)
+        assert children
+        batch.kill()
+        batch.wait(10)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and any(Path(f"/proc/{c}").exists() for c in children):
+            time.sleep(0.2)
+        alive = [c for c in children if Path(f"/proc/{c}").exists() and "Z" not in Path(f"/proc/{c}/stat").read_text().split()[2]]
+        assert not alive, alive
+    finally:
+        batch.kill()
+        for child in children:  # a regression must not leave a worker spinning
+            try:
+                os.kill(child, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
 def test_a_batch_whose_last_scene_times_out_ends(scenes_and_a_spinner, tmp_path):
     """The only worker is stopped at the time limit with nothing left to do: the batch ends (it used
     to wait for ever on no worker at all). In a child process, so that a regression fails, not hangs."""

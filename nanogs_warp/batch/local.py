@@ -10,6 +10,7 @@ only way to stop a GPU kernel that does not end), fails that scene and goes on."
 
 from __future__ import annotations
 
+import ctypes
 import multiprocessing
 import os
 import queue
@@ -112,7 +113,7 @@ def run_local(
     def start(device: str) -> None:
         name = f"w{next(serial)}"
         here, there = context.Pipe()
-        process = context.Process(target=worker_main, args=(name, device, _visible_gpu(device), there, force, readers),
+        process = context.Process(target=worker_main, args=(name, device, _visible_gpu(device), there, force, readers, os.getpid()),
                                   name=f"nanogs-batch-{name}", daemon=True)  # fmt: skip
         process.start()
         there.close()
@@ -222,6 +223,7 @@ def run_local(
         for device in devices:
             if len(workers) < len(pending):
                 start(device)
+    interrupted = True  # until the loop ends by itself: a signal, an error
     try:
         while len(results) < len(jobs):
             live = [w for w in workers.values() if not w.reaped]
@@ -260,8 +262,9 @@ def run_local(
                 else:  # its process sentinel: it has exited
                     worker.process.join()
                     reap(worker)
+        interrupted = False
     finally:
-        _stop(workers.values())
+        _stop(workers.values(), interrupted)
     return results
 
 
@@ -272,9 +275,14 @@ def default_readers(workers: int) -> int:
     return max(1, min(8, cpu_count() // max(1, workers)))
 
 
-def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bool, readers: int = 1) -> None:
+def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bool, readers: int = 1, parent: int | None = None) -> None:
     """A worker process: pins its GPU, initialises Warp, then simplifies the scenes it is sent
-    until it is sent None or its parent is gone; each input is read on ``readers`` threads."""
+    until it is sent None or its parent (process ``parent``) is gone; each input is read on
+    ``readers`` threads. SIGTERM, SIGHUP and SIGINT stop it, the scene being written finished first
+    (``_end_on_signals``)."""
+    _end_on_signals()
+    if parent is not None:
+        _stop_with_parent(parent)
     for stream in ("stdout", "stderr"):  # the batch started with one closed (>&-): discarded, as there
         if getattr(sys, stream) is None:
             setattr(sys, stream, open(os.devnull, "w"))  # noqa: SIM115 - the process's own stream
@@ -354,13 +362,43 @@ def _serve(device: str, warp_device, conn, force: bool) -> None:
             last[0] = now
             send(("pass", (report.index, report.count_before, report.count_after)))
 
-    while (scene := read.get()) is not None:
-        free_slot.release()
-        send(("started", scene.job.relative))
-        simplify_scene(scene, warp_device, on_pass)
-        to_write.put(scene)
-    to_write.put(None)
-    threads[2].join()
+    try:
+        while (scene := read.get()) is not None:
+            free_slot.release()
+            send(("started", scene.job.relative))
+            simplify_scene(scene, warp_device, on_pass)
+            to_write.put(scene)
+    finally:  # also on a signal: the scene being written (and one waiting for the writer) is finished
+        to_write.put(None)
+        threads[2].join()
+
+
+def _end_on_signals() -> None:
+    """SIGTERM, SIGHUP and SIGINT end the worker as SystemExit(128 + signal) the first time and are
+    ignored after that, so that ``_serve`` finishes the scene being written before the process ends.
+    A process group's Ctrl-C, ``timeout`` or ``scancel`` reaches the workers too, and by default they
+    died at once, leaving the temporary files of the outputs they were writing."""
+    names = [name for name in ("SIGTERM", "SIGHUP", "SIGINT") if hasattr(signal, name)]
+
+    def end(signum, frame):
+        for name in names:
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
+        raise SystemExit(128 + signum)
+
+    for name in names:
+        signal.signal(getattr(signal, name), end)
+
+
+def _stop_with_parent(parent: int) -> None:
+    """Has the kernel send this worker SIGTERM when the batch process is gone (Linux's
+    PR_SET_PDEATHSIG; a batch killed with SIGKILL left its workers simplifying the scenes they held)."""
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return
+    pr_set_pdeathsig = 1
+    if prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0) == 0 and os.getppid() != parent:
+        os.kill(os.getpid(), signal.SIGTERM)  # it was gone before the request was made
 
 
 def _visible_gpu(device: str) -> str | None:
@@ -383,7 +421,17 @@ def _exit_reason(code: int | None) -> str:
     return f"exit code {code}"
 
 
-def _stop(workers) -> None:
+def _stop(workers, interrupted: bool = False) -> None:
+    """Ends the workers: each is sent None and given 5 s to finish, or, when the batch was
+    ``interrupted`` (a signal, an error), SIGTERM at once and 60 s to finish the scene it is writing
+    (``_end_on_signals``), instead of going on with the scenes it holds."""
+    if interrupted:
+        for worker in workers:
+            if not worker.reaped and worker.process.is_alive():
+                worker.process.terminate()
+        deadline = time.monotonic() + 60.0
+        for worker in workers:
+            worker.process.join(max(0.0, deadline - time.monotonic()))
     for worker in workers:
         if not worker.reaped and not worker.stopping and worker.process.is_alive():
             try:
