@@ -58,9 +58,15 @@ def init_warp() -> None:
     import warp as wp
 
     quiet_warp()
-    sys.stderr.flush()
+    if sys.stderr is not None:
+        sys.stderr.flush()
+    try:
+        captured_file = tempfile.TemporaryFile(mode="w+b")
+    except OSError:  # no temporary folder can be written (a read-only /tmp): Warp starts uncaptured
+        wp.init()
+        return
     saved = os.dup(2)
-    with tempfile.TemporaryFile(mode="w+b") as captured:
+    with captured_file as captured:
         os.dup2(captured.fileno(), 2)
         try:
             wp.init()
@@ -69,7 +75,7 @@ def init_warp() -> None:
             os.close(saved)
         captured.seek(0)
         for line in captured.read().decode(errors="replace").splitlines():
-            if _NO_DRIVER_NOTICE not in line and line.strip():
+            if _NO_DRIVER_NOTICE not in line and line.strip() and sys.stderr is not None:
                 print(line, file=sys.stderr)
 
 

@@ -51,11 +51,17 @@ def cache_dir_from_environment() -> str | None:
 
 
 def _home_expanded(path: str | os.PathLike, what: str) -> Path:
-    """``path`` with a leading ``~`` or ``~user`` expanded; InputError where that home is unknown."""
+    """``path`` with a leading ``~`` or ``~user`` expanded; InputError where that home is unknown,
+    or where the name is not UTF-8 (Warp passes it to its native code as UTF-8)."""
     try:
-        return Path(path).expanduser()
+        expanded = Path(path).expanduser()
     except RuntimeError:  # "Could not determine home directory"
         raise InputError(f"{what} {os.fspath(path)}: its '~' names no home directory known here") from None
+    try:
+        str(expanded).encode("utf-8")
+    except UnicodeEncodeError:
+        raise InputError(f"{what} {os.fsencode(expanded)!r}: the name is not UTF-8, which Warp needs; choose another folder") from None
+    return expanded
 
 
 def use_cache_dir(path: str | os.PathLike | None, must_write: bool = False) -> None:

@@ -331,6 +331,41 @@ def test_out_of_memory_lines():
     assert out_of_memory(ValueError("Failed to allocate 5 bytes on device 'cpu'")) is None
 
 
+def test_what_the_machine_lacks_is_said_in_words(scene, tmp_path):
+    """Limits of the shell and the machine were 'internal error: ...' lines (the eighth hostile round)."""
+    import errno
+
+    from nanogs_warp.cli.errors import _environment_error
+
+    assert _environment_error(OSError(errno.EMFILE, "Too many open files")).startswith("too many open files")
+    assert _environment_error(FileNotFoundError(errno.ENOENT, "No usable temporary directory found in ['/tmp']")) == (
+        "no temporary folder can be written: set TMPDIR to a writable folder")  # fmt: skip
+    try:
+        raise RuntimeError("Failed to load the shared library 'warp.so'") from OSError("failed to map segment")
+    except RuntimeError as e:
+        assert _environment_error(e).startswith("cannot start Warp: Failed to load the shared library 'warp.so': failed to map segment")
+    assert _environment_error(ValueError("x")) is None
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    code = f"import os; os.chdir({str(gone)!r}); os.rmdir({str(gone)!r}); from nanogs_warp.cli.entry import main; main()"
+    done = subprocess.run([sys.executable, "-c", code, "simplify", str(scene), "-o", "b.ply", "--ratio", "0.1", "--device", "cpu"],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 1
+    assert done.stderr == "nanogs-warp: error: the working folder no longer exists: run the command from one that does\n"
+
+
+def test_warp_starts_where_no_temporary_file_can_be_made(monkeypatch):
+    import tempfile
+
+    from nanogs_warp.device import init_warp
+
+    def no_temporary_folder(*args, **kwargs):
+        raise FileNotFoundError(2, "No usable temporary directory found in ['/tmp']")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", no_temporary_folder)
+    init_warp()  # Warp starts, its output not captured
+
+
 def test_without_overwrite_a_file_that_appears_meanwhile_is_kept(scene, tmp_path, monkeypatch):
     """The check that an output does not exist comes before the work; a file put there meanwhile
     (another run writing the same name) used to be replaced by the final rename. Now the write fails

@@ -210,3 +210,12 @@ def test_gpu_fault_reads_a_real_illegal_address_on_cuda(tmp_path):
     result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
     assert "before None" in result.stdout, result.stdout + result.stderr
     assert "after cuda:0: CUDA error" in result.stdout, result.stdout + result.stderr
+
+
+def test_a_cache_folder_whose_name_is_not_utf8_is_one_line():
+    """Warp hands the name to its native code as UTF-8: an undecodable byte was an internal error."""
+    from nanogs_warp.errors import InputError
+    from nanogs_warp.kernel_cache import use_cache_dir
+
+    with pytest.raises(InputError, match=r"the name is not UTF-8, which Warp needs"):
+        use_cache_dir(os.fsdecode(b"/tmp/nanogs-cache-\xff"))

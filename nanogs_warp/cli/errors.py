@@ -91,7 +91,32 @@ def _unexpected(e: Exception) -> None:
     memory = out_of_memory(e)
     if memory is not None:
         _fail(memory, 1)
+    environment = _environment_error(e)
+    if environment is not None:
+        _fail(environment, 1)
     _fail(f"internal error: {type(e).__name__}: {e} (set NANOGS_DEBUG=1 for details)", 1)
+
+
+def _environment_error(e: Exception) -> str | None:
+    """What the machine or the shell lacks, in words, for an error that is no fault of the input:
+    too few open files, no writable temporary folder, a deleted working folder, Warp's library
+    that cannot be loaded (an address-space limit); None for anything else."""
+    if isinstance(e, OSError):
+        if e.errno in (errno.EMFILE, errno.ENFILE):
+            return f"too many open files ({e.strerror}): raise the limit (ulimit -n)"
+        if "No usable temporary directory" in str(e):
+            return "no temporary folder can be written: set TMPDIR to a writable folder"
+        if e.errno == errno.ENOENT:
+            try:
+                os.getcwd()
+            except OSError:
+                return "the working folder no longer exists: run the command from one that does"
+    if isinstance(e, RuntimeError) and "Failed to load the shared library" in str(e):
+        cause = e.__cause__ or e.__context__
+        why = f": {' '.join(str(cause).split())}" if cause is not None else ""
+        return (f"cannot start Warp: {' '.join(str(e).split())}{why} (too little memory or address space, or too many "
+                f"open files? see ulimit -v and ulimit -n)")  # fmt: skip
+    return None
 
 
 def one_line_usage_errors() -> None:
