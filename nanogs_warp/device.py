@@ -9,7 +9,7 @@ import tempfile
 import threading
 import time
 
-from .errors import InputError
+from .errors import InputError, debugging
 
 # Warp's native library prints this when a machine has no NVIDIA driver; on such a machine "no GPU"
 # is the expected state, and --device cuda reports it as an error of its own.
@@ -46,7 +46,7 @@ def quiet_warp() -> None:
 
     from .kernel_cache import cache_dir_from_environment, use_cache_dir
 
-    wp.config.log_level = wp.LOG_INFO if os.environ.get("NANOGS_DEBUG") else wp.LOG_WARNING
+    wp.config.log_level = wp.LOG_INFO if debugging() else wp.LOG_WARNING
     if wp.config.kernel_cache_dir is None:
         use_cache_dir(cache_dir_from_environment())
 

@@ -1,9 +1,15 @@
 """The one exception type that user-facing code turns into a one-line message and exit code 2."""
 
+import os
 import re
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+
+
+def debugging() -> bool:
+    """Whether NANOGS_DEBUG asks for tracebacks and Warp's own messages: set, and not "" or "0"."""
+    return os.environ.get("NANOGS_DEBUG", "") not in ("", "0")
 
 
 class InputError(Exception):

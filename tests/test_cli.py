@@ -445,3 +445,11 @@ def test_a_closed_stdout_is_not_an_error(scene, tmp_path):
         with open("/dev/full", "w") as full:
             result = subprocess.run(command, stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
         assert result.returncode == 2 and result.stderr.strip() == "nanogs-warp: error: cannot write the command's output: No space left on device"
+
+
+@pytest.mark.parametrize("value, on", [("", False), ("0", False), ("1", True), ("yes", True)])
+def test_debugging_is_off_for_zero(monkeypatch, value, on):
+    from nanogs_warp.errors import debugging
+
+    monkeypatch.setenv("NANOGS_DEBUG", value)
+    assert debugging() is on

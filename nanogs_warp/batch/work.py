@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from .. import __version__
-from ..errors import InputError, out_of_memory, package_warnings
+from ..errors import InputError, debugging, out_of_memory, package_warnings
 from .scenes import SceneJob
 
 RECORD_FORMAT = 2  # 2: the input's hash is its PieceHash ("sha256_pieces"), no longer its plain SHA-256
@@ -185,7 +185,7 @@ def _stage(scene: LoadedScene, name: str):
     except InputError as e:
         scene.result.error = str(e)
     except Exception as e:  # noqa: BLE001 - one bad scene must not stop the batch
-        if os.environ.get("NANOGS_DEBUG"):
+        if debugging():
             traceback.print_exc()
         scene.result.error = out_of_memory(e) or f"{type(e).__name__}: {' '.join(str(e).split())}"
     finally:

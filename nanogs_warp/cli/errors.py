@@ -12,7 +12,7 @@ import warnings
 
 import typer
 
-from ..errors import InputError, out_of_memory, printable
+from ..errors import InputError, debugging, out_of_memory, printable
 
 
 def examples(*lines: str) -> str:
@@ -34,7 +34,7 @@ def quiet_warnings():
     error reports silenced for a command, so that stderr holds at most its one error line (the
     package's own warnings are shown by the commands, one line each); NANOGS_DEBUG=1 lets them
     through."""
-    if os.environ.get("NANOGS_DEBUG"):
+    if debugging():
         yield
         return
     import numpy as np
@@ -77,7 +77,7 @@ def user_errors(command):
 
 def _unexpected(e: Exception) -> None:
     """One line and exit code 1 for an error no check foresaw (2 for a damaged kernel cache)."""
-    if os.environ.get("NANOGS_DEBUG"):
+    if debugging():
         traceback.print_exc()
     from ..device import gpu_fault
     from ..kernel_cache import damaged_cache
