@@ -73,14 +73,15 @@ def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
     return budgets
 
 
-def output_paths(output: Path, budgets: list[Budget]) -> dict[Budget, Path]:
+def output_paths(output: Path, budgets: list[Budget], default_suffix: str = ".ply") -> dict[Budget, Path]:
     """One budget writes ``output`` itself; several write ``<stem>_<label><suffix>`` beside it,
     e.g. ``out.ply`` with --ratio 0.1,0.01 gives ``out_0.1.ply`` and ``out_0.01.ply`` (and
-    ``out.compressed.ply`` gives ``out_0.1.compressed.ply``)."""
+    ``out.compressed.ply`` gives ``out_0.1.compressed.ply``); a name without a suffix takes
+    ``default_suffix`` (``--format``'s extension)."""
     output = Path(output)
     if len(budgets) == 1:
         return {budgets[0]: output}
-    suffix = output.suffix or ".ply"
+    suffix = output.suffix or default_suffix
     if output.name.lower().endswith(".compressed.ply"):  # one suffix in two parts
         suffix = output.name[-len(".compressed.ply") :]
     stem = output.name[: len(output.name) - len(suffix)] if output.suffix else output.name

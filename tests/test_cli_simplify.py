@@ -185,3 +185,12 @@ def test_a_lod_set_named_in_capitals_and_refine_size_alone(scene, tmp_path):
     assert json.loads(result.stdout)["outputs"][0]["refine"]["steps"] == 2
     result = run("simplify", scene, "-o", tmp_path / "r2.ply", "--ratio", "0.1", "--refine-size", "64", "--device", "cpu", "--json")
     assert "refine" in json.loads(result.stdout)["outputs"][0]
+
+
+def test_several_budgets_to_a_name_without_an_extension_take_the_formats(tmp_path):
+    """-o x --format sog with two budgets wrote SOG archives named x_0.5.ply and x_0.1.ply."""
+    scene = tmp_path / "scene.ply"
+    random_splats_ply(scene, 200, seed=3)
+    result = run("simplify", scene, "-o", tmp_path / "x", "--format", "sog", "--ratio", "0.5,0.1", "--device", "cpu")
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply", "x_0.1.sog", "x_0.5.sog"]
