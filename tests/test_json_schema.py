@@ -108,3 +108,19 @@ def test_json_paths_are_absolute_and_settings_echoed(outputs):
     assert simplify["settings"]["seed"] == 0
     assert batch["settings"]["devices"] == "cpu" and batch["settings"]["operator"] == "coverage"
     assert evaluation["settings"]["views"] == 2 and evaluation["settings"]["cameras"] == "orbit"
+
+
+def test_file_names_that_are_not_utf8_stay_strict_json():
+    """Python holds a name's undecodable bytes as lone surrogates, which json.dumps wrote as
+    "\\udcff" escapes that strict readers refuse: they are written as the text \\xff."""
+    import json
+    import os
+
+    from nanogs_warp.cli.options import json_text
+
+    name = os.fsdecode(b"/data/a\xff.ply")
+    text = json_text({"input": name, name: [name], "odd": "\ud800"})
+    assert "\\udcff" not in text and "\\ud800" not in text.replace("\\\\ud800", "")
+    out = json.loads(text)
+    assert out["input"] == "/data/a\\xff.ply" and out["/data/a\\xff.ply"] == ["/data/a\\xff.ply"]
+    text.encode("utf-8")  # every character encodes: no lone surrogate left

@@ -19,15 +19,28 @@ JSON_SCHEMA = 1
 def json_text(value) -> str:
     """``value`` as every --json output prints it: indented, and JSON itself (which has no NaN or
     infinity: a number that is not finite, such as an infinite PSNR of identical images or the loss
-    of a refinement that took no step, is written as null)."""
+    of a refinement that took no step, is written as null). A file name's bytes that are not UTF-8
+    (held by Python as lone surrogates, which strict JSON readers refuse) are written as ``\\xff``."""
     import json
     import math
+
+    def text(v: str) -> str:
+        try:
+            v.encode("utf-8")
+            return v
+        except UnicodeEncodeError:
+            try:
+                return v.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+            except UnicodeEncodeError:  # a surrogate that stands for no byte
+                return v.encode("utf-8", "backslashreplace").decode("utf-8")
 
     def finite(v):
         if isinstance(v, float) and not math.isfinite(v):
             return None
+        if isinstance(v, str):
+            return text(v)
         if isinstance(v, dict):
-            return {k: finite(x) for k, x in v.items()}
+            return {text(k) if isinstance(k, str) else k: finite(x) for k, x in v.items()}
         if isinstance(v, (list, tuple)):
             return [finite(x) for x in v]
         return v
