@@ -377,3 +377,8 @@ def test_image_names_fit_a_file_name_in_bytes():
     assert len(_safe_name("中" * 100).encode()) <= 100 and _safe_name("中" * 100).startswith("中")
     folders = image_folders(["文" * 40 + "/" + "名" * 70, "字" * 40 + "/" + "名" * 70])
     assert all(len(f.encode()) <= 100 for f in folders) and len(set(folders)) == 2
+    # a 2,000,000-letter camera name was cut one letter a time, the rest measured each time: minutes
+    assert _safe_name("a" * 2_000_000) == "a" * 100
+    from nanogs_warp.eval.evaluate import fit_bytes
+
+    assert fit_bytes("名" * 1_000_000, 10) == "名" * 3 and fit_bytes("ab名" * 500_000, 5, keep_end=True) == "ab名"

@@ -374,7 +374,9 @@ def _safe_name(name: str) -> str:
 
 def fit_bytes(name: str, most: int, keep_end: bool = False) -> str:
     """``name`` cut to at most ``most`` bytes in UTF-8 (never inside a character): its start, or
-    with ``keep_end`` its end."""
+    with ``keep_end`` its end. A character takes at least one byte, so at most ``most`` of them are
+    measured (a 2 MB name was cut one character a time, each time measured whole: minutes)."""
+    name = name[max(0, len(name) - most) :] if keep_end else name[:most]
     while len(name.encode("utf-8", "surrogateescape")) > most:
         name = name[1:] if keep_end else name[:-1]
     return name
