@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from decimal import Decimal
+from decimal import Decimal, localcontext
 from fractions import Fraction
 from pathlib import Path
 
@@ -20,22 +20,44 @@ class Budget:
 
     ratio: float | None = None
     count: int | None = None
-    exact: Fraction | None = field(default=None, compare=False, repr=False)
+    exact: Fraction | None = field(default=None, repr=False)
+
+    def __post_init__(self):
+        if self.ratio is not None and self.exact is None:  # the float's shortest repr: 0.1 is 1/10
+            object.__setattr__(self, "exact", exact_ratio(self.ratio))
+
+    @property
+    def typed_apart(self) -> bool:
+        """Whether the ratio as written is not the float's shortest repr (0.10000000000000001 keeps
+        3 of 20 splats, 0.1 keeps 2): its label and record then carry it as written."""
+        return self.ratio is not None and self.exact != exact_ratio(self.ratio)
+
+    @property
+    def exact_text(self) -> str:
+        """The ratio as written, as a plain decimal (0.10000000000000001)."""
+        digits = len(str(self.exact.denominator)) + len(str(self.exact.numerator)) + 2
+        with localcontext() as context:
+            context.prec = digits  # a decimal fraction divides exactly
+            value = Decimal(self.exact.numerator) / Decimal(self.exact.denominator)
+        return format(value.normalize(), "f")
 
     @property
     def label(self) -> str:
         """The budget in output names: the ratio in at most six digits (0.1, 1e-05, 1) where that is
-        the ratio itself, else in as many as it needs (0.1000001): different ratios never share a
-        file name. Or the count."""
+        the ratio itself, else in as many as it needs (0.1000001, or 0.10000000000000001 as written
+        where that keeps another count than the float 0.1): different budgets never share a file
+        name. Or the count."""
         if self.ratio is None:
             return str(self.count)
+        if self.typed_apart:
+            return self.exact_text
         short = f"{self.ratio:g}"
         return short if float(short) == self.ratio else repr(self.ratio)
 
     def target(self, input_count: int) -> int:
         """max(1, ceil(ratio * N0)), or the count itself; checked against the input's size."""
         if self.ratio is not None:
-            return target_count(input_count, self.exact if self.exact is not None else self.ratio)
+            return target_count(input_count, self.exact)
         if self.count > input_count:
             raise InputError(f"--count {self.count} is more than the input's {input_count} splats")
         return self.count

@@ -600,6 +600,35 @@ def test_a_record_edited_by_hand_is_redone(scenes, tmp_path, edit):
     assert run_json(scenes, "-o", out, "--ratio", "0.1")["c.ply"]["status"] == "done"
 
 
+def test_a_record_naming_other_files_is_redone(scenes, tmp_path):
+    """A record whose output entry named another file of the right size (its own output deleted)
+    was taken as up to date: the scene was skipped and the summary listed the other file."""
+    out = tmp_path / "out"
+    run_json(scenes, "-o", out, "--ratio", "0.1")
+    own = out / "c_0.1.ply"
+    (out / "zz.ply").write_bytes(own.read_bytes())
+    own.unlink()
+    record_path = out / "c.nanogs.json"
+    record = json.loads(record_path.read_text())
+    record["outputs"][0]["path"] = "zz.ply"
+    record_path.write_text(json.dumps(record))
+    summary = run_json(scenes, "-o", out, "--ratio", "0.1")
+    assert summary["c.ply"]["status"] == "done" and own.exists()
+
+
+def test_a_ratio_written_apart_from_its_float_is_its_own_budget(tmp_path):
+    """0.10000000000000001 keeps 3 of 20 splats and 0.1 keeps 2, but both were labelled and recorded
+    as 0.1: a resumed batch skipped the scene with the other count."""
+    root = tmp_path / "in"
+    root.mkdir()
+    random_splats_ply(root / "t.ply", 20, seed=5)
+    first = run_json(root, "-o", tmp_path / "out", "--ratio", "0.1")["t.ply"]
+    second = run_json(root, "-o", tmp_path / "out", "--ratio", "0.10000000000000001")["t.ply"]
+    assert first["status"] == second["status"] == "done"
+    assert [(Path(o["path"]).name, o["count"]) for o in second["outputs"]] == [("t_0.10000000000000001.ply", 3)]
+    assert run_json(root, "-o", tmp_path / "out", "--ratio", "0.10000000000000001")["t.ply"]["status"] == "skipped"
+
+
 def test_ray_task_past_its_time_limit_is_cancelled(scenes_and_a_spinner, tmp_path, monkeypatch):
     """As above with Ray tasks (a private local Ray started with the spinning scene named in its
     environment; kept last in this file, since it shuts down the shared Ray first)."""

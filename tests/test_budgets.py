@@ -61,6 +61,12 @@ def test_typed_digits_beyond_a_float_count():
     assert target_count(10, 0.1) == 1
 
 
+def test_a_ratio_written_apart_from_its_float_is_labelled_as_written():
+    a, b = parse_budgets("0.1,0.10000000000000001", None)
+    assert a != b and (a.label, b.label) == ("0.1", "0.10000000000000001") and b.target(20) == 3
+    assert parse_budgets("7e-2", None)[0].label == "0.07" and not parse_budgets("0.0700", None)[0].typed_apart
+
+
 def test_float_api_converts_through_its_shortest_repr():
     assert exact_ratio(0.07) == Fraction(7, 100)
     assert exact_ratio("0.07") == Fraction(7, 100)

@@ -60,7 +60,8 @@ class SceneJob:
 
     def options(self) -> dict:
         """What the outputs depend on besides the input's bytes; kept in the scene's record."""
-        budgets = [{"ratio": b.ratio} if b.ratio is not None else {"count": b.count} for b in self.budgets]
+        budgets = [({"ratio": b.ratio, "as_written": b.exact_text} if b.typed_apart else {"ratio": b.ratio})
+                   if b.ratio is not None else {"count": b.count} for b in self.budgets]  # fmt: skip
         options = {"budgets": budgets, **vars(self.config), "drop_invalid": self.drop_invalid}
         if self.output_format != "ply":  # records of PLY batches stay as they were
             options["format"] = self.output_format

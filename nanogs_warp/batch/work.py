@@ -322,6 +322,9 @@ def record_mismatch(record: dict | None, job: SceneJob, size: int, sha: str | No
             return "a record edited by hand"
         if sorted(o["budget"] for o in outputs) != sorted(b.label for b in job.budgets):
             return "other budgets"
+        names = {b.label: job.output_path(b).name for b in job.budgets}
+        if any(o["path"] != names[o["budget"]] for o in outputs):  # a record naming other files
+            return "a record edited by hand"
         if not all((job.out_dir / o["path"]).stat().st_size == o["bytes"] for o in outputs):
             return "an output changed"
     except (KeyError, TypeError):
