@@ -344,6 +344,18 @@ def test_output_inside_input_is_not_rescanned(scenes):
     assert sorted(j.relative for j in globbed) == sorted(SCENES)
 
 
+def test_hidden_folders_and_a_manifests_byte_order_mark_are_no_scenes(scenes, tmp_path):
+    """A folder's scan took .ipynb_checkpoints/*.ply as scenes (a glob already left them out), and a
+    text manifest saved with a byte-order mark named its first scene '\ufeffc.ply'."""
+    before = sorted(j.relative for j in find_scenes(str(scenes), tmp_path / "out", [], SimplifyConfig(), False))
+    (scenes / ".ipynb_checkpoints").mkdir()
+    random_splats_ply(scenes / ".ipynb_checkpoints" / "c-checkpoint.ply", 10)
+    assert sorted(j.relative for j in find_scenes(str(scenes), tmp_path / "out", [], SimplifyConfig(), False)) == before
+    (scenes / "list.txt").write_bytes("\ufeffc.ply\nroom/a.ply\n".encode("utf-8"))
+    summary = run_json(scenes / "list.txt", "-o", tmp_path / "text", "--count", "10")
+    assert sorted(summary) == ["c.ply", "room/a.ply"] and {s["status"] for s in summary.values()} == {"done"}
+
+
 def test_live_progress_redraws_in_place():
     stream = io.StringIO()
     progress = BatchProgress(2, stream=stream, live=True)

@@ -189,7 +189,7 @@ def _walk_ply(root: Path, skip: Path) -> list[Path]:
     skip = skip.resolve()
     found = []
     for directory, subdirs, files in os.walk(root):
-        subdirs[:] = sorted(d for d in subdirs if (Path(directory) / d).resolve() != skip)
+        subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and (Path(directory) / d).resolve() != skip)
         found += [Path(directory) / f for f in files if _is_scene(f) and not f.startswith(".")]
     return found
 
@@ -256,7 +256,7 @@ def _common_directory(paths: list[Path]) -> Path:
 
 def _read_manifest(path: Path) -> list[tuple[Path, dict]]:
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (some editors write one) is not a name
     except (OSError, UnicodeDecodeError) as e:
         raise InputError(f"{path.name}: cannot read the manifest: {e}") from None
     base = Path(os.path.abspath(path)).parent

@@ -402,17 +402,14 @@ def write_json_atomic(path: Path, data: dict) -> None:
 
 
 def _remove_leftovers(job: SceneJob) -> None:
-    """Deletes the scene's record and the temporary files a killed run of it may have left
-    (``.<name>.<random>.tmp`` beside each output; shards never share a scene, so none is live)."""
+    """Deletes the scene's record and the temporary files a killed run of it may have left beside
+    each output (``remove_stale_temporaries``: only those whose writing process is gone, so that
+    another run writing the same scene at the same time keeps its own)."""
     if not job.out_dir.is_dir():
         return
     if job.record_path.is_dir():
         raise InputError(f"its record {job.record_path} is a folder; move it away")
     job.record_path.unlink(missing_ok=True)
-    names = {job.record_path.name} | {job.output_path(b).name for b in job.budgets}
-    for entry in os.scandir(job.out_dir):
-        if entry.name.endswith(".tmp") and entry.name.startswith(".") and entry.name[1:].rsplit(".", 2)[0] in names:
-            try:
-                os.unlink(entry.path)
-            except OSError:
-                pass
+    from ..io.ply_write import remove_stale_temporaries
+
+    remove_stale_temporaries([job.record_path, *(job.output_path(b) for b in job.budgets)])
