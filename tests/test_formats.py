@@ -334,14 +334,17 @@ def test_splat_sizes_beyond_float32_are_clamped_and_said(tmp_path):
     a["log_scales"][:10] = 95.0
     notes = []
     save_splats(SplatSet.from_numpy(**a), tmp_path / "big.splat", on_loss=notes.append)
-    assert len(notes) == 1 and "sizes outside 0 to 3.4e+38 units: 10 splats clamped" in notes[0], notes
+    assert len(notes) == 1 and "sizes outside 1.18e-38 to 3.4e+38 units: 10 splats clamped" in notes[0], notes
     back = load_splats(tmp_path / "big.splat").to_numpy()
     assert np.isfinite(back["log_scales"]).all() and back["log_scales"][:10].min() == pytest.approx(88.72, abs=0.01)
     assert load_splats(tmp_path / "big.splat").count == 50
     notes.clear()
-    a["log_scales"][:10] = -100.0  # the domain's floor: a float32 subnormal, read back
+    a["log_scales"][:10] = -100.0  # the domain's floor: below float32's normal sizes, stored (and read) as the smallest
     save_splats(SplatSet.from_numpy(**a), tmp_path / "small.splat", on_loss=notes.append)
-    assert notes == [] and load_splats(tmp_path / "small.splat").count == 50
+    back = load_splats(tmp_path / "small.splat").to_numpy()["log_scales"]
+    assert notes == [] and back.shape == (50, 3)  # 1e-38 units: no visible change, no note
+    np.testing.assert_allclose(back[:10], np.log(np.finfo(np.float32).tiny), rtol=1e-6)
+    assert (tmp_path / "small.splat").read_bytes()[12:16] == np.float32(np.finfo(np.float32).tiny).tobytes()  # the file holds what is read
 
 
 def test_a_small_spz_that_declares_a_huge_scene_is_refused_at_once(tmp_path, monkeypatch):

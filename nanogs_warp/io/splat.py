@@ -40,11 +40,13 @@ def read_arrays(path: Path, data: bytes) -> dict[str, np.ndarray]:
 
 
 _LARGEST_SCALE = float(np.finfo(np.float32).max)  # .splat stores sizes, not their logs, in float32
+_SMALLEST_SCALE = float(np.finfo(np.float32).tiny)  # and reads one below float32's smallest normal as it
 
 
 def notes(host: dict[str, np.ndarray]) -> list[str]:
-    """What ``encode`` cannot hold visibly: sizes beyond float32 (log-scales above 88.7)."""
-    return clamped_scales_note(host["log_scales"], host["means"], -np.inf, math.log(_LARGEST_SCALE))
+    """What ``encode`` cannot hold visibly: sizes beyond float32 (log-scales above 88.7); those
+    below its smallest normal (log-scales below -87.3) are stored as it, as reading gives them."""
+    return clamped_scales_note(host["log_scales"], host["means"], math.log(_SMALLEST_SCALE), math.log(_LARGEST_SCALE))
 
 
 def encode(host: dict[str, np.ndarray]) -> bytes:
@@ -52,8 +54,8 @@ def encode(host: dict[str, np.ndarray]) -> bytes:
     n = host["means"].shape[0]
     rows = np.zeros(n, ROW)
     rows["position"] = host["means"]
-    with np.errstate(over="ignore"):  # sizes beyond float32 clamped to its largest (notes())
-        rows["scale"] = np.minimum(np.exp(host["log_scales"].astype(np.float64)), _LARGEST_SCALE).astype(np.float32)
+    with np.errstate(over="ignore"):  # sizes clamped to float32's normal range (notes())
+        rows["scale"] = np.clip(np.exp(host["log_scales"].astype(np.float64)), _SMALLEST_SCALE, _LARGEST_SCALE).astype(np.float32)
     colour = 255.0 * (0.5 + SH_C0 * host["features"][:, :3].astype(np.float64))
     rows["rgba"][:, :3] = np.clip(np.rint(colour), 0, 255)
     rows["rgba"][:, 3] = opacity_to_byte(host["opacities"])
