@@ -232,6 +232,23 @@ def test_a_manifest_scene_with_its_own_preset_sh_degree_and_refinement(scenes, t
     assert load_ply(out / "room" / "a_0.1.ply").sh_degree == 0 and load_ply(out / "d" / "d_0.1.ply").sh_degree == 1
 
 
+def test_an_output_name_too_long_to_write_fails_its_scene_in_the_dry_run_too(tmp_path):
+    """A 236-letter stem gives a legal 244-byte output name whose temporary file's name is too long:
+    the dry run said 'run', and the run failed with 'File name too long' after the work."""
+    root = tmp_path / "in"
+    root.mkdir()
+    long = "s" * 236 + ".ply"
+    random_splats_ply(root / long, 30, seed=1)
+    random_splats_ply(root / "short.ply", 30, seed=2)
+    plan = run(root, "-o", tmp_path / "out", "--ratio", "0.1", "--dry-run", "--json", "--devices", "cpu")
+    actions = {s["relative"]: (s["action"], s["reason"]) for s in json.loads(plan.stdout)["scenes"]}
+    message = f"output name {'s' * 40}... is 244 bytes long; at most 229 can be written"
+    assert actions == {long: ("fail", message), "short.ply": ("run", "no record")}
+    summary = run_json(root, "-o", tmp_path / "out", "--ratio", "0.1", code=1)
+    assert summary[long]["status"] == "failed" and summary[long]["error"] == message
+    assert summary["short.ply"]["status"] == "done"
+
+
 def test_a_dry_run_says_what_a_run_would_do_and_writes_nothing(scenes, tmp_path):
     out = tmp_path / "out"
 

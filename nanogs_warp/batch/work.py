@@ -212,6 +212,7 @@ def _read(scene: LoadedScene, force: bool) -> None:
                           for o in record["outputs"]]  # fmt: skip
         return
 
+    check_output_names(job)
     _remove_leftovers(job)  # the old record first: from here on, no record describes these outputs
     if detect_format(job.input) == "ply":  # hashed as it is parsed, by the threads that read it
         hasher = None if scene.sha else PieceHash(scene.size)
@@ -342,9 +343,20 @@ def planned(job: SceneJob, force: bool) -> tuple[str, str | None]:
         if not stat.S_ISREG(status.st_mode):  # a folder, a FIFO, a device: a run refuses it (open_regular)
             return "fail", "not a regular file"
         _, _, why = _freshness(job, status.st_size, force)
+        if why is not None:
+            check_output_names(job)
     except InputError as e:
         return "fail", str(e)
     return ("skip", None) if why is None else ("run", why)
+
+
+def check_output_names(job: SceneJob) -> None:
+    """An InputError where an output's or the record's name is too long to be written (its temporary
+    file's name is longer still): found by ``--dry-run`` as by a run, before any work."""
+    from ..io.ply_write import check_name_length
+
+    for path in (*(job.output_path(b) for b in job.budgets), job.record_path):
+        check_name_length(path)
 
 
 def _input_status(job: SceneJob) -> os.stat_result:

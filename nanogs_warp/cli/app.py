@@ -433,9 +433,6 @@ def _is_folder(path: str) -> bool:
         return False
 
 
-_LONGEST_OUTPUT_NAME = 255 - 26  # a file name's bytes on common file systems, less io.ply_write.TEMPORARY_EXTRA_BYTES
-
-
 def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwrite: bool = False,
                    folder: Path | None = None) -> None:  # fmt: skip
     """Refuses outputs that would overwrite the input, replace an existing file without
@@ -447,10 +444,10 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
     from ..io import input_files
     from ..io.open_file import open_regular
 
+    from ..io.ply_write import check_name_length
+
     for path in written:  # written beside a temporary ".<name>.<pid>-<12 hex>.tmp"
-        if len(os.fsencode(path.name)) > _LONGEST_OUTPUT_NAME:
-            raise InputError(f"output name {path.name[:40]}... is {len(os.fsencode(path.name))} bytes long; "
-                             f"at most {_LONGEST_OUTPUT_NAME} can be written")  # fmt: skip
+        check_name_length(path)
     try:
         input_resolved = input.resolve()
         inputs = {p.resolve() for p in input_files(input)}

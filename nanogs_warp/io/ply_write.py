@@ -386,6 +386,14 @@ def through_links(path: Path) -> Path:
 
 
 TEMPORARY_EXTRA_BYTES = 1 + 1 + 7 + 1 + 12 + 4  # ".<name>.<pid>-<12 hex>.tmp": pids below 10^7
+LONGEST_OUTPUT_NAME = 255 - TEMPORARY_EXTRA_BYTES  # a file name's bytes on common file systems, less the temporary's
+
+
+def check_name_length(path: Path) -> None:
+    """An InputError where ``path``'s name is too long for its temporary file to be made beside it."""
+    length = len(os.fsencode(path.name))
+    if length > LONGEST_OUTPUT_NAME:
+        raise InputError(f"output name {path.name[:40]}... is {length} bytes long; at most {LONGEST_OUTPUT_NAME} can be written")
 
 
 def temporary_path(path: Path) -> Path:
