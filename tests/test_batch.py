@@ -629,6 +629,18 @@ def test_a_record_edited_by_hand_is_redone(scenes, tmp_path, edit):
     assert run_json(scenes, "-o", out, "--ratio", "0.1")["c.ply"]["status"] == "done"
 
 
+def test_the_same_budgets_in_another_order_are_up_to_date(scenes, tmp_path):
+    """They make the same outputs (one progressive run); every scene was redone, and alternating the
+    two orders redid every scene each time."""
+    out = tmp_path / "out"
+    run_json(scenes, "-o", out, "--ratio", "0.1,0.01")
+    before = outputs(out)
+    summary = run_json(scenes, "-o", out, "--ratio", "0.01,0.1")
+    assert {s["status"] for s in summary.values()} == {"skipped"} and outputs(out) == before
+    assert [o["budget"] for o in summary["c.ply"]["outputs"]] == ["0.01", "0.1"]  # listed in the order given
+    assert {s["status"] for s in run_json(scenes, "-o", out, "--ratio", "0.01,0.2").values()} == {"done"}
+
+
 def test_a_record_naming_other_files_is_redone(scenes, tmp_path):
     """A record whose output entry named another file of the right size (its own output deleted)
     was taken as up to date: the scene was skipped and the summary listed the other file."""

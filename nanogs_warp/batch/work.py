@@ -208,8 +208,9 @@ def _read(scene: LoadedScene, force: bool) -> None:
     if why is None:
         result.status = "skipped"
         result.input_count = record["input_count"]
+        order = [b.label for b in job.budgets]  # as given this time (the record may hold another order)
         result.outputs = [{"path": str(job.out_dir / o["path"]), "budget": o["budget"], "count": o["count"]}
-                          for o in record["outputs"]]  # fmt: skip
+                          for o in sorted(record["outputs"], key=lambda o: order.index(o["budget"]))]  # fmt: skip
         return
 
     check_output_names(job)
@@ -313,7 +314,7 @@ def record_mismatch(record: dict | None, job: SceneJob, size: int, sha: str | No
     try:
         if record["format"] != RECORD_FORMAT or record["version"] != __version__:
             return "made by another version"
-        if record["options"] != options:
+        if _in_any_order(record["options"]) != _in_any_order(options):
             return "other budgets or options"
         if record["input"]["bytes"] != size or (sha is not None and record["input"]["sha256_pieces"] != sha):
             return "the input changed"
@@ -333,6 +334,15 @@ def record_mismatch(record: dict | None, job: SceneJob, size: int, sha: str | No
     except OSError:
         return "an output is missing"
     return None
+
+
+def _in_any_order(options):
+    """``options`` with its budgets sorted: the same budgets in another order make the same outputs
+    (one progressive run), so they need no new run. Anything that is not a record's options as
+    ``SceneJob.options`` writes them comes back as it is (and then differs)."""
+    if not isinstance(options, dict) or not isinstance(options.get("budgets"), list):
+        return options
+    return {**options, "budgets": sorted(options["budgets"], key=lambda b: json.dumps(b, sort_keys=True))}
 
 
 def planned(job: SceneJob, force: bool) -> tuple[str, str | None]:
