@@ -32,10 +32,20 @@ def available_host_memory() -> int | None:
         return None
 
 
-def memory_short(need: int) -> int | None:
-    """The host memory available now where ``need`` bytes are more than it (the caller refuses the
-    work in one line, naming both); None where they fit, or where the system does not say."""
-    available = available_host_memory()
+def device_memory(device) -> int | None:
+    """Bytes of ``device``'s memory free now: a GPU's, or for the CPU the host's available memory
+    (page cache included as the kernel counts it); None where the system does not say."""
+    import warp as wp
+
+    device = wp.get_device(device)
+    return int(device.free_memory) if device.is_cuda else available_host_memory()
+
+
+def memory_short(need: int, device=None) -> int | None:
+    """The memory available now (the host's, or with ``device`` that device's: ``device_memory``)
+    where ``need`` bytes are more than it (the caller refuses the work in one line, naming both);
+    None where they fit, or where the system does not say."""
+    available = available_host_memory() if device is None else device_memory(device)
     return available if available is not None and need > available else None
 
 

@@ -12,7 +12,6 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
-import warp as wp
 
 from .compact import remove_rows
 from .config import K_LARGE_SCENE, K_SMALL_SCENE, PRESETS, SMALL_SCENE_SPLATS, SimplifyConfig, exact_ratio, finite, target_count  # noqa: F401
@@ -215,11 +214,7 @@ def simplify(
         targets = [target_count(splats.count, r) for r in budgets]
     else:
         targets = [whole_count(c) for c in budgets]
-    if isinstance(device, str):
-        from .device import resolve_device
-
-        device = resolve_device(device)
-    on_device = splats.to(wp.get_device(device) if device is not None else splats.device)
+    on_device = splats.to(device if device is not None else splats.device)  # a name read as --device reads it
     results = dict(simplify_progressively(on_device, targets, config, finish=finish))
     outputs = [results[t].clone() if results[t] is splats else results[t] for t in targets]  # never the caller's own set
     return outputs if several else outputs[0]

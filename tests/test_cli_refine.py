@@ -76,7 +76,7 @@ def test_refinement_views_beyond_the_memory_are_refused_first(tmp_path, monkeypa
 
     scene, out = tmp_path / "scene.ply", tmp_path / "out.ply"
     random_splats_ply(scene, 50, seed=5)
-    monkeypatch.setattr(refine, "device_memory", lambda device: 10**9)
+    monkeypatch.setattr(refine, "memory_short", lambda need, device: 10**9 if need > 10**9 else None)
     monkeypatch.setattr(refine, "_render_views", lambda *a: pytest.fail("rendered before the memory check"))
     result = run("simplify", scene, "-o", out, "--ratio", "0.5", "--device", "cpu", "--refine-size", "4096")
     assert result.exit_code == 2 and result.stderr.count("\n") == 1

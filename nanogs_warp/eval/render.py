@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 import warp as wp
 
-from ..device import available_host_memory
+from ..device import device_memory
 from ..errors import InputError
 from ..kernels import render as kernels
 from ..parallel import cpu_workers
@@ -45,15 +45,8 @@ ONE_WALK = 2**31 - 1  # a chunk no tile exceeds: every tile composited in one wa
 CHUNKS_PER_WORKER = 4
 
 
-def device_memory(device) -> int | None:
-    """Bytes of ``device``'s memory free now: a GPU's, or for the CPU the host's available memory
-    (page cache included as the kernel counts it); None where the system does not say."""
-    device = wp.get_device(device)
-    return int(device.free_memory) if device.is_cuda else available_host_memory()
-
-
 def entry_memory(device) -> int:
-    """Bytes a view's entry buffers may take on ``device``: half of the memory free now."""
+    """Bytes a view's entry buffers may take on ``device``: half of the memory free now (``device_memory``)."""
     available = device_memory(device)
     if available is None:  # not on this system: no memory bound but int32's
         return INDEX_LIMIT * ENTRY_BYTES

@@ -21,7 +21,8 @@ import numpy as np
 import warp as wp
 
 from ..errors import InputError
-from ..eval.render import _Rasteriser, device_memory
+from ..device import memory_short
+from ..eval.render import _Rasteriser
 from ..eval.units import render_offset, render_units, rescaled
 from ..kernels import adam as adam_kernels
 from ..parallel import launch_rows_from
@@ -47,8 +48,8 @@ def check_memory(config: RefineConfig, pool: int, device) -> None:
     (a GPU's free memory, the host's available memory for the CPU)."""
     pixels = config.size * config.size
     need = pixels * (STEP_BYTES_PER_PIXEL + VIEW_BYTES_PER_PIXEL * (pool + VALIDATION_VIEWS))
-    available = device_memory(device)
-    if available is not None and need > available:
+    available = memory_short(need, device)
+    if available is not None:
         memory = "memory" if device.is_cpu else f"{device}'s memory"
         raise InputError(f"refining with {pool + VALIDATION_VIEWS} reference views of {config.size}x{config.size} pixels needs about "
                          f"{need:,} bytes of {memory}, more than the {available:,} available: give a smaller "

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 
-import warp as wp
-
 from ..config import SimplifyConfig
 from ..pipeline import PassReport, check_arguments
 from ..pipeline import simplify as simplify_merged
@@ -43,10 +41,6 @@ def simplify(
     """``pipeline.simplify`` (budgets, devices and errors as documented there), each output fitted
     for size when ``config.fit_size``."""
     check_arguments(splats, config)
-    if isinstance(device, str):
-        from ..device import resolve_device
-
-        device = resolve_device(device)
-    on_device = splats.to(wp.get_device(device) if device is not None else splats.device)
+    on_device = splats.to(device if device is not None else splats.device)  # a name read as --device reads it
     return simplify_merged(on_device, ratio, count, None, config, ratios=ratios, counts=counts,
                            finish=size_fit_for(on_device, config))  # fmt: skip
