@@ -31,6 +31,11 @@ _LARGEST_SIDE = 2.0**120  # of the quantisation cube (float32 holds up to 2^128)
 # Cube sides whose points are measured as they are (``measured_points``): squared distances across
 # such a cube stay far inside float32's normal range (2^-126 to 2^128), down to a millionth of its side.
 MEASURED_SIDE = (2.0**-40, 2.0**40)
+# A scaled scene's typical spacing is kept at least this (squared: 2^-80, far inside float32's normal
+# range), by a larger scale where the cube's side allows: at most 2^62 after scaling, so that squared
+# distances across the cube (three axes) stay below 2^126.
+FINEST_SPACING = 2.0**-40
+_LARGEST_MEASURED_EXPONENT = 62
 
 
 @dataclass
@@ -178,27 +183,35 @@ def _level_groups(used: np.ndarray, work: np.ndarray, workers: int) -> list[tupl
 def measured_points(means: wp.array) -> tuple[wp.array, tuple[wp.vec3, float, float]]:
     """The points whose float32 distances the kNN search compares, and their quantisation cube
     (corner, quantum, margin: ``_quantisation_cube``). These are ``means`` themselves when the cube's
-    side lies within MEASURED_SIDE; otherwise ``means`` times the power of two that brings the side
-    to [1/2, 1). Scaling by a power of two is exact, so the neighbours stay those of ``means``;
-    without it, a scene whose extent is ~1e19 or more would overflow its squared distances to inf
-    (every query would then scan every point) and a tiny one would compute with subnormals (slow on
-    CPUs, flushed to zero on some devices). Coordinates that the scaling would take past float32's
-    range are clamped to it (far outliers stay far), below its smallest normal set to 0."""
-    cube = _quantisation_cube(means)
+    side lies within MEASURED_SIDE; otherwise ``means`` times a power of two: the one that brings the
+    side to [1/2, 1), or a larger one, up to the one that brings it to [2^61, 2^62), where the
+    points' typical spacing would otherwise fall below FINEST_SPACING (clusters far apart, each
+    fine: float32 would square their neighbours' distances to zero). Scaling by a power of two is
+    exact, so the neighbours stay those of ``means``; without it, a scene whose extent is ~1e19 or
+    more would overflow its squared distances to inf (every query would then scan every point) and a
+    tiny one would compute with subnormals (slow on CPUs, flushed to zero on some devices).
+    Coordinates that the scaling would take past float32's range are clamped to it (far outliers
+    stay far), below its smallest normal set to 0."""
+    cube, spacing = _quantisation_cube(means)
     lo, quantum, margin = cube
     side = quantum * _GRID_CELLS
     if MEASURED_SIDE[0] <= side <= MEASURED_SIDE[1]:
         return means, cube
     scale = math.ldexp(1.0, -math.frexp(side)[1])
+    if 0.0 < spacing * scale < FINEST_SPACING:
+        needed = math.ldexp(1.0, math.frexp(FINEST_SPACING / spacing)[1])  # spacing * needed >= FINEST_SPACING
+        scale = max(scale, min(needed, math.ldexp(1.0, _LARGEST_MEASURED_EXPONENT - math.frexp(side)[1])))
     points = wp.empty_like(means)
     wp.launch(knn_kernels.scaled_points, means.shape[0], inputs=[means, scale], outputs=[points], device=means.device)
     corner = wp.vec3(*(float(c) * scale for c in lo))  # float32 corner times a power of two: exact
     return points, (corner, quantum * scale, margin * scale)
 
 
-def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
+def _quantisation_cube(means: wp.array) -> tuple[tuple[wp.vec3, float, float], float]:
     """Corner and level-0 cell side (quantum) of the cube that quantises the points to 21 bits per
-    axis, and the margin by which cell-distance lower bounds are lowered for float32 rounding.
+    axis, and the margin by which cell-distance lower bounds are lowered for float32 rounding; and
+    the points' typical spacing: the smallest, over the axes, of the median positive gap between
+    consecutive sampled coordinates (0 where no axis has two distinct ones).
 
     The cube spans the bounding box, cut down to three times the width of the central 99.8% of the
     points (per axis, from a sample) and to 1000 interquartile ranges around the central half: far
@@ -220,10 +233,15 @@ def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     keys = wp.empty(2 * m, dtype=wp.float32, device=device)
     values = wp.zeros(2 * m, dtype=wp.int32, device=device)
     tail = int(_QUANTILE_TAIL * (m - 1))
+    spacings = []
     for axis in range(3):
         wp.launch(knn_kernels._sample_axis, m, inputs=[means, stride, axis], outputs=[keys], device=device)
         wp.utils.radix_sort_pairs(keys, values, m)
         sample = keys[:m].numpy().astype(np.float64)
+        gaps = np.diff(sample)
+        gaps = gaps[gaps > 0.0]
+        if gaps.size:
+            spacings.append(float(np.median(gaps)))
         q_lo, q_hi = sample[tail], sample[m - 1 - tail]
         width = q_hi - q_lo
         lo[axis], hi[axis] = max(lo[axis], q_lo - width), min(hi[axis], q_hi + width)
@@ -242,7 +260,7 @@ def _quantisation_cube(means: wp.array) -> tuple[wp.vec3, float, float]:
     quantum = side / _GRID_CELLS
     # Positions are taken relative to `lo` (a correctly rounded float32 difference), so a point's
     # computed cell and the cell's bounds err by well under a quantum; two quanta cover both.
-    return wp.vec3(*lo), quantum, 2.0 * quantum
+    return (wp.vec3(*lo), quantum, 2.0 * quantum), min(spacings, default=0.0)
 
 
 def _morton_order(means: wp.array, lo: wp.vec3, quantum: float, given: wp.array | None = None) -> tuple[wp.array, wp.array]:

@@ -311,6 +311,21 @@ def test_measured_points(knn_device):
         assert expected[0, 2] == 0.0 or expected[0, 0] == f32.max  # the flush and the clamp were exercised
 
 
+@pytest.mark.parametrize("offset", [1e30, 3.4e38])
+def test_knn_of_fine_clusters_far_apart(knn_device, offset):
+    """Two clusters of ordinary spacing, 2e30 and 6.8e38 apart: scaled to the cube's usual side, their
+    neighbours' squared distances would be zero in float32 (every candidate tied, the graph a list
+    of indices, and each query's search its work limit); measured_points takes a larger scale."""
+    rng = np.random.default_rng(29)
+    points = rng.normal(size=(4000, 3))
+    points[:2000, 0] += offset
+    points[2000:, 0] -= offset
+    points = points.astype(np.float32)  # x rounds to +-offset: each cluster is flat
+    measured, (_, quantum, _) = measured_points(wp.array(points, dtype=wp.vec3, device=knn_device))
+    assert quantum * 2**21 >= 2.0**40  # the larger scale was taken
+    check_against_reference(points, run_knn(points, 16, knn_device), 16)
+
+
 def test_knn_flat_and_far(knn_device):
     """Points on a plane and on a line (zero extent along some axes), far from the origin."""
     rng = np.random.default_rng(7)
