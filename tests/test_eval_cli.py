@@ -104,6 +104,22 @@ def test_contact_sheet_text_matches_the_metrics():
     assert text_width(labels[0]) < 300
 
 
+def test_a_label_longer_than_its_image_draws_only_what_shows(monkeypatch):
+    """A camera name of millions of characters (a hostile cameras file) draws the characters that
+    reach the image, not all of them (it took minutes), with the same pixels as drawing every one."""
+    from nanogs_warp.eval import glyphs
+
+    image = np.zeros((12, 40, 3), np.uint8)
+    expected = image.copy()
+    draw_text(expected, "ABCDEFGHIJ", -8, 2, (255, 255, 255))  # the first ten cover the 40 pixels
+    drawn = []
+    glyph = glyphs._glyph
+    monkeypatch.setattr(glyphs, "_glyph", lambda ch: drawn.append(ch) or glyph(ch))
+    draw_text(image, "ABCDEFGHIJ" + "x" * 5_000_000, -8, 2, (255, 255, 255))
+    assert np.array_equal(image, expected)
+    assert len(drawn) <= 10  # "A" lies wholly left of the image: at most B to J and one more
+
+
 @pytest.mark.parametrize("exponent", [-70, 70])
 def test_a_scene_in_tiny_or_huge_units_evaluates_as_at_unit_size(exponent):
     """The renderer works in float32, where squared coordinates of ~1e21 overflow and of ~1e-21

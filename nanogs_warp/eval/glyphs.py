@@ -44,7 +44,10 @@ def draw_text(image: np.ndarray, text: str, x: int, y: int, colour=(0, 0, 0), sc
     """Writes ``text`` into ``image`` (H, W, 3 uint8) with its top-left corner at (x, y), each font
     pixel ``scale`` x ``scale``; letters are drawn as capitals, what does not fit is clipped."""
     h, w = image.shape[:2]
-    for k, ch in enumerate(text):
+    step = ADVANCE * scale
+    first = max(0, -x // step)  # the characters left of the image, then those right of it, are not drawn
+    last = max(first, min(len(text), (w - x) // step + 1))
+    for k, ch in enumerate(text[first:last], start=first):
         mask = np.kron(_glyph(ch), np.ones((scale, scale), dtype=bool))
         gx, gy = x + k * ADVANCE * scale, y
         y0, x0 = max(gy, 0), max(gx, 0)

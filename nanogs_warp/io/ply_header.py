@@ -89,6 +89,7 @@ def parse_header(head: bytes, name: str) -> Header:
 
     fmt = None
     elements: list[Element] = []
+    element_names: set[str] = set()
     prop_names: set[str] = set()  # the last element's property names so far
     lines = _NEWLINE.split(text)
     for lineno, raw in enumerate(lines[1:], start=2):
@@ -118,8 +119,9 @@ def parse_header(head: bytes, name: str) -> Header:
                 fail(lineno, f"element count {fields[1]!r} is not an integer")
             if count < 0:
                 fail(lineno, f"element {fields[0]!r} has a negative count")
-            if any(e.name == fields[0] for e in elements):
+            if fields[0] in element_names:
                 fail(lineno, f"element {fields[0]!r} appears twice")
+            element_names.add(fields[0])
             elements.append(Element(fields[0], count, []))
             prop_names = set()
         elif keyword == "property":
