@@ -344,6 +344,7 @@ def test_what_the_machine_lacks_is_said_in_words(scene, tmp_path):
         raise RuntimeError("Failed to load the shared library 'warp.so'") from OSError("failed to map segment")
     except RuntimeError as e:
         assert _environment_error(e).startswith("cannot start Warp: Failed to load the shared library 'warp.so': failed to map segment")
+    assert _environment_error(RuntimeError("can't start new thread")).startswith("cannot start a thread: too little memory")
     assert _environment_error(ValueError("x")) is None
     gone = tmp_path / "gone"
     gone.mkdir()

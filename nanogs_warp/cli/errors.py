@@ -99,8 +99,8 @@ def _unexpected(e: Exception) -> None:
 
 def _environment_error(e: Exception) -> str | None:
     """What the machine or the shell lacks, in words, for an error that is no fault of the input:
-    too few open files, no writable temporary folder, a deleted working folder, Warp's library
-    that cannot be loaded (an address-space limit); None for anything else."""
+    too few open files, no writable temporary folder, a deleted working folder, a thread or Warp's
+    library that cannot be started (an address-space limit); None for anything else."""
     if isinstance(e, OSError):
         if e.errno in (errno.EMFILE, errno.ENFILE):
             return f"too many open files ({e.strerror}): raise the limit (ulimit -n)"
@@ -111,6 +111,8 @@ def _environment_error(e: Exception) -> str | None:
                 os.getcwd()
             except OSError:
                 return "the working folder no longer exists: run the command from one that does"
+    if isinstance(e, RuntimeError) and str(e).startswith(("can't start new thread", "can't create new thread")):
+        return "cannot start a thread: too little memory or address space, or too many processes (see ulimit -v and ulimit -u)"
     if isinstance(e, RuntimeError) and "Failed to load the shared library" in str(e):
         cause = e.__cause__ or e.__context__
         why = f": {' '.join(str(cause).split())}" if cause is not None else ""
