@@ -42,6 +42,20 @@ def printable(message: str) -> str:
     return "".join(c if c.isprintable() or c == " " else repr(c)[1:-1] for c in message)
 
 
+LONGEST_LINE = 1000  # characters of a one-line message shown; longer ones lose their middle
+
+
+def one_line(message: str) -> str:
+    """``printable(message)``, at most about LONGEST_LINE characters: a longer one (a value or path
+    of thousands of characters from a hostile file) keeps its start and end, where the name and the
+    reason are, and says how much of the middle it leaves out."""
+    line = printable(message)
+    if len(line) <= LONGEST_LINE:
+        return line
+    head, tail = LONGEST_LINE * 2 // 3, LONGEST_LINE // 3
+    return f"{line[:head]}[... {len(line) - head - tail:,} characters ...]{line[-tail:]}"
+
+
 def out_of_memory(error: BaseException) -> str | None:
     """The line to show when ``error`` says that memory ran out: Python's ``MemoryError``, or Warp's
     failed allocation on a device (a scene too large for the GPU, or a host at its limit); None

@@ -412,7 +412,7 @@ def test_a_command_line_the_parser_refuses_is_one_line(args, message):
 def test_errors_about_names_and_json_stay_one_line(scene, tmp_path):
     """A name longer than the file system takes, a newline in a name, a NUL in a SOG's image name
     and a JSON integer too long to read: one line each, exit 2 (they were internal errors, exit 1,
-    or two lines)."""
+    or two lines); a value of thousands of characters is shown by its ends."""
     import json as json_module
 
     long_name = tmp_path / ("a" * 300 + ".ply")
@@ -425,6 +425,12 @@ def test_errors_about_names_and_json_stay_one_line(scene, tmp_path):
     (tmp_path / "huge.json").write_text('[{"path": "x.ply", "ratio": ' + "9" * 5000 + "}]")
     result = run("batch", tmp_path / "huge.json", "-o", tmp_path / "out", "--ratio", "0.1", "--devices", "cpu")
     assert result.exit_code == 2 and "huge.json: not valid JSON" in result.stderr
+    result = run("simplify", scene, "-o", tmp_path / "o.ply", "--ratio", "x" * 5000, "--device", "cpu")
+    line = result.stderr.strip()  # a value of thousands of characters is shown by its ends
+    assert result.exit_code == 2 and result.stderr.count("\n") == 1 and len(line) < 1100
+    assert line.startswith("nanogs-warp: error: --ratio 'xxx") and "characters ...]" in line
+    result = run("simplify", scene, "-o", tmp_path / "o.ply", "--k", "x" * 5000 + "\n", "--device", "cpu")
+    assert result.exit_code == 2 and result.stderr.count("\n") == 1 and len(result.stderr) < 1200  # the parser's own errors too
     (tmp_path / "cams.json").write_text('[{"width": ' + "9" * 5000 + "}]")
     result = run("eval", scene, scene, "--cameras", tmp_path / "cams.json", "--device", "cpu")
     assert result.exit_code == 2 and "is not JSON" in result.stderr

@@ -12,7 +12,7 @@ import os
 import sys
 import time
 
-from ..errors import printable
+from ..errors import one_line, printable
 from .scenes import SceneJob, find_scenes, parse_shard, select_shard
 from .work import SceneResult, planned, process_scene
 
@@ -92,7 +92,7 @@ class BatchProgress:
         line = f"{result.relative}: {_describe(result)}"
         if self.live:
             if result.status == "failed":
-                self._write(self._clear_text() + f"nanogs-warp batch: {printable(line)}\n")
+                self._write(self._clear_text() + f"nanogs-warp batch: {one_line(line)}\n")
             self._draw()
         elif not self.quiet or result.status == "failed":  # quiet: the failures still, as errors
             self._log(line)
@@ -152,8 +152,8 @@ def format_summary(results: list[SceneResult], seconds: float) -> str:
         return "  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths))).rstrip()
 
     out = [line(header), line(["-" * w for w in widths]), *(line(row) for row in rows)]
-    out += [printable(f"failed: {r.relative}: {r.error}") for r in results if r.status == "failed"]
-    out += [printable(f"note: {r.relative}: {note}") for r in results for note in r.notes]
+    out += [one_line(f"failed: {r.relative}: {r.error}") for r in results if r.status == "failed"]
+    out += [one_line(f"note: {r.relative}: {note}") for r in results for note in r.notes]
     totals = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
     out.append(f"{len(results)} scenes: {totals['done']} done, {totals['skipped']} skipped, "
                f"{totals['failed']} failed, {seconds:.2f} s")  # fmt: skip

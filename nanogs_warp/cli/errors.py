@@ -12,7 +12,7 @@ import warnings
 
 import typer
 
-from ..errors import InputError, debugging, out_of_memory, printable
+from ..errors import InputError, debugging, one_line, out_of_memory
 
 
 def examples(*lines: str) -> str:
@@ -22,7 +22,7 @@ def examples(*lines: str) -> str:
 
 def _fail(message: str, code: int) -> None:
     try:
-        typer.echo(f"nanogs-warp: error: {printable(message)}", err=True)
+        typer.echo(f"nanogs-warp: error: {one_line(message)}", err=True)
     except OSError:  # stderr itself cannot be written (closed, a full disk): the exit code says it
         pass
     raise typer.Exit(code)
@@ -135,7 +135,7 @@ def one_line_usage_errors() -> None:
 
     def show(self, file=None) -> None:
         command = self.ctx.command_path if self.ctx is not None else "nanogs-warp"
-        echo(f"nanogs-warp: error: {self.format_message()} (see '{command} -h')", err=file is None, file=file)
+        echo(f"nanogs-warp: error: {one_line(self.format_message())} (see '{command} -h')", err=file is None, file=file)
 
     UsageError.show = show
     if getattr(Command.parse_args, "_names_its_command", False):
