@@ -127,6 +127,9 @@ def test_evaluate_identical_and_degraded_scenes(device, rng, tmp_path):
     assert all(0.0 <= im.min() and im.max() <= 1.0 for im in images["reference"])  # clamped like saved images
     table = format_table(result)
     assert "same" in table and "half" in table and "inf" in table
+    degraded["psnr"]["worst_view"] = "v" + "x" * 5_000_000 + "z"  # a hostile cameras file's name
+    lines = format_table(result).splitlines()  # shown by its ends: no column pads every line to it
+    assert max(len(line) for line in lines) < 200 and lines[-1].endswith("xxz") and "vxx" in lines[-1]
     # one identical view among others: counted as 100 dB in the mean, not inf (which hid the rest)
     mixed = compare_images(images["reference"], [images["reference"][0], *images["tests"][1][1:]], result["view_names"])
     assert mixed["views"][0]["psnr"] == math.inf and mixed["psnr"]["worst"] == pytest.approx(min(per_view[1:]))
