@@ -4,13 +4,17 @@ committed as data.
 
     python tools/adversarial_scenes.py OUT_DIR --count 400000 [--seed 0]
 
-Writes three INRIA 3DGS PLY files (SH degree 0; where not said otherwise, rotations, log-scales in
+Writes four INRIA 3DGS PLY files (SH degree 0; where not said otherwise, rotations, log-scales in
 [-6, -1], opacity logits N(0, 2) and colours N(0, 0.5) as ordinary random splats):
 
 - ``ray.ply``: every centre on the x axis at 10^U(-30, 30): sixty decades, so most squared
   distances between centres are 0 or +inf in float32 (the kNN's work limit).
 - ``bits.ply``: every coordinate a random float32 bit pattern (infinities and NaNs set to 0), as
   random bytes give: every magnitude from 1e-45 to 3e38 about equally often, either sign.
+- ``clusters.ply``: two clusters of ordinary spacing (normal-distributed centres, sigma 1), one at
+  x = +1e30 and one at -1e30 (x rounds to exactly that in float32: each cluster is flat). The
+  scene's extent is 2e30, its neighbours a hundredth apart: measured at the extent's scale, their
+  squared distances would be zero in float32 (the kNN's spacing rule).
 - ``chain.ply``: chains of up to 100,000 alike splats (one colour, one opacity, axis-aligned),
   side by side along y, each along x and spaced ever wider (x_i = 10^(6 i / 100,000)), each splat
   as long as its spacing: merge costs grow along every chain, which would take the GPU's parallel
@@ -73,7 +77,19 @@ def with_centres(centres):
     return make
 
 
-SCENES = {"ray": with_centres(ray_centres), "bits": with_centres(bit_centres), "chain": chain_splats}
+def cluster_centres(n: int, rng: np.random.Generator) -> np.ndarray:
+    centres = rng.normal(size=(n, 3)).astype(np.float32)
+    centres[: n // 2, 0] = np.float32(1e30)
+    centres[n // 2 :, 0] = np.float32(-1e30)
+    return centres
+
+
+SCENES = {
+    "ray": with_centres(ray_centres),
+    "bits": with_centres(bit_centres),
+    "chain": chain_splats,
+    "clusters": with_centres(cluster_centres),
+}
 
 
 def main(argv=None) -> int:
