@@ -315,13 +315,13 @@ def test_measured_points(knn_device):
 def test_knn_of_fine_clusters_far_apart(knn_device, offset):
     """Two clusters of ordinary spacing, 2e30 and 6.8e38 apart: scaled to the cube's usual side, their
     neighbours' squared distances would be zero in float32 (every candidate tied, the graph a list
-    of indices, and each query's search its work limit); measured_points takes a larger scale."""
+    of indices, each query's search far longer); measured_points takes a larger scale."""
     rng = np.random.default_rng(29)
     points = rng.normal(size=(4000, 3))
     points[:2000, 0] += offset
     points[2000:, 0] -= offset
     points = points.astype(np.float32)  # x rounds to +-offset: each cluster is flat
-    measured, (_, quantum, _) = measured_points(wp.array(points, dtype=wp.vec3, device=knn_device))
+    _, (_, quantum, _) = measured_points(wp.array(points, dtype=wp.vec3, device=knn_device))
     assert quantum * 2**21 >= 2.0**40  # the larger scale was taken
     check_against_reference(points, run_knn(points, 16, knn_device), 16)
 
