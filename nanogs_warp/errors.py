@@ -45,15 +45,20 @@ def printable(message: str) -> str:
 LONGEST_LINE = 1000  # characters of a one-line message shown; longer ones lose their middle
 
 
+def elided(text: str, most: int) -> str:
+    """``text``, or where it is longer than ``most`` characters (a value or path of thousands of
+    characters from a hostile file) its start and end, two to one, with how many characters it
+    leaves out between them."""
+    if len(text) <= most:
+        return text
+    head, tail = most * 2 // 3, most // 3
+    return f"{text[:head]}[... {len(text) - head - tail:,} characters ...]{text[-tail:]}"
+
+
 def one_line(message: str) -> str:
-    """``printable(message)``, at most about LONGEST_LINE characters: a longer one (a value or path
-    of thousands of characters from a hostile file) keeps its start and end, where the name and the
-    reason are, and says how much of the middle it leaves out."""
-    line = printable(message)
-    if len(line) <= LONGEST_LINE:
-        return line
-    head, tail = LONGEST_LINE * 2 // 3, LONGEST_LINE // 3
-    return f"{line[:head]}[... {len(line) - head - tail:,} characters ...]{line[-tail:]}"
+    """``printable(message)``, ``elided`` to LONGEST_LINE characters: the name and the reason are at
+    its start and end."""
+    return elided(printable(message), LONGEST_LINE)
 
 
 def out_of_memory(error: BaseException) -> str | None:

@@ -111,9 +111,7 @@ class SplatSet:
         sh_degree_for_features(features.shape[1])
         extras = np.zeros((n, 0), np.float32) if extras is None else _host_rows("extras", extras, 0, n)
         if integer_extras is not None:
-            integer_extras = _host_rows("integer_extras", integer_extras, 0, n)
-        if integer_extras is not None:
-            integer_extras = _whole_numbers("integer_extras", integer_extras)
+            integer_extras = _whole_numbers("integer_extras", _host_rows("integer_extras", integer_extras, 0, n))
         else:  # integer columns given as floats are rounded and clipped (NaN as 0)
             extras, integer_extras = split_integer_extras(np.asarray(extras), layout)
         if validate:

@@ -197,10 +197,11 @@ def measured_points(means: wp.array) -> tuple[wp.array, tuple[wp.vec3, float, fl
     side = quantum * _GRID_CELLS
     if MEASURED_SIDE[0] <= side <= MEASURED_SIDE[1]:
         return means, cube
-    scale = math.ldexp(1.0, -math.frexp(side)[1])
+    exponent = math.frexp(side)[1]  # side in [2^(exponent - 1), 2^exponent)
+    scale = math.ldexp(1.0, -exponent)
     if 0.0 < spacing * scale < FINEST_SPACING:
         needed = math.ldexp(1.0, math.frexp(FINEST_SPACING / spacing)[1])  # spacing * needed >= FINEST_SPACING
-        scale = max(scale, min(needed, math.ldexp(1.0, _LARGEST_MEASURED_EXPONENT - math.frexp(side)[1])))
+        scale = max(scale, min(needed, math.ldexp(1.0, _LARGEST_MEASURED_EXPONENT - exponent)))
     points = wp.empty_like(means)
     wp.launch(knn_kernels.scaled_points, means.shape[0], inputs=[means, scale], outputs=[points], device=means.device)
     corner = wp.vec3(*(float(c) * scale for c in lo))  # float32 corner times a power of two: exact

@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 import warp as wp
 
-from ..errors import InputError
+from ..errors import InputError, elided
 from ..splats import SplatSet
 from . import metrics
 from .cameras import Camera
@@ -173,15 +173,7 @@ def _fmt(value: float, digits: int) -> str:
     return f"{value:.{digits}f}"
 
 
-TABLE_NAME = 48  # characters of a view's name in the table (--json has it whole)
-
-
-def _short(name: str) -> str:
-    """``name`` as the table shows it: a name of more than TABLE_NAME characters (a hostile cameras
-    file's) by its start and end, so that no column pads every line to it."""
-    if len(name) <= TABLE_NAME:
-        return name
-    return f"{name[: TABLE_NAME // 2 - 2]}...{name[-(TABLE_NAME // 2 - 1):]}"
+TABLE_NAME = 48  # characters of a view's name in the table, ``elided`` (--json has it whole)
 
 
 def format_table(result: dict) -> str:
@@ -206,7 +198,7 @@ def format_table(result: dict) -> str:
                 f"{_fmt(t['ssim']['mean'], 4)} / {_fmt(t['ssim']['worst'], 4)}",
                 f"{_fmt(t['fg_psnr']['mean'], 2)} / {_fmt(t['fg_psnr']['worst'], 2)}",
                 shift,
-                _short(str(t["psnr"]["worst_view"])),
+                elided(str(t["psnr"]["worst_view"]), TABLE_NAME),  # no column padded to a hostile name
             ]
         )
     widths = [max(len(r[c]) for r in rows) for c in range(len(header))]

@@ -49,7 +49,7 @@ def draw_text(image: np.ndarray, text: str, x: int, y: int, colour=(0, 0, 0), sc
     last = max(first, min(len(text), (w - x) // step + 1))
     for k, ch in enumerate(text[first:last], start=first):
         mask = np.kron(_glyph(ch), np.ones((scale, scale), dtype=bool))
-        gx, gy = x + k * ADVANCE * scale, y
+        gx, gy = x + k * step, y
         y0, x0 = max(gy, 0), max(gx, 0)
         y1, x1 = min(gy + mask.shape[0], h), min(gx + mask.shape[1], w)
         if y0 >= y1 or x0 >= x1:
