@@ -50,3 +50,20 @@ def outside_log_scales(log_scales):
     import numpy as np
 
     return np.abs(log_scales) > LOG_SCALE_LIMIT
+
+
+def saturate_opacity_logits(logits):
+    """Opacity logits with +Inf / -Inf (alpha exactly 1 / 0) replaced by +/- the largest float32.
+
+    The activated opacity is the same (sigmoid gives exactly 1 and 0 in float32), but the merge and
+    cost kernels' log-sigmoid arithmetic stays finite: two -Inf logits would make the pair's mass
+    weights 0/0. Finite logits are returned bit for bit unchanged.
+    """
+    import numpy as np
+
+    infinite = np.isinf(logits)
+    if not infinite.any():
+        return logits
+    out = np.array(logits, dtype=np.float32, copy=True)
+    out[infinite] = np.copysign(np.finfo(np.float32).max, out[infinite])
+    return out

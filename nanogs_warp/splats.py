@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import warp as wp
 
+from .domain import saturate_opacity_logits
+
 if TYPE_CHECKING:
     from .io.ply_layout import PlyLayout
 
@@ -100,7 +102,7 @@ class SplatSet:
         even) and clipped to their type. Arrays of the wrong shape raise ValueError naming them;
         with ``validate`` (the default), values a scene file may not hold either raise InputError,
         as on reading a file: NaN or infinite values (opacity logits of +-Inf are valid: alpha 1
-        or 0), quaternions of norm 0, log-scales beyond the numeric domain."""
+        or 0, kept as +-the largest float32 as on reading), quaternions of norm 0, log-scales beyond the numeric domain."""
         device = _warp_device(device)
         means = _host_rows("means", means, 3)
         n = means.shape[0]
@@ -116,6 +118,9 @@ class SplatSet:
             extras, integer_extras = split_integer_extras(np.asarray(extras), layout)
         if validate:
             _check_values(means, rotations, log_scales, opacities, features, extras)
+            # logits of +-Inf (alpha 1 and 0) become +-the largest float32, as a file's do on reading
+            with np.errstate(over="ignore"):
+                opacities = saturate_opacity_logits(np.asarray(opacities, dtype=np.float32))
         quat_xyzw = np.ascontiguousarray(np.asarray(rotations, dtype=np.float32)[:, [1, 2, 3, 0]])
 
         def f32(a, shape):

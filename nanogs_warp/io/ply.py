@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import plyfile
 
-from ..domain import LOG_SCALE_LIMIT, not_finite, outside_log_scales, zero_quaternions
+from ..domain import LOG_SCALE_LIMIT, not_finite, outside_log_scales, saturate_opacity_logits, zero_quaternions
 from ..errors import InputError
 from .open_file import open_regular
 from .ply_header import (
@@ -142,21 +142,6 @@ def checked_rows(
             on_drop(f"{name}: dropped {n_bad} of {count} splats ({what})")
     a["opacities"] = saturate_opacity_logits(a["opacities"])
     return a
-
-
-def saturate_opacity_logits(logits: np.ndarray) -> np.ndarray:
-    """Opacity logits with +Inf / -Inf (alpha exactly 1 / 0) replaced by +/- the largest float32.
-
-    The activated opacity is the same (sigmoid gives exactly 1 and 0 in float32), but the merge and
-    cost kernels' log-sigmoid arithmetic stays finite: two -Inf logits would make the pair's mass
-    weights 0/0. Finite logits are returned bit for bit unchanged.
-    """
-    infinite = np.isinf(logits)
-    if not infinite.any():
-        return logits
-    out = np.array(logits, dtype=np.float32, copy=True)
-    out[infinite] = np.copysign(np.finfo(np.float32).max, out[infinite])
-    return out
 
 
 def refuse_empty(splats: SplatSet, path) -> None:
