@@ -7,7 +7,7 @@ import dataclasses
 import math
 import numbers
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence, Set
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -216,7 +216,10 @@ def simplify(
         targets = [whole_count(c) for c in budgets]
     on_device = splats.to(device if device is not None else splats.device)  # a name read as --device reads it
     results = dict(simplify_progressively(on_device, targets, config, finish=finish))
-    outputs = [results[t].clone() if results[t] is splats else results[t] for t in targets]  # never the caller's own set
+    outputs, given_out = [], set()
+    for t in targets:  # never the caller's own set, and a budget given twice gets a copy of its own
+        outputs.append(results[t].clone() if results[t] is splats or t in given_out else results[t])
+        given_out.add(t)
     return outputs if several else outputs[0]
 
 
@@ -237,4 +240,6 @@ def budget_list(value, name: str) -> list:
         raise InputError(f"{name} must be a number, a string or a list of them, got {type(value).__name__}")
     if isinstance(value, (str, numbers.Number)):
         return [value]
+    if isinstance(value, (Set, Mapping)):  # the results come in the budgets' order, which a set has not
+        raise InputError(f"{name} must be a list or tuple of budgets (the results come in their order), got {type(value).__name__}")
     return [scalar(v) for v in value]

@@ -187,6 +187,17 @@ def test_budgets_and_settings_as_numpy_values(splats):
         SimplifyConfig(median_cost_factor=10**400)
 
 
+
+def test_budgets_in_a_set_are_refused_and_a_repeated_budget_gets_its_own_copy(splats):
+    """A set's order changed with PYTHONHASHSEED, and so did the list returned for it; a budget given
+    twice returned the same splat set twice, so changing one result changed the other."""
+    for kwargs in ({"ratio": {0.1, 0.2}}, {"ratios": frozenset({"0.1"})}, {"count": {70: 1}}, {"counts": {70, 7}}):
+        with pytest.raises(InputError, match="must be a list or tuple of budgets"):
+            simplify(splats, **kwargs)
+    first, again, other = simplify(splats, ratio=[0.1, 0.1, 0.01])
+    assert first is not again and same(first, again) and first.means.ptr != again.means.ptr
+    assert [first.count, other.count] == [70, 7]
+
 def test_an_empty_splat_set_converts_to_host_arrays():
     empty = SplatSet.from_numpy(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), device="cpu")
     shapes = {k: v.shape for k, v in empty.to_numpy().items()}
