@@ -114,6 +114,7 @@ class SplatSet:
         extras = np.zeros((n, 0), np.float32) if extras is None else _host_rows("extras", extras, 0, n)
         if integer_extras is not None:
             integer_extras = _whole_numbers("integer_extras", _host_rows("integer_extras", integer_extras, 0, n))
+            _check_integer_types(integer_extras, layout)
         else:  # integer columns given as floats are rounded and clipped (NaN as 0)
             extras, integer_extras = split_integer_extras(np.asarray(extras), layout)
         if validate:
@@ -324,6 +325,22 @@ def _whole_numbers(name: str, values: np.ndarray) -> np.ndarray:
         row, column = np.argwhere(bad)[0]
         raise ValueError(f"{name} must hold whole numbers within int64; row {row}, column {column} holds {values[row, column]}")
     return as_float.astype(np.int64)
+
+
+def _check_integer_types(values: np.ndarray, layout: PlyLayout | None) -> None:
+    """A ValueError where an integer extra lies outside its column's type in ``layout`` (300 in a
+    uchar column): written, it would be clipped to another number."""
+    names = layout.integer_extra_names if layout is not None else []
+    if not names or values.shape[1] != len(names) or not values.size:
+        return
+    dtypes = layout.extra_dtypes()
+    for column, name in enumerate(names):
+        info = np.iinfo(dtypes[name])
+        outside = (values[:, column] < info.min) | (values[:, column] > info.max)
+        if outside.any():
+            row = int(np.argmax(outside))
+            raise ValueError(f"integer_extras column {column} ({name}, {dtypes[name]}) holds {values[row, column]} in row {row}, "
+                             f"outside its type's [{info.min}, {info.max}]")  # fmt: skip
 
 
 def split_integer_extras(extras: np.ndarray, layout: PlyLayout | None) -> tuple[np.ndarray, np.ndarray]:

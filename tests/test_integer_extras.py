@@ -108,6 +108,22 @@ def test_reading_and_writing_keep_every_integer(tmp_path):
     assert out.read_bytes() == src.read_bytes()
 
 
+
+def test_integer_extras_outside_their_columns_type_are_refused(tmp_path):
+    """300 in a uchar column was written as 255 and -1 as 0: carried exactly means refused instead."""
+    hard_scene(tmp_path / "in.ply")
+    splats = load_ply(tmp_path / "in.ply")
+    host = splats.to_numpy()
+    arrays = {k: host[k] for k in ("means", "rotations", "log_scales", "opacities", "features", "extras")}
+    for column, value in ((0, 256), (0, -1), (1, 2**31), (4, 65536)):  # label: uchar, id: int, wide: ushort
+        integers = host["integer_extras"].copy()
+        integers[7, column] = value
+        with pytest.raises(ValueError, match=rf"integer_extras column {column} \({splats.layout.integer_extra_names[column]}"):
+            SplatSet.from_numpy(**arrays, integer_extras=integers, layout=splats.layout, device="cpu")
+    same = SplatSet.from_numpy(**arrays, integer_extras=host["integer_extras"], layout=splats.layout, device="cpu")
+    save_ply(same, tmp_path / "out.ply")
+    assert (tmp_path / "out.ply").read_bytes() == (tmp_path / "in.ply").read_bytes()
+
 def test_files_without_integer_extras_keep_one_float_array():
     splats = load_ply(sample_path())
     assert splats.extras.shape == (20_000, 3) and splats.integer_extras.shape == (20_000, 0)
