@@ -259,6 +259,10 @@ def _warp_device(device) -> wp.Device:
         from .device import resolve_device
 
         return resolve_device(device)
+    if device is not None and not isinstance(device, wp.Device):  # Warp's own ValueError named no option
+        from .errors import InputError
+
+        raise InputError(f"device must be auto, cpu, cuda, cuda:N or a Warp device, got {device!r}")
     return wp.get_device(device)
 
 

@@ -79,6 +79,9 @@ def test_missing_gpu_is_the_packages_error(splats):
         splats.to(missing)
     with pytest.raises(InputError, match=rf"^--device {missing}: "):
         SplatSet.from_numpy(**random_splat_arrays(5, sh_degree=0, seed=1), device=missing)
+    for odd in (0, 1.5, b"cpu"):  # Warp's ValueError "Invalid device identifier" before
+        with pytest.raises(InputError, match="device must be auto, cpu, cuda, cuda:N or a Warp device"):
+            simplify(splats, ratio=0.1, device=odd)
 
 
 def test_arguments_of_the_wrong_kind_are_named(splats, tmp_path):
