@@ -178,6 +178,8 @@ def exact_ratio(ratio: float | str | Decimal | Fraction) -> Fraction:
     else:
         text = repr(float(ratio)) if isinstance(ratio, float) else str(ratio).strip()  # numpy's float64 too
         try:
+            if not text.isascii():  # Decimal reads other scripts' digits ("０.５"); --ratio takes ASCII alone
+                raise ValueError
             decimal = Decimal(text)
         except (InvalidOperation, ValueError):
             raise InputError(f"ratio {ratio!r} is not a number") from None

@@ -73,7 +73,7 @@ def test_float_api_converts_through_its_shortest_repr():
     assert exact_ratio(Fraction(1, 3)) == Fraction(1, 3)
 
 
-@pytest.mark.parametrize("bad", [0.0, -0.1, 1.0000001, float("nan"), float("inf"), "abc", "", "1/2"])
+@pytest.mark.parametrize("bad", [0.0, -0.1, 1.0000001, float("nan"), float("inf"), "abc", "", "1/2", "０.５", "0.\u0665"])  # other scripts' digits: as --ratio
 def test_bad_ratios(bad):
     with pytest.raises(InputError):
         target_count(100, bad)
