@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, fields, replace
 from typing import TYPE_CHECKING
 
@@ -204,8 +205,9 @@ class SplatSet:
         """This splat set with spherical harmonics up to ``degree`` only (0: the base colour alone),
         its other arrays shared; itself when its degree is not above ``degree``. The kept
         coefficients are copied exactly: f_dc, then each channel's first (degree + 1)^2 - 1 f_rest."""
-        if not 0 <= degree <= 3:
-            raise ValueError(f"an SH degree is 0 to 3, got {degree}")
+        if isinstance(degree, bool) or not isinstance(degree, numbers.Integral) or not 0 <= degree <= 3:
+            raise ValueError(f"an SH degree is a whole number from 0 to 3, got {degree!r}")
+        degree = int(degree)
         own = self.sh_degree
         if degree >= own:
             return self

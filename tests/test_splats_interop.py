@@ -88,5 +88,7 @@ def test_fewer_sh_bands_keep_each_channels_first_coefficients(tmp_path, device):
             expected = [vertex[f"f_dc_{c}"] for c in range(3)]
             expected += [vertex[f"f_rest_{c * ((own + 1) ** 2 - 1) + j}"] for c in range(3) for j in range(k - 1)]
             np.testing.assert_array_equal(f, np.stack(expected, axis=1))
-    with pytest.raises(ValueError, match="0 to 3"):
-        splats.with_sh_degree(4)
+    for bad in (4, -1, True, 1.0, "0"):  # True and 1.0 were taken as 1, "0" raised a bare comparison TypeError
+        with pytest.raises(ValueError, match="a whole number from 0 to 3"):
+            splats.with_sh_degree(bad)
+    assert splats.with_sh_degree(np.int64(1)).sh_degree == 1
