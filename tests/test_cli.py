@@ -454,6 +454,30 @@ def test_a_closed_stdout_is_not_an_error(scene, tmp_path):
         assert result.returncode == 2 and result.stderr.strip() == "nanogs-warp: error: cannot write the command's output: No space left on device"
 
 
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full")
+@pytest.mark.parametrize("args", [["--help"], ["--version"], ["simplify", "--help"], ["info", "-h"]])
+def test_help_to_a_full_disk_is_one_line(args):
+    """Help and the version are printed before any command runs: a full disk was a traceback, exit 1."""
+    with open("/dev/full", "w") as full:
+        result = subprocess.run([sys.executable, "-m", "nanogs_warp", *args], stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
+    assert result.returncode == 2 and result.stderr == "nanogs-warp: error: cannot write the command's output: No space left on device\n"
+
+
+def test_a_command_started_with_every_standard_stream_closed_reads_its_input(scene, tmp_path):
+    """<&- >&- 2>&-: the input file was opened as descriptor 2, which Warp's start then pointed at a
+    file of its own and back, so the read found "the file is empty" (exit 2, no output)."""
+    out = tmp_path / "o.ply"
+    command = [sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out), "--ratio", "0.5", "--device", "cpu"]
+    closed = subprocess.run(["bash", "-c", '"$@" <&- >&- 2>&-', "_", *command], capture_output=True, text=True, timeout=300)
+    assert closed.returncode == 0 and out.exists()
+    # the race, made certain: the first file opened after the console script's start is not on 0-2
+    probe = ("import sys\nfrom nanogs_warp.cli.entry import _open_standard_descriptors\n_open_standard_descriptors()\n"
+             "f = open(sys.argv[1], 'rb')\nopen(sys.argv[2], 'w').write(str(f.fileno()))")  # fmt: skip
+    fd_file = tmp_path / "fd.txt"
+    subprocess.run(["bash", "-c", '"$@" <&- >&- 2>&-', "_", sys.executable, "-c", probe, str(scene), str(fd_file)], timeout=120)
+    assert int(fd_file.read_text()) >= 3
+
 @pytest.mark.parametrize("value, on", [("", False), ("0", False), ("1", True), ("yes", True)])
 def test_debugging_is_off_for_zero(monkeypatch, value, on):
     from nanogs_warp.errors import debugging

@@ -93,3 +93,44 @@ def test_what_a_killed_simplify_left_goes_with_the_next_run(tmp_path):
         path.write_bytes(b"partial")
     subprocess.run([*command, "-w"], check=True, timeout=300)
     assert sorted(p.name for p in out.iterdir()) == sorted(["o.ply", live.name, *(p.name for p in others)])
+
+
+def test_a_batch_worker_given_two_signals_at_once_ends_quietly():
+    """A process group's Ctrl-C and the batch's SIGTERM arrive together: the worker's handler had set
+    SIG_IGN for the second one, which was already pending, and CPython raised "OSError: Signal 15
+    ignored due to race condition" in place of the SystemExit, a traceback from the worker."""
+    code = (
+        "import os, signal, time\n"
+        "from nanogs_warp.batch.local import _end_on_signals\n"
+        "_end_on_signals()\n"
+        "pair = {signal.SIGTERM, signal.SIGINT}\n"
+        "try:\n"
+        "    try:\n"
+        "        signal.pthread_sigmask(signal.SIG_BLOCK, pair)\n"
+        "        os.kill(os.getpid(), signal.SIGTERM)\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "        signal.pthread_sigmask(signal.SIG_UNBLOCK, pair)  # both delivered at once\n"
+        "        time.sleep(5)\n"
+        "    finally:\n"
+        "        time.sleep(0.2)  # the scene being written is finished here\n"
+        "except SystemExit as e:\n"
+        "    print('ended', e.code)\n"
+    )  # fmt: skip
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stdout.split() == ["ended", "130"] and result.stderr == "", result.stderr
+
+
+def test_ctrl_c_while_the_command_is_imported_ends_it_without_a_traceback(tmp_path):
+    """SIGINT in the command's first tenth of a second (the imports, the command line's parsing) gave
+    a KeyboardInterrupt traceback; now exit code 130 and nothing on stderr. Later, click's own."""
+    scene = tmp_path / "s.ply"
+    random_splats_ply(scene, 2000, seed=3)
+    for delay in (0.03, 0.08, 0.15):
+        process = subprocess.Popen([sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(tmp_path / "o.ply"),
+                                    "--ratio", "0.1", "--device", "cpu"], stderr=subprocess.PIPE, text=True)  # fmt: skip
+        time.sleep(delay)
+        process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=120)
+        assert "Traceback" not in err, err
+        assert process.returncode in (0, 1, 130), (delay, process.returncode, err)  # 0: done first; 1: click's "Aborted!"
+    assert not list(tmp_path.glob(".*.tmp"))

@@ -380,9 +380,15 @@ def _end_on_signals() -> None:
     died at once, leaving the temporary files of the outputs they were writing."""
     names = [name for name in ("SIGTERM", "SIGHUP", "SIGINT") if hasattr(signal, name)]
 
+    def ignore(signum, frame):
+        pass
+
     def end(signum, frame):
+        # a no-op handler, not SIG_IGN: a second signal already pending (a process group's SIGINT and
+        # the batch's SIGTERM) then raised "OSError: Signal 15 ignored due to race condition" in
+        # place of the SystemExit, and the worker ended with a traceback, its scene unfinished
         for name in names:
-            signal.signal(getattr(signal, name), signal.SIG_IGN)
+            signal.signal(getattr(signal, name), ignore)
         raise SystemExit(128 + signum)
 
     for name in names:

@@ -3,6 +3,8 @@ in this package, the only one that knows about paths, terminals and exit codes."
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
 import sys
 import time
@@ -506,7 +508,16 @@ def main() -> None:
     tearing down Warp's modules and device memory (a tenth of a second on the CPU, more with a
     GPU) would only add to the command's wall time."""
     try:
-        app()
+        try:
+            app()
+        except KeyboardInterrupt:  # Ctrl-C while the command line is being read (a command's own is click's)
+            raise SystemExit(130) from None
+        except OSError as e:  # --help or --version to a closed pipe or a full disk, before any command runs
+            if e.errno not in (errno.EPIPE, errno.ENOSPC, errno.EIO, errno.EBADF):
+                raise
+            with contextlib.suppress(OSError):
+                sys.stderr.write(f"nanogs-warp: error: cannot write the command's output: {e.strerror}\n")
+            raise SystemExit(2) from None
     except SystemExit as e:
         code = e.code
         if code is not None and not isinstance(code, int):

@@ -2,14 +2,13 @@
 a background thread first (:mod:`.cuda_prestart`), has SIGTERM and SIGHUP end the command as an
 interrupt does, then imports and runs the command.
 
-Python's garbage collector is paused first, for the command's imports (:mod:`.gc_pause`)."""
+Python's garbage collector is paused first, for the command's imports (:mod:`.gc_pause`). Only the
+interpreter's built-in modules are imported here, so that a Ctrl-C during the imports ends the
+command quietly (exit code 130) instead of with a traceback."""
 
 import os
 import signal
 import sys
-
-from .cuda_prestart import start_cuda_early
-from .gc_pause import pause_gc
 
 
 def _end_command(signum, frame) -> None:
@@ -19,15 +18,33 @@ def _end_command(signum, frame) -> None:
     raise SystemExit(128 + signum)
 
 
-def main() -> None:
-    pause_gc()
-    for name in ("stdout", "stderr"):  # started with one closed (>&-): what goes there is discarded
+def _open_standard_descriptors() -> None:
+    """Standard streams the command was started without (``<&- >&- 2>&-``) opened on the null
+    device. A closed descriptor 0, 1 or 2 would be the next file's: Warp's start, which briefly
+    points descriptor 2 at a file of its own, then swapped the input file out from under the read."""
+    for fd in (0, 1, 2):
+        try:
+            os.fstat(fd)
+        except OSError:
+            os.open(os.devnull, os.O_RDWR)  # the lowest free descriptor: this one
+    for name in ("stdout", "stderr"):  # what goes to a stream the command was started without is discarded
         if getattr(sys, name) is None:
-            setattr(sys, name, open(os.devnull, "w"))
-    start_cuda_early()
-    for name in ("SIGTERM", "SIGHUP"):
-        if hasattr(signal, name):
-            signal.signal(getattr(signal, name), _end_command)
-    from .app import main as run_command
+            setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 - the process's own stream
 
+
+def main() -> None:
+    try:
+        _open_standard_descriptors()
+        from .gc_pause import pause_gc
+
+        pause_gc()
+        from .cuda_prestart import start_cuda_early
+
+        start_cuda_early()
+        for name in ("SIGTERM", "SIGHUP"):
+            if hasattr(signal, name):
+                signal.signal(getattr(signal, name), _end_command)
+        from .app import main as run_command
+    except KeyboardInterrupt:  # Ctrl-C while the command is still being imported: nothing was started
+        os._exit(130)
     run_command()
