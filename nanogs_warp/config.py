@@ -38,7 +38,7 @@ class SimplifyConfig:
     generated stress scenes (docs/quality.md): the coverage merge operator, the field cost, at most
     45 % of the splats merged a pass and no pair above 3 times the pass's median pair cost, no
     opacity pruning, k = None: 24 neighbours below 65,536 splats, 16 from there on, and the size
-    fit of the outputs at or below 1 % of the input. ``SimplifyConfig.paper()`` is
+    and geometry fits of the outputs at or below 1 % of the input. ``SimplifyConfig.paper()`` is
     the NanoGS paper's configuration (``--preset paper``).
 
     ``pass_fraction``: at most this fraction of the current splats merge in one pass, the cheapest
@@ -52,6 +52,10 @@ class SimplifyConfig:
     ``fit_size``: each output of at most 1 % of the input's splats has its splats' axes scaled by
     the one factor whose renders match the input's best at a coarse and at a fine pixel size
     (``refinement.size_fit``); the merging itself, and every larger output, is unchanged.
+
+    ``fit_geometry``: each of those outputs then has its splats' centres, rotations and scales (not
+    their opacity or colour) fitted to renders of the input from cameras around it, a short
+    refinement kept only where it renders held-out views of the input better (``refinement.size_fit``).
     """
 
     k: int | None = None
@@ -65,6 +69,7 @@ class SimplifyConfig:
     pass_fraction: float = 0.45
     median_cost_factor: float = 3.0
     fit_size: bool = True
+    fit_geometry: bool = True
 
     def __post_init__(self):
         self.validate()  # a bad configuration fails where it is built, not where it runs
@@ -126,7 +131,7 @@ MAX_SEED = 2**31 - 1  # the kernels take the seed as a 32-bit integer
 # What each field of SimplifyConfig holds: "int" and "number" exclude bool.
 _FIELD_KINDS = {"k": "int|None", "prune_opacity": "number", "samples": "int", "seed": "int", "lambda_geo": "number",
                 "lambda_app": "number", "cost": "str", "operator": "str", "pass_fraction": "number",
-                "median_cost_factor": "number", "fit_size": "bool"}  # fmt: skip
+                "median_cost_factor": "number", "fit_size": "bool", "fit_geometry": "bool"}  # fmt: skip
 
 
 def check_types(settings, kinds: dict[str, str]) -> None:
@@ -164,9 +169,9 @@ MIN_PASS_FRACTION = 0.05
 # budgets, worse on meshes and flat opaque content; docs/quality.md) and the NanoGS paper's own.
 PRESETS: dict[str, dict] = {
     "default": {},
-    "fast": {"cost": "runnalls", "pass_fraction": 0.5, "median_cost_factor": 0.0, "fit_size": False},
+    "fast": {"cost": "runnalls", "pass_fraction": 0.5, "median_cost_factor": 0.0, "fit_size": False, "fit_geometry": False},
     "paper": {"k": 16, "prune_opacity": 0.1, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5, "median_cost_factor": 0.0,
-              "fit_size": False},
+              "fit_size": False, "fit_geometry": False},
 }
 
 

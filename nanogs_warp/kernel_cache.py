@@ -36,7 +36,8 @@ def simplify_modules(config=None) -> tuple[str, ...]:
         return SIMPLIFY_MODULES
     cost = "field_cost" if config.cost == "field" else "cost"
     prune = ("prune",) if config.prune_opacity > 0 else ()
-    fit = ("splat_size", "render") if config.fit_size else ()
+    fit = ("splat_size", "render") if config.fit_size or config.fit_geometry else ()
+    fit += tuple(m for m in REFINE_MODULES if m not in fit) if config.fit_geometry else ()
     optional = ("cost", "field_cost", "prune", "splat_size")
     return tuple(m for m in SIMPLIFY_MODULES if m not in optional) + (cost,) + prune + fit
 

@@ -140,10 +140,11 @@ def test_huge_splats_are_not_fitted(device, monkeypatch):
 
 
 def test_simplify_fits_by_default_and_only_there(device):
-    """``nanogs_warp.simplify`` is the merge, then the fit of the outputs at or below 1 %; the paper
-    and fast presets and fit_size=False are the merge alone."""
+    """``nanogs_warp.simplify`` is the merge, then the fits of the outputs at or below 1 % (here the
+    size fit alone; the geometry fit after it: tests/test_geometry_fit.py); the paper and fast
+    presets and fit_size=False are the merge alone."""
     splats = blob(3000, 15, device, log_scale=(-4.0, -2.5))
-    fitted = simplify(splats, ratio=[0.1, 0.01, 0.005])
+    fitted = simplify(splats, ratio=[0.1, 0.01, 0.005], config=SimplifyConfig(fit_geometry=False))
     merged = simplify_merged(splats, ratio=[0.1, 0.01, 0.005])
     np.testing.assert_array_equal(fitted[0].log_scales.numpy(), merged[0].log_scales.numpy())  # above 1 %
     for f, m in zip(fitted[1:], merged[1:]):
@@ -152,9 +153,10 @@ def test_simplify_fits_by_default_and_only_there(device):
         assert any(size_fit.STEP**k == pytest.approx(ratio.flat[0], rel=1e-5) for k in range(-size_fit.MOST_STEPS, size_fit.MOST_STEPS + 1))
         for name in ("means", "rotations", "opacities", "features"):
             np.testing.assert_array_equal(getattr(f, name).numpy(), getattr(m, name).numpy())
-    unfitted = simplify(splats, ratio=0.01, config=SimplifyConfig(fit_size=False))
+    unfitted = simplify(splats, ratio=0.01, config=SimplifyConfig(fit_size=False, fit_geometry=False))
     np.testing.assert_array_equal(unfitted.log_scales.numpy(), simplify_merged(splats, ratio=0.01).log_scales.numpy())
-    assert not SimplifyConfig.paper().fit_size and not SimplifyConfig.preset("fast").fit_size
+    for preset in (SimplifyConfig.paper(), SimplifyConfig.preset("fast")):
+        assert not preset.fit_size and not preset.fit_geometry
 
 
 def test_cli_reports_the_factor(tmp_path):
@@ -166,8 +168,12 @@ def test_cli_reports_the_factor(tmp_path):
     assert result.exit_code == 0, result.output
     outputs = json.loads(result.stdout)["outputs"]
     assert "size_factor" not in outputs[0] and outputs[1]["size_factor"] > 0
-    assert json.loads(result.stdout)["settings"]["fit_size"] is True
-    result = runner.invoke(app, ["simplify", str(source), "-o", str(tmp_path / "n.ply"), "--ratio", "0.01", "--device", "cpu", "--json",
-                                 "--no-fit-size"])  # fmt: skip
-    assert result.exit_code == 0, result.output
-    assert "size_factor" not in json.loads(result.stdout)["outputs"][0]
+    assert "geometry_fit" not in outputs[0] and isinstance(outputs[1]["geometry_fit"], bool)
+    settings = json.loads(result.stdout)["settings"]
+    assert settings["fit_size"] is True and settings["fit_geometry"] is True
+    for flags, keys in ((["--no-fit-size"], {"geometry_fit"}), (["--no-fit-geometry"], {"size_factor"}),
+                        (["--no-fit-size", "--no-fit-geometry"], set())):  # fmt: skip
+        result = runner.invoke(app, ["simplify", str(source), "-o", str(tmp_path / "n.ply"), "--ratio", "0.01", "--device", "cpu",
+                                     "--json", "-w", *flags])  # fmt: skip
+        assert result.exit_code == 0, result.output
+        assert keys == {"size_factor", "geometry_fit"} & set(json.loads(result.stdout)["outputs"][0])

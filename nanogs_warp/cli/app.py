@@ -104,6 +104,7 @@ def simplify(
     pass_fraction: opts.PassFraction = None,
     median_cost_factor: opts.MedianCostFactor = None,
     fit_size: opts.FitSize = None,
+    fit_geometry: opts.FitGeometry = None,
     drop_invalid: opts.DropInvalid = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
@@ -125,7 +126,7 @@ def simplify(
     config = opts.method_config(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
         lambda_app=lambda_app, cost=cost, operator=operator, pass_fraction=pass_fraction,
-        median_cost_factor=median_cost_factor, fit_size=fit_size,
+        median_cost_factor=median_cost_factor, fit_size=fit_size, fit_geometry=fit_geometry,
     )
     config.validate()  # before anything is started or read
     opts.check_sh_degree(sh_degree)
@@ -364,7 +365,10 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
             written.append({"path": str(paths[budget].resolve()), "budget": budget.label, "count": result.count,
                             "passes": len(passes), "seconds": round(reached - loaded, 4)})  # fmt: skip
             if size_fit is not None and size_fit.applies(result.count):
-                written[-1]["size_factor"] = round(size_fit.factors[result.count], 6)
+                if size_fit.size:
+                    written[-1]["size_factor"] = round(size_fit.factors[result.count], 6)
+                if size_fit.geometry:
+                    written[-1]["geometry_fit"] = size_fit.geometry_kept.get(result.count, False)
             if report is not None:
                 written[-1]["refine"] = report.to_json()
         smaller = [t for t in budgets_for_target if t < target]

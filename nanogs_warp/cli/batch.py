@@ -48,6 +48,7 @@ def batch_command(
     pass_fraction: opts.PassFraction = None,
     median_cost_factor: opts.MedianCostFactor = None,
     fit_size: opts.FitSize = None,
+    fit_geometry: opts.FitGeometry = None,
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values, zero quaternions or log-scales beyond +-100 instead of failing the scene.")] = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
@@ -69,6 +70,7 @@ def batch_command(
     method_options = dict(
         k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo, lambda_app=lambda_app,
         cost=cost, operator=operator, pass_fraction=pass_fraction, median_cost_factor=median_cost_factor, fit_size=fit_size,
+        fit_geometry=fit_geometry,
     )  # fmt: skip
     config = opts.method_config(preset, **method_options)
     config.validate()

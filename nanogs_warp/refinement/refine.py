@@ -142,8 +142,12 @@ class ReferenceViews:
     the default 128 views of 256 pixels). Made on first use (``render``), so one can be made for a
     run before it is known to be needed."""
 
-    def __init__(self, reference: SplatSet, config: RefineConfig, device=None):
-        self.source, self.config = reference, config
+    def __init__(self, reference: SplatSet, config: RefineConfig, device=None, sample=None):
+        """``sample``: centres of ``reference`` (a strided subset) that place the cameras, for a
+        scene the caller knows is rendered as it is (``eval.units``: in rendered units, near the
+        origin), as the size fit does; None: every centre, the scene rescaled or recentred where
+        ``eval`` would render it so (on millions of splats, seconds of host work)."""
+        self.source, self.config, self.sample = reference, config, sample
         self.device = wp.get_device(device if device is not None else reference.device)
         self.cameras: list | None = None  # None until rendered
         self.scale, self.offset, self.reference, self.extent = 1.0, None, reference, 1.0
@@ -159,13 +163,16 @@ class ReferenceViews:
         if self.cameras is not None:
             return 0.0
         started = time.perf_counter()
-        # a scene in units of ~1e20 or ~1e-20, or far from the origin for its size: optimised
-        # rescaled and recentred (eval/units.py), and handed back where it was
-        self.offset = render_offset(self.source)
-        self.scale = render_units(rescaled(self.source, 1.0, self.offset))
-        self.reference = rescaled(self.source, self.scale, self.offset).to(self.device)
+        if self.sample is not None:
+            self.reference, means = self.source.to(self.device), np.asarray(self.sample)
+        else:
+            # a scene in units of ~1e20 or ~1e-20, or far from the origin for its size: optimised
+            # rescaled and recentred (eval/units.py), and handed back where it was
+            self.offset = render_offset(self.source)
+            self.scale = render_units(rescaled(self.source, 1.0, self.offset))
+            self.reference = rescaled(self.source, self.scale, self.offset).to(self.device)
+            means = self.reference.means.numpy()
         c = self.config
-        means = self.reference.means.numpy()
         _, p90, _ = scene_spread(means)
         self.extent = 2.2 * p90  # the scene's extent, which scales the means' learning rate
         pool = max(1, min(c.reference_views, c.steps * c.views_per_step))
@@ -261,12 +268,16 @@ def refine_with_report(
     on_step: Callable[[int, int], None] | None = None,
     timing: bool = False,
     views: ReferenceViews | None = None,
+    checkpoints: tuple[float, ...] = CHECKPOINTS,
+    training_loss: bool = True,
 ) -> tuple[SplatSet, RefineReport]:
     """``refine``, also returning what it did. ``on_step(step, steps)`` is called after each step;
     ``timing`` synchronises the device between phases so that the per-phase seconds are exact.
     ``views``: the original's renders shared with other refinements toward the same ``reference``
     with the same ``config`` and ``device`` (``ReferenceViews``; made here when None). The result
-    is the same bytes either way."""
+    is the same bytes either way. ``checkpoints``: the fractions of the run at which the held-out
+    loss is measured; ``training_loss``: whether the report measures the training loss before and
+    after (renders of ``LOSS_VIEWS`` views each; NaN when not)."""
     for name, value in (("simplified", simplified), ("reference", reference)):
         if not isinstance(value, SplatSet):
             raise TypeError(f"{name} must be a SplatSet (nanogs_warp.load_ply reads one from a file), got {type(value).__name__}")
@@ -290,14 +301,15 @@ def refine_with_report(
         cameras, targets = views.cameras, views.targets
         pool = len(cameras)
         report.views = pool
-        loss_views = min(LOSS_VIEWS, pool)
-        report.loss_before = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
+        loss_views = min(LOSS_VIEWS, pool) if training_loss else 0
+        if loss_views:
+            report.loss_before = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
         # The held-out views: the run returns the checkpoint (or the input) that renders them best,
         # so a run that overfits its training views never hands back a scene worse than it started.
         held_out, held_out_targets = views.held_out, views.held_out_targets
         report.validation_before = report.validation_after = refiner.mean_loss(held_out, held_out_targets)
         best = _copy(refiner.splats, device)
-        checkpoints = {max(1, round(f * config.steps)) for f in CHECKPOINTS}
+        checkpoints = {max(1, round(f * config.steps)) for f in checkpoints}
 
         rng = np.random.default_rng([config.seed, 0xADA])
         order: list[int] = []
@@ -336,7 +348,8 @@ def refine_with_report(
         if report.kept_step != config.steps:
             for target, source in zip(refiner.splats.arrays(), best.arrays()):
                 wp.copy(target, source)
-        report.loss_after = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
+        if loss_views:
+            report.loss_after = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
         out = rescaled(best, 1.0 / views.scale, None if views.offset is None else -views.offset * views.scale)
     finally:
         refiner.close()

@@ -93,30 +93,45 @@ def _psnr(reference: wp.array, test: wp.array) -> float:
 
 
 class SizeFit:
-    """Fits the outputs of one run against ``reference`` (the run's input, on the device it runs on)."""
+    """Fits the outputs of one run against ``reference`` (the run's input, on the device it runs on):
+    for size (``size``, ``fitted``), then, with ``geometry``, their geometry (``GeometryFit``)."""
 
-    def __init__(self, reference: SplatSet, seed: int = 0):
+    def __init__(self, reference: SplatSet, seed: int = 0, size: bool = True, geometry: bool = False):
         self.reference = reference
         self.seed = int(seed)
+        self.size, self.geometry = size, geometry
         self.largest = target_count(reference.count, FIT_BELOW)
+        self._means: np.ndarray | None = None  # the centres that place the cameras (``sampled_means``)
         self._cameras: list | None = None
         self._images: tuple[wp.array, wp.array] | None = None  # the input's coarse and fine views, on its device
         self._skip = False
+        self._geometry_fit = None
         self.factors: dict[int, float] = {}  # count -> factor of each output fitted so far
+        self.geometry_kept: dict[int, bool] = {}  # count -> whether its geometry fit was kept
 
     def applies(self, count: int) -> bool:
         return count <= self.largest
 
-    def _prepare(self) -> bool:
-        """Cameras and the input's renders, once; False where the scene is not fitted."""
+    def _in_frame(self) -> bool:
+        """The centres that place the cameras, once; False where the scene is not fitted (one that
+        ``eval`` would render rescaled or recentred)."""
         if self._skip:
             return False
-        if self._images is None:
+        if self._means is None:
             means = sampled_means(self.reference)
             centre, radius = scene_frame(means)
             if far_from_origin(centre, radius) or not in_rendered_units(radius):
                 self._skip = True
                 return False
+            self._means = means
+        return True
+
+    def _prepare(self) -> bool:
+        """Cameras and the input's renders, once; False where the scene is not fitted."""
+        if not self._in_frame():
+            return False
+        if self._images is None:
+            means = self._means
             coarse, fine = fit_cameras(means, self.seed)
             self._cameras = [coarse, fine]
             try:
@@ -151,9 +166,27 @@ class SizeFit:
         return [(0.0, 0.0) if f == 1.0 else self._scores(resized(splats, f), base) for f in factors]
 
     def __call__(self, splats: SplatSet) -> SplatSet:
-        """The fitted splat set (``splats`` itself when no factor gains); its factor goes to ``factors``."""
-        fitted, factor = self.fitted(splats)
+        """The fitted splat set (``splats`` itself when nothing gains); its factor goes to ``factors``
+        and, with ``geometry``, whether its geometry fit was kept to ``geometry_kept``."""
+        fitted, factor = self.fitted(splats) if self.size else (splats, 1.0)
         self.factors[splats.count] = factor
+        if self.geometry and self.applies(splats.count) and self._in_frame():
+            fitted = self._fit_geometry(fitted)
+        return fitted
+
+    def _fit_geometry(self, splats: SplatSet) -> SplatSet:
+        """``GeometryFit`` of ``splats`` (its input views made for the first output); ``splats`` itself
+        where the input's views would not fit the device's memory."""
+        from .geometry_fit import GeometryFit
+
+        if self._geometry_fit is None:
+            self._geometry_fit = GeometryFit(self.reference, self._means, self.seed)
+        try:
+            fitted = self._geometry_fit(splats)
+        except InputError:  # the views would not fit the device's memory: not fitted
+            self.geometry_kept[splats.count] = False
+            return splats
+        self.geometry_kept[splats.count] = self._geometry_fit.kept[splats.count]
         return fitted
 
     def fitted(self, splats: SplatSet) -> tuple[SplatSet, float]:
@@ -198,5 +231,8 @@ def best_step(gain) -> int:
 
 
 def size_fit_for(splats: SplatSet, config) -> SizeFit | None:
-    """The size fit of a run on ``splats`` with ``config`` (a SimplifyConfig), or None without one."""
-    return SizeFit(splats, config.seed) if config.fit_size else None
+    """The size and geometry fits of a run on ``splats`` with ``config`` (a SimplifyConfig), or None
+    without either."""
+    if not (config.fit_size or config.fit_geometry):
+        return None
+    return SizeFit(splats, config.seed, size=config.fit_size, geometry=config.fit_geometry)

@@ -1,0 +1,79 @@
+"""The geometry fit (``refinement/geometry_fit.py``): a short refinement of the small outputs' centres,
+rotations and scales toward renders of the input, kept only where the held-out views render better.
+Its rasteriser, loss and optimiser have their own float64 references (tests/test_render_grad.py,
+tests/test_image_loss.py, tests/test_refine.py); here, what the fit may change and when it keeps it."""
+
+from __future__ import annotations
+
+import numpy as np
+from test_size_fit import blob
+
+from nanogs_warp import SimplifyConfig, simplify
+from nanogs_warp.refinement import geometry_fit, size_fit
+from nanogs_warp.refinement.refine import refine_with_report
+
+GEOMETRY = ("means", "rotations", "log_scales")
+APPEARANCE = ("opacities", "features", "extras", "integer_extras")
+
+
+def test_the_default_fits_the_small_outputs_geometry_and_nothing_else(device):
+    """Against the size fit alone: the 10 % output unchanged, the 1 % and 0.5 % ones with other
+    centres, rotations and scales, their opacities and colours the same bits."""
+    splats = blob(3000, 15, device, log_scale=(-4.0, -2.5))
+    fitted = simplify(splats, ratio=[0.1, 0.01, 0.005])
+    sized = simplify(splats, ratio=[0.1, 0.01, 0.005], config=SimplifyConfig(fit_geometry=False))
+    for name in GEOMETRY + APPEARANCE:
+        np.testing.assert_array_equal(getattr(fitted[0], name).numpy(), getattr(sized[0], name).numpy())
+    for f, s in zip(fitted[1:], sized[1:]):
+        assert any(not np.array_equal(getattr(f, name).numpy(), getattr(s, name).numpy()) for name in GEOMETRY)
+        for name in APPEARANCE:
+            np.testing.assert_array_equal(getattr(f, name).numpy(), getattr(s, name).numpy())
+        assert np.isfinite(f.means.numpy()).all() and np.isfinite(f.log_scales.numpy()).all()
+    again = simplify(splats, ratio=[0.1, 0.01, 0.005])  # the same bytes every run
+    for a, b in zip(fitted, again):
+        for name in GEOMETRY:
+            assert getattr(a, name).numpy().tobytes() == getattr(b, name).numpy().tobytes()
+
+
+def test_an_output_made_too_large_is_shrunk_back_and_kept(device):
+    """The input itself with every axis 1.65 times too long: the fit's held-out loss falls, so the
+    fitted geometry is kept, and the scales come back toward the input's."""
+    reference = blob(400, 21, device, log_scale=(-3.0, -2.0))
+    grown = size_fit.resized(reference.clone(), 1.65)
+    fit = geometry_fit.GeometryFit(reference, size_fit.sampled_means(reference))
+    out = fit(grown)
+    assert fit.kept[400]
+    truth = reference.log_scales.numpy().astype(np.float64)
+    before = np.abs(grown.log_scales.numpy() - truth).mean()
+    after = np.abs(out.log_scales.numpy() - truth).mean()
+    assert after < 0.8 * before
+    for name in APPEARANCE:
+        np.testing.assert_array_equal(getattr(out, name).numpy(), getattr(grown, name).numpy())
+
+
+def test_nothing_better_to_find_keeps_the_output_as_it_was(device):
+    """The input fitted against itself renders every view exactly: nothing lowers the held-out loss,
+    so the output comes back as it was, bit for bit."""
+    reference = blob(300, 22, device)
+    fit = geometry_fit.GeometryFit(reference, size_fit.sampled_means(reference))
+    out = fit(reference.clone())
+    assert not fit.kept[300]
+    for name in GEOMETRY + APPEARANCE:
+        np.testing.assert_array_equal(getattr(out, name).numpy(), getattr(reference, name).numpy())
+
+
+def test_the_fit_is_refinement_with_appearance_frozen(device):
+    """``geometry_config`` is ``refine``'s own loop: the same bytes as refine_with_report with the
+    opacity and colour learning rates at 0 and one checkpoint."""
+    reference = blob(400, 23, device, log_scale=(-3.0, -2.0))
+    output = simplify(reference, ratio=0.05, config=SimplifyConfig(fit_size=False, fit_geometry=False))
+    fit = geometry_fit.GeometryFit(reference, size_fit.sampled_means(reference))
+    fitted = fit(output)
+    config = geometry_fit.geometry_config()
+    assert (config.steps, config.reference_views, config.lr_opacities, config.lr_features_dc, config.lr_features_rest) == (
+        geometry_fit.STEPS, geometry_fit.VIEWS, 0.0, 0.0, 0.0)
+    direct, report = refine_with_report(output, reference, config, checkpoints=(1.0,), training_loss=False,
+                                        views=geometry_fit.ReferenceViews(reference, config, sample=size_fit.sampled_means(reference)))  # fmt: skip
+    assert report.kept_step in (0, config.steps) and fit.kept[output.count] == (report.kept_step > 0)
+    for name in GEOMETRY + APPEARANCE:
+        assert getattr(fitted, name).numpy().tobytes() == getattr(direct, name).numpy().tobytes()
