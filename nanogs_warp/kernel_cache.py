@@ -30,8 +30,9 @@ ALL_MODULES = SIMPLIFY_MODULES + EVAL_MODULES + REFINE_MODULES[1:]
 
 def simplify_modules(config=None) -> tuple[str, ...]:
     """The kernel modules a simplification with ``config`` (a SimplifyConfig) launches: its cost's
-    module, pruning only when it prunes and the size fit (with the renderer) only when it fits
-    (None: every one of SIMPLIFY_MODULES). A module left out would still load when first launched."""
+    module, pruning only when it prunes, the size fit (with the renderer) only when it fits and
+    refinement's modules when it fits the geometry (None: every one of SIMPLIFY_MODULES). A module
+    left out would still load when first launched."""
     if config is None:
         return SIMPLIFY_MODULES
     cost = "field_cost" if config.cost == "field" else "cost"
