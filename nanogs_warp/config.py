@@ -55,7 +55,7 @@ class SimplifyConfig:
 
     ``fit_geometry``: each of those outputs then has its splats' centres, rotations and scales (not
     their opacity or colour) fitted to renders of the input from cameras around it, a short
-    refinement kept only where it renders held-out views of the input better (``refinement.size_fit``).
+    refinement kept only where it renders held-out views of the input better (``refinement.geometry_fit``).
     """
 
     k: int | None = None
