@@ -198,13 +198,17 @@ def _force_load(modules: list, devices: list, to_compile: int) -> None:
     import warp as wp
 
     workers = min(to_compile, os.cpu_count() or 1)
-    wp.force_load(device=devices, modules=modules, max_workers=workers if workers > 1 else 0)
+    try:
+        wp.force_load(device=devices, modules=modules, max_workers=workers if workers > 1 else 0)
+    except ValueError as e:  # JSONDecodeError: a module's metadata file in the cache is not JSON
+        raise RuntimeError(f"Failed to load a kernel module: its metadata in the cache is not JSON ({e})") from e
 
 
 def damaged_cache(error: BaseException) -> str | None:
     """One line for an error of Warp's that means a compiled module in the kernel cache is damaged
     (it cannot be loaded, or lacks a kernel it must hold); None for any other error."""
-    if not str(error).startswith(("Failed to load CPU module", "Failed to load CUDA module", "Failed to find forward kernel")):
+    if not str(error).startswith(("Failed to load CPU module", "Failed to load CUDA module", "Failed to load a kernel module",
+                                  "Failed to find forward kernel")):
         return None
     import warp as wp
 

@@ -484,3 +484,13 @@ def test_debugging_is_off_for_zero(monkeypatch, value, on):
 
     monkeypatch.setenv("NANOGS_DEBUG", value)
     assert debugging() is on
+
+
+def test_an_output_that_is_a_loop_of_symbolic_links_is_one_line(scene, tmp_path):
+    """-o naming a loop of links was an internal error (pathlib's RuntimeError, exit 1)."""
+    (tmp_path / "l1.ply").symlink_to("l2.ply")
+    (tmp_path / "l2.ply").symlink_to("l1.ply")
+    for output in ("l1.ply", "l1.ply/", "l1.ply/lod-meta.json"):
+        result = run("simplify", scene, "-o", f"{tmp_path}/{output}", "--ratio", "0.5", "--device", "cpu")
+        assert result.exit_code == 2 and "too many levels of symbolic links" in result.stderr, result.stderr
+        assert result.stderr.count("\n") == 1

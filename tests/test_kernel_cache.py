@@ -155,6 +155,16 @@ def test_a_damaged_kernel_cache_is_one_line(tmp_path):
     assert result.returncode == 2, result.stderr
     assert "a compiled kernel module is damaged" in result.stderr and "delete the directory to compile the kernels again" in result.stderr
     assert not (tmp_path / "o.ply").exists()
+    # a module's metadata that is not JSON, its binary gone: Warp's JSONDecodeError was an internal error
+    for path in damaged:
+        path.unlink()
+    for path in copy.rglob("*.meta"):
+        path.write_text("garbage")
+    result = subprocess.run([sys.executable, "-m", "nanogs_warp", "simplify", "--sample", "-o", str(tmp_path / "o.ply"),
+                             "--ratio", "0.5", "--device", "cpu"], capture_output=True, text=True,
+                            env={**os.environ, "NANOGS_WARP_CACHE": str(tmp_path / "kernels")})  # fmt: skip
+    assert result.returncode == 2 and "its metadata in the cache is not JSON" in result.stderr, result.stderr
+    assert not (tmp_path / "o.ply").exists()
 
 
 def test_a_gpu_that_stopped_is_not_called_a_damaged_cache(monkeypatch):

@@ -460,15 +460,21 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
     except (OSError, RuntimeError):  # a loop of symbolic links (a RuntimeError before Python 3.13)
         open_regular(input).close()  # says why in one line
         raise
+    def resolved(path: Path) -> Path:
+        try:
+            return path.resolve()
+        except RuntimeError:  # a loop of symbolic links (an OSError from Python 3.13, which names the path)
+            raise InputError(f"output {path}: too many levels of symbolic links") from None
+
     if folder is not None and not folder.is_dir():
         if folder.exists():
             raise InputError(f"output {folder} is not a folder")
-        if not folder.resolve().parent.is_dir():
-            raise InputError(f"output folder {folder} cannot be created: {folder.resolve().parent} does not exist")
+        if not resolved(folder).parent.is_dir():
+            raise InputError(f"output folder {folder} cannot be created: {resolved(folder).parent} does not exist")
     for path in outputs:
-        if path.resolve() == input_resolved:
+        if resolved(path) == input_resolved:
             raise InputError(f"output {path} is the input file; choose another output path")
-        parent = path.resolve().parent
+        parent = resolved(path).parent
         if folder is not None and not folder.is_dir():
             parent = parent.parent  # the folder itself is created
         if not parent.is_dir():
@@ -478,7 +484,7 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
         if path.is_dir():
             raise InputError(f"output {path} is a directory")
     for path in written:
-        if path.resolve() in inputs:
+        if resolved(path) in inputs:
             raise InputError(f"output {path} is one of the input's files; choose another output path")
         if path.exists() and not overwrite:
             raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it")
