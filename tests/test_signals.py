@@ -62,6 +62,8 @@ def test_a_signal_to_batch_stops_its_workers(tmp_path):
     time.sleep(1.0)
     assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == written  # no worker wrote on alone
     assert not any(name.endswith(".tmp") for name in written)
+    if not any(p.is_file() for p in (tmp_path / "out").rglob("*")):  # stopped before any scene was written:
+        assert not (tmp_path / "out").exists()  # the output folder it made went too (it stayed, empty)
 
 
 def _running(pid: int) -> bool:

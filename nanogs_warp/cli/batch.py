@@ -121,9 +121,11 @@ def batch_command(
     progress = BatchProgress(len(selected), quiet=quiet)
     if shard_count > 1 and not quiet:
         typer.echo(f"nanogs-warp batch: shard {shard_index}/{shard_count}: {len(selected)} of {len(jobs)} scenes", err=True)
-    results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress, scene_timeout, readers)
-    if shard_count == 1:  # every worker was this run's and has ended: nothing else writes there now
-        _remove_empty(made_here)
+    try:
+        results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress, scene_timeout, readers)
+    finally:  # a signal or Ctrl-C too: the empty folders this run made went with it
+        if shard_count == 1:  # every worker was this run's and has ended: nothing else writes there now
+            _remove_empty(made_here)
     seconds = time.perf_counter() - started
     if json_output:
         summary = summary_json(results, seconds, (shard_index, shard_count))
