@@ -40,7 +40,7 @@ def test_an_output_made_too_large_is_shrunk_back_and_kept(device):
     fitted geometry is kept, and the scales come back toward the input's."""
     reference = blob(400, 21, device, log_scale=(-3.0, -2.0))
     grown = size_fit.resized(reference.clone(), 1.65)
-    fit = geometry_fit.GeometryFit(reference, size_fit.sampled_means(reference))
+    fit = geometry_fit.GeometryFit(reference)
     out = fit(grown)
     assert fit.kept[400]
     truth = reference.log_scales.numpy().astype(np.float64)
@@ -55,7 +55,7 @@ def test_nothing_better_to_find_keeps_the_output_as_it_was(device):
     """The input fitted against itself renders every view exactly: nothing lowers the held-out loss,
     so the output comes back as it was, bit for bit."""
     reference = blob(300, 22, device)
-    fit = geometry_fit.GeometryFit(reference, size_fit.sampled_means(reference))
+    fit = geometry_fit.GeometryFit(reference)
     out = fit(reference.clone())
     assert not fit.kept[300]
     for name in GEOMETRY + APPEARANCE:
@@ -67,13 +67,13 @@ def test_the_fit_is_refinement_with_appearance_frozen(device):
     opacity and colour learning rates at 0 and one checkpoint."""
     reference = blob(400, 23, device, log_scale=(-3.0, -2.0))
     output = simplify(reference, ratio=0.05, config=SimplifyConfig(fit_size=False, fit_geometry=False))
-    fit = geometry_fit.GeometryFit(reference, size_fit.sampled_means(reference))
+    fit = geometry_fit.GeometryFit(reference)
     fitted = fit(output)
     config = geometry_fit.geometry_config()
     assert (config.steps, config.reference_views, config.lr_opacities, config.lr_features_dc, config.lr_features_rest) == (
         geometry_fit.STEPS, geometry_fit.VIEWS, 0.0, 0.0, 0.0)
     direct, report = refine_with_report(output, reference, config, checkpoints=(1.0,), training_loss=False,
-                                        views=geometry_fit.ReferenceViews(reference, config, sample=size_fit.sampled_means(reference)))  # fmt: skip
+                                        views=geometry_fit.ReferenceViews(reference, config))
     assert report.kept_step in (0, config.steps) and fit.kept[output.count] == (report.kept_step > 0)
     for name in GEOMETRY + APPEARANCE:
         assert getattr(fitted, name).numpy().tobytes() == getattr(direct, name).numpy().tobytes()

@@ -12,8 +12,6 @@ than the size-fitted output did (``refine``'s checkpoint rule, one checkpoint at
 
 from __future__ import annotations
 
-import numpy as np
-
 from ..splats import SplatSet
 from .config import RefineConfig
 from .refine import ReferenceViews, refine_with_report
@@ -31,15 +29,13 @@ def geometry_config(seed: int = 0) -> RefineConfig:
 
 
 class GeometryFit:
-    """Fits the outputs of one run against ``reference`` (the run's input, on its device), whose
-    cameras ``sample`` places (centres of ``reference``, as the size fit samples them: the scene is
-    rendered in its own units, near the origin). The input's views are rendered once, for the first
-    output fitted, and shared by the others."""
+    """Fits the outputs of one run against ``reference`` (the run's input, on its device). The
+    input's views are rendered once, for the first output fitted, and shared by the others."""
 
-    def __init__(self, reference: SplatSet, sample: np.ndarray, seed: int = 0):
+    def __init__(self, reference: SplatSet, seed: int = 0):
         self.reference = reference
         self.config = geometry_config(seed)
-        self.views = ReferenceViews(reference, self.config, sample=sample)
+        self.views = ReferenceViews(reference, self.config)
         self.kept: dict[int, bool] = {}  # count -> whether the fitted geometry was kept
 
     def __call__(self, splats: SplatSet) -> SplatSet:

@@ -23,11 +23,12 @@ import warp as wp
 from ..errors import InputError
 from ..device import memory_short
 from ..eval.render import _Rasteriser
-from ..eval.units import render_offset, render_units, rescaled
+from ..eval.cameras import scene_frame
+from ..eval.units import far_from_origin, in_rendered_units, render_offset, render_units, rescaled
 from ..kernels import adam as adam_kernels
 from ..parallel import launch_rows_from
 from ..splats import SplatSet
-from .cameras import VALIDATION_STREAM, scene_spread, training_cameras
+from .cameras import VALIDATION_STREAM, sampled_means, scene_spread, training_cameras
 from .config import RefineConfig
 from .image_loss import ImageLoss
 from .render_grad import GradRasteriser, SplatGradients
@@ -142,12 +143,8 @@ class ReferenceViews:
     the default 128 views of 256 pixels). Made on first use (``render``), so one can be made for a
     run before it is known to be needed."""
 
-    def __init__(self, reference: SplatSet, config: RefineConfig, device=None, sample=None):
-        """``sample``: centres of ``reference`` (a strided subset) that place the cameras, for a
-        scene the caller knows is rendered as it is (``eval.units``: in rendered units, near the
-        origin), as the size fit does; None: every centre, the scene rescaled or recentred where
-        ``eval`` would render it so (on millions of splats, seconds of host work)."""
-        self.source, self.config, self.sample = reference, config, sample
+    def __init__(self, reference: SplatSet, config: RefineConfig, device=None):
+        self.source, self.config = reference, config
         self.device = wp.get_device(device if device is not None else reference.device)
         self.cameras: list | None = None  # None until rendered
         self.scale, self.offset, self.reference, self.extent = 1.0, None, reference, 1.0
@@ -163,8 +160,10 @@ class ReferenceViews:
         if self.cameras is not None:
             return 0.0
         started = time.perf_counter()
-        if self.sample is not None:
-            self.reference, means = self.source.to(self.device), np.asarray(self.sample)
+        means = sampled_means(self.source)  # the cameras' places (every centre up to 131,071 splats)
+        centre, radius = scene_frame(means)
+        if not far_from_origin(centre, radius) and in_rendered_units(radius):
+            self.reference = self.source.to(self.device)
         else:
             # a scene in units of ~1e20 or ~1e-20, or far from the origin for its size: optimised
             # rescaled and recentred (eval/units.py), and handed back where it was

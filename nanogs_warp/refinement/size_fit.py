@@ -35,7 +35,7 @@ from ..eval.render import render_views_on_device
 from ..eval.units import far_from_origin, in_rendered_units
 from ..kernels import splat_size as kernels
 from ..splats import SplatSet
-from .cameras import training_cameras
+from .cameras import sampled_means, training_cameras
 
 FIT_BELOW = "0.01"  # outputs of at most target_count(N, FIT_BELOW) splats are fitted (an exact ratio)
 VIEWS = 4
@@ -44,16 +44,10 @@ ZOOM = 4.0
 STEP = 2.0 ** (1.0 / 12.0)
 MOST_STEPS = 6
 CAMERA_STREAM = 0x5CA1E  # the random stream of the fit's cameras (``training_cameras``)
-SPREAD_SAMPLE = 1 << 16  # at most this many centres (every k-th) place the cameras
 # A view needing more (tile, splat) entries than this (a file of huge splats: each covers every
 # tile) is not rendered, and the output is not fitted: the fit's time stays near a few passes'.
 ENTRIES_PER_SPLAT = 16
 MIN_ENTRIES = 1 << 22
-
-
-def sampled_means(splats: SplatSet) -> np.ndarray:
-    """The centres that place the fit's cameras: every k-th, at most about SPREAD_SAMPLE (a strided copy)."""
-    return splats.means[:: max(1, splats.count // SPREAD_SAMPLE)].numpy()
 
 
 def fit_cameras(means: np.ndarray, seed: int = 0) -> tuple[list, list]:
@@ -180,7 +174,7 @@ class SizeFit:
         from .geometry_fit import GeometryFit
 
         if self._geometry_fit is None:
-            self._geometry_fit = GeometryFit(self.reference, self._means, self.seed)
+            self._geometry_fit = GeometryFit(self.reference, self.seed)
         try:
             fitted = self._geometry_fit(splats)
         except InputError:  # the views would not fit the device's memory: not fitted
