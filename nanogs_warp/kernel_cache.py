@@ -12,6 +12,7 @@ several GPU generations once it holds a binary for each.
 from __future__ import annotations
 
 import importlib
+import json
 import os
 import sys
 import time
@@ -37,8 +38,9 @@ def simplify_modules(config=None) -> tuple[str, ...]:
         return SIMPLIFY_MODULES
     cost = "field_cost" if config.cost == "field" else "cost"
     prune = ("prune",) if config.prune_opacity > 0 else ()
-    fit = ("splat_size", "render") if config.fit_size or config.fit_geometry else ()
-    fit += tuple(m for m in REFINE_MODULES if m not in fit) if config.fit_geometry else ()
+    fit = ("splat_size", "render") if config.fit_size else ()
+    if config.fit_geometry:
+        fit += tuple(m for m in REFINE_MODULES if m not in fit)
     optional = ("cost", "field_cost", "prune", "splat_size")
     return tuple(m for m in SIMPLIFY_MODULES if m not in optional) + (cost,) + prune + fit
 
@@ -200,7 +202,7 @@ def _force_load(modules: list, devices: list, to_compile: int) -> None:
     workers = min(to_compile, os.cpu_count() or 1)
     try:
         wp.force_load(device=devices, modules=modules, max_workers=workers if workers > 1 else 0)
-    except ValueError as e:  # JSONDecodeError: a module's metadata file in the cache is not JSON
+    except json.JSONDecodeError as e:  # a module's metadata file in the cache is not JSON
         raise RuntimeError(f"Failed to load a kernel module: its metadata in the cache is not JSON ({e})") from e
 
 

@@ -103,7 +103,8 @@ class SplatSet:
         even) and clipped to their type. Arrays of the wrong shape raise ValueError naming them;
         with ``validate`` (the default), values a scene file may not hold either raise InputError,
         as on reading a file: NaN or infinite values (opacity logits of +-Inf are valid: alpha 1
-        or 0, kept as +-the largest float32 as on reading), quaternions of norm 0, log-scales beyond the numeric domain."""
+        or 0, kept as +-the largest float32 as on reading), quaternions of norm 0, log-scales
+        beyond the numeric domain."""
         device = _warp_device(device)
         means = _host_rows("means", means, 3)
         n = means.shape[0]

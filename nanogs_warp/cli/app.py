@@ -460,6 +460,7 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
     except (OSError, RuntimeError):  # a loop of symbolic links (a RuntimeError before Python 3.13)
         open_regular(input).close()  # says why in one line
         raise
+
     def resolved(path: Path) -> Path:
         try:
             return path.resolve()

@@ -33,6 +33,13 @@ def in_rendered_units(radius: float) -> bool:
     return RENDERED_RADIUS[0] <= radius <= RENDERED_RADIUS[1]
 
 
+def rendered_as_is(means: np.ndarray) -> bool:
+    """Whether the scene whose centres are ``means`` (all, or a sample) is rendered in its own units
+    around its own origin: its ``scene_frame`` near the origin and in rendered units."""
+    centre, radius = scene_frame(means)
+    return not far_from_origin(centre, radius) and in_rendered_units(radius)
+
+
 def render_offset(reference: SplatSet) -> np.ndarray | None:
     """None, or the reference's centre (``scene_frame``) where it lies more than FAR_CENTRE orbit
     radii from the origin: the point ``eval`` and the refinement then render every scene around."""

@@ -36,10 +36,9 @@ class GeometryFit:
         self.reference = reference
         self.config = geometry_config(seed)
         self.views = ReferenceViews(reference, self.config)
-        self.kept: dict[int, bool] = {}  # count -> whether the fitted geometry was kept
 
-    def __call__(self, splats: SplatSet) -> SplatSet:
+    def __call__(self, splats: SplatSet) -> tuple[SplatSet, bool]:
+        """(the fitted splat set, whether the fitted geometry was kept: ``splats``' own otherwise)."""
         fitted, report = refine_with_report(splats, self.reference, self.config, views=self.views, checkpoints=(1.0,),
                                             training_loss=False)  # fmt: skip
-        self.kept[splats.count] = report.kept_step > 0
-        return fitted
+        return fitted, report.kept_step > 0

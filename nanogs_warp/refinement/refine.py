@@ -23,8 +23,7 @@ import warp as wp
 from ..errors import InputError
 from ..device import memory_short
 from ..eval.render import _Rasteriser
-from ..eval.cameras import scene_frame
-from ..eval.units import far_from_origin, in_rendered_units, render_offset, render_units, rescaled
+from ..eval.units import render_offset, render_units, rendered_as_is, rescaled
 from ..kernels import adam as adam_kernels
 from ..parallel import launch_rows_from
 from ..splats import SplatSet
@@ -161,8 +160,7 @@ class ReferenceViews:
             return 0.0
         started = time.perf_counter()
         means = sampled_means(self.source)  # the cameras' places (every centre up to 131,071 splats)
-        centre, radius = scene_frame(means)
-        if not far_from_origin(centre, radius) and in_rendered_units(radius):
+        if rendered_as_is(means):
             self.reference = self.source.to(self.device)
         else:
             # a scene in units of ~1e20 or ~1e-20, or far from the origin for its size: optimised

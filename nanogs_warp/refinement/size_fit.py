@@ -30,9 +30,8 @@ import warp as wp
 
 from ..config import target_count
 from ..errors import InputError
-from ..eval.cameras import scene_frame
 from ..eval.render import render_views_on_device
-from ..eval.units import far_from_origin, in_rendered_units
+from ..eval.units import rendered_as_is
 from ..kernels import splat_size as kernels
 from ..splats import SplatSet
 from .cameras import sampled_means, training_cameras
@@ -113,8 +112,7 @@ class SizeFit:
             return False
         if self._means is None:
             means = sampled_means(self.reference)
-            centre, radius = scene_frame(means)
-            if far_from_origin(centre, radius) or not in_rendered_units(radius):
+            if not rendered_as_is(means):
                 self._skip = True
                 return False
             self._means = means
@@ -176,11 +174,10 @@ class SizeFit:
         if self._geometry_fit is None:
             self._geometry_fit = GeometryFit(self.reference, self.seed)
         try:
-            fitted = self._geometry_fit(splats)
+            fitted, self.geometry_kept[splats.count] = self._geometry_fit(splats)
         except InputError:  # the views would not fit the device's memory: not fitted
             self.geometry_kept[splats.count] = False
             return splats
-        self.geometry_kept[splats.count] = self._geometry_fit.kept[splats.count]
         return fitted
 
     def fitted(self, splats: SplatSet) -> tuple[SplatSet, float]:
