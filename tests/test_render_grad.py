@@ -27,8 +27,8 @@ def _scene(rng, n, degree, device):
     return SplatSet.from_numpy(**arrays, device=device), camera
 
 
-def _forward_backward(splats, camera, weights, method=None, lanes=None, lanes_in_turn=None):
-    rasteriser = GradRasteriser(splats, method=method, lanes=lanes, lanes_in_turn=lanes_in_turn)
+def _forward_backward(splats, camera, weights, method=None, lanes=None, lanes_in_turn=None, per_pixel=None):
+    rasteriser = GradRasteriser(splats, method=method, lanes=lanes, lanes_in_turn=lanes_in_turn, per_pixel=per_pixel)
     h, w = camera.height, camera.width
     image = wp.full((1, h, w, 3), float("nan"), dtype=wp.float32, device=splats.device)
     rasteriser.forward(camera, wp.vec3(0.1, 0.2, 0.3), image)
@@ -151,3 +151,39 @@ def test_the_backward_buffers_count_in_the_memory_bound(monkeypatch, lanes):
     image = wp.zeros((1, 64, 64, 3), dtype=wp.float32, device="cpu")
     with pytest.raises(InputError, match="covers 3,200"):
         rasteriser.forward(camera, wp.vec3(0.0, 0.0, 0.0), image)
+
+
+@pytest.mark.parametrize("size", [(70, 45), (32, 32)])
+def test_per_pixel_backward_gives_the_lanes_bytes(device, rng, size):
+    """The GPU's backward (a thread per pixel, each (entry, pixel) term in its own slot, then summed
+    per entry) against 16 lanes (a thread per row, then ``sum_lanes``) and the CPU's lanes in turn,
+    on one device: the same bytes, in views with partial edge tiles, saturated pixels (early
+    termination) and entries whose boxes reach part of a tile."""
+    width, height = size
+    camera = random_camera(rng, width=width, height=height)
+    arrays = random_scene(rng, 800, 2, camera_centre=camera.centre, behind=0.1, opacity=(0.3, 1.0), log_scale=(np.log(0.3), 0.6))
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    weights = rng.normal(size=(camera.height, camera.width, 3))
+    image, per_pixel = _forward_backward(splats, camera, weights, lanes=16, per_pixel=True)
+    pixels = [a.numpy().copy() for a in per_pixel.arrays()]
+    assert np.isfinite(image).all()
+    assert all(np.abs(a).max() > 0 for a in pixels)
+    for lanes_in_turn in (False, True):
+        lanes = [a.numpy().copy() for a in _forward_backward(splats, camera, weights, lanes=16, lanes_in_turn=lanes_in_turn,
+                                                             per_pixel=False)[1].arrays()]  # fmt: skip
+        for a, b in zip(pixels, lanes):
+            assert a.tobytes() == b.tobytes()
+
+
+def test_per_pixel_backward_falls_back_to_the_lanes(device, rng, monkeypatch):
+    """Where its (entry, pixel) slots would not fit the device, the per-pixel backward leaves the
+    work to the lanes: the same bytes."""
+    import nanogs_warp.refinement.render_grad as render_grad
+
+    splats, camera = _scene(rng, 300, 1, device)
+    weights = rng.normal(size=(camera.height, camera.width, 3))
+    expected = [a.numpy().copy() for a in _forward_backward(splats, camera, weights, per_pixel=True)[1].arrays()]
+    monkeypatch.setattr(render_grad, "entry_memory", lambda device: 100)
+    got = [a.numpy().copy() for a in _forward_backward(splats, camera, weights, per_pixel=True)[1].arrays()]
+    for a, b in zip(expected, got):
+        assert a.tobytes() == b.tobytes()

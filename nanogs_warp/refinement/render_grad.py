@@ -9,7 +9,9 @@ the emitted entries, so that after the sort each splat's entries can be found in
 Gradients are summed in a fixed order (per entry over each of the tile's ``LANES`` lanes' pixel rows
 in row order, then the lanes in order; per splat over its entries in emit order; per view in the
 order views are back-propagated) with the portable float32 arithmetic of ``kernels/render.py``, so
-every device, and every rerun, gives the same bytes.
+every device, and every rerun, gives the same bytes. A GPU computes each (entry, pixel) term on a
+thread of its own and sums them afterwards in that order (``per_pixel``); where those terms would not
+fit its memory, it sums them as the CPU does, one thread per tile.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from ..eval.cameras import Camera
-from ..eval.render import ONE_WALK, _Rasteriser, camera_params
+from ..eval.render import INDEX_LIMIT, ONE_WALK, _Rasteriser, camera_params, entry_memory
 from ..kernels import render as kernels
 from ..kernels import render_grad as grad_kernels
 from ..parallel import launch_rows_from
@@ -61,6 +63,11 @@ GRAD_ENTRY_BYTES = 3 * 4 + 8 + 12 + 4 + 12
 LANE_BYTES = 8 + 12 + 4 + 12
 
 
+# Bytes the per-pixel backward adds: per entry its area and its slots' end, per (entry, pixel) pair its terms.
+PIXEL_ENTRY_BYTES = 2 * 4
+PIXEL_BYTES = 8 + 12 + 4 + 12
+
+
 LANES = 16  # the backward's threads per tile (each owns every 16th row): a GPU's, and the CPU's too
 
 
@@ -70,7 +77,7 @@ class GradRasteriser(_Rasteriser):
 
     def __init__(
         self, splats: SplatSet, workers: int | None = None, method: str | None = None, lanes: int | None = None,
-        lanes_in_turn: bool | None = None,
+        lanes_in_turn: bool | None = None, per_pixel: bool | None = None,
     ):  # fmt: skip
         super().__init__(splats, workers, method)
         if lanes is None:
@@ -80,11 +87,18 @@ class GradRasteriser(_Rasteriser):
         if lanes not in (1, 2, 4, 8, 16):
             raise ValueError(f"lanes {lanes}: expected 1, 2, 4, 8 or 16")
         self.lanes = lanes
+        if per_pixel is None:  # a GPU: a thread per pixel, the terms summed as 16 lanes sum them
+            per_pixel = not self.device.is_cpu and lanes == LANES
+        if per_pixel and lanes != LANES:
+            raise ValueError(f"the per-pixel backward sums as {LANES} lanes do, not {lanes}")
+        self.per_pixel = per_pixel
         if lanes_in_turn is None:  # the CPU: one thread per tile sums its lanes in turn, the same sums
-            lanes_in_turn = self.device.is_cpu
+            lanes_in_turn = self.device.is_cpu or per_pixel  # (per pixel: where its buffers do not fit)
         self.lanes_in_turn = lanes_in_turn and lanes > 1
         self.lane_buffers = lanes > 1 and not self.lanes_in_turn
         self.entry_bytes += GRAD_ENTRY_BYTES + (lanes * LANE_BYTES if self.lane_buffers else 0)
+        self.entry_bytes += PIXEL_ENTRY_BYTES if per_pixel else 0
+        self.pixel_capacity = 0
         wp.load_module(grad_kernels, device=self.device)
         self.grad_capacity = 0
         self.scratch_pixels = 0
@@ -103,6 +117,9 @@ class GradRasteriser(_Rasteriser):
         self.e_g_conic = wp.empty(c, dtype=wp.vec3, device=d)
         self.e_g_opacity = wp.empty(c, dtype=wp.float32, device=d)
         self.e_g_rgb = wp.empty(c, dtype=wp.vec3, device=d)
+        if self.per_pixel:
+            self.areas = wp.empty(c, dtype=wp.int32, device=d)
+            self.slot_ends = wp.empty(c, dtype=wp.int32, device=d)
         if self.lane_buffers:
             lanes = c * self.lanes
             self.lane_xy = wp.empty(lanes, dtype=wp.vec2, device=d)
@@ -168,12 +185,49 @@ class GradRasteriser(_Rasteriser):
         per_lane = [self.lane_xy, self.lane_conic, self.lane_opacity, self.lane_rgb] if self.lane_buffers else per_entry
         inputs = [self.lanes, self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end,
                   p.width, p.height, p.tiles_x, image[0], grad_image[0], self.bw_transmittance, self.bw_front, self.bw_done]  # fmt: skip
-        if self.lanes_in_turn:
-            self._rows(grad_kernels.composite_backward_lanes_in_turn, self.tiles, [*inputs, *per_entry], 1)
-        else:
-            self._rows(grad_kernels.composite_backward, self.tiles * self.lanes, [*inputs, *per_lane], 8)
-        if self.lane_buffers:
-            self._rows(grad_kernels.sum_lanes, self.count, [self.lanes, *per_lane, *per_entry], 16384)
+        if not (self.per_pixel and self._pixel_terms(image, grad_image, per_entry)):
+            if self.lanes_in_turn:
+                self._rows(grad_kernels.composite_backward_lanes_in_turn, self.tiles, [*inputs, *per_entry], 1)
+            else:
+                self._rows(grad_kernels.composite_backward, self.tiles * self.lanes, [*inputs, *per_lane], 8)
+            if self.lane_buffers:
+                self._rows(grad_kernels.sum_lanes, self.count, [self.lanes, *per_lane, *per_entry], 16384)
+        self._splat_backward(grads)
+
+    def _pixel_terms(self, image: wp.array, grad_image: wp.array, per_entry: list) -> bool:
+        """The per-pixel backward into ``per_entry``: each (entry, pixel) term in its own slot, then
+        every entry's terms summed (``kernels/render_grad.py``). False, doing nothing, where the
+        slots would not fit the device (the lanes then give the same sums)."""
+        p, d, count = self.params, self.device, self.count
+        if count * kernels.TILE_PIXELS > INDEX_LIMIT:
+            return False  # the slots' int32 offsets could wrap
+        where = [self.keys, self.e_box, p.width, p.height, p.tiles_x]
+        self._rows(grad_kernels.pixel_areas, count, [*where, self.areas], 16384)
+        wp.utils.array_scan(self.areas[:count], self.slot_ends[:count], inclusive=True)
+        pairs = int(self.slot_ends[count - 1 : count].numpy()[0])
+        if pairs > self.pixel_capacity:
+            if pairs * PIXEL_BYTES > entry_memory(d):
+                return False
+            self.pixel_capacity = c = max(pairs, int(self.pixel_capacity * 1.5))
+            self.p_xy = wp.empty(c, dtype=wp.vec2, device=d)
+            self.p_conic = wp.empty(c, dtype=wp.vec3, device=d)
+            self.p_opacity = wp.empty(c, dtype=wp.float32, device=d)
+            self.p_rgb = wp.empty(c, dtype=wp.vec3, device=d)
+        terms = [self.p_xy, self.p_conic, self.p_opacity, self.p_rgb]
+        for a in terms:
+            a[:pairs].zero_()
+        self._rows(
+            grad_kernels.composite_backward_pixels,
+            self.tiles * kernels.TILE_PIXELS,
+            [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end,
+             p.width, p.height, p.tiles_x, image[0], grad_image[0], self.slot_ends, *terms],
+            2048,
+        )  # fmt: skip
+        self._rows(grad_kernels.sum_pixels, count, [*where, self.slot_ends, *terms, *per_entry], 16384)
+        return True
+
+    def _splat_backward(self, grads: SplatGradients) -> None:
+        s, p = self.splats, self.params
         self._rows(
             grad_kernels.splat_backward,
             self.n,
