@@ -91,6 +91,53 @@ def order_entries(
 
 
 @wp.func
+def entry_at_pixel(p: wp.vec2, co: wp.vec4, faint: float, fpx: float, fpy: float):
+    """(dx, dy, G, o G, alpha) of an entry at pixel (fpx, fpy), alpha = min(0.99, o G); alpha 0 where
+    the walk skips the entry: power > 0, power below ``faint`` (alpha < ALPHA_MIN there: no exp, as
+    ``composite_tiles`` skips it) or alpha < ALPHA_MIN."""
+    dx = p[0] - fpx
+    dy = p[1] - fpy
+    power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
+    gauss = float(0.0)
+    raw = float(0.0)
+    alpha = float(0.0)
+    if power > 0.0 or power < faint:
+        alpha = 0.0
+    else:
+        gauss = exp32(power)
+        raw = co[3] * gauss
+        alpha = wp.min(ALPHA_MAX, raw)
+        if alpha < ALPHA_MIN:
+            alpha = 0.0
+    return dx, dy, gauss, raw, alpha
+
+
+@wp.func
+def pixel_terms(
+    t: float, alpha: float, gauss: float, raw: float, dx: float, dy: float, co: wp.vec4, rgb: wp.vec3,
+    g: wp.vec3, final: wp.vec3, front: wp.vec3,
+):  # fmt: skip
+    """One entry's terms at one pixel (module docstring), given the pixel's transmittance ``t`` and
+    colour ``front`` before the entry, dL/dC ``g`` and the final colour ``final``: (colour term,
+    colour in front after the entry, opacity term, conic term, 2D-mean term); the last three 0
+    where the 0.99 clamp holds."""
+    weight = alpha * t
+    g_rgb = g * weight
+    in_front = front + rgb * weight
+    g_op = float(0.0)
+    g_co = wp.vec3(0.0, 0.0, 0.0)
+    g_xy = wp.vec2(0.0, 0.0)
+    if raw < ALPHA_MAX:
+        # dL/dalpha = T rgb.g - B.g / (1 - alpha), B = C - C_<=k
+        g_alpha = t * wp.dot(rgb, g) - wp.dot(final - in_front, g) / (1.0 - alpha)
+        g_op = g_alpha * gauss
+        g_power = g_alpha * alpha
+        g_co = g_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
+        g_xy = -(g_power * wp.vec2(co[0] * dx + co[1] * dy, co[1] * dx + co[2] * dy))
+    return g_rgb, in_front, g_op, g_co, g_xy
+
+
+@wp.func
 def row_gradients(
     py: int,
     gx0: int,
@@ -115,19 +162,13 @@ def row_gradients(
     entry finished (module docstring). Below the power ``faint`` alpha < ALPHA_MIN: the pixel is
     skipped without its exp, as ``composite_tiles`` skips it."""
     finished = int(0)
-    dy = p[1] - float(py)
+    fpy = float(py)
     for px in range(gx0, gx1 + 1):
         slot = row + px
         if done[slot] != 0:
             continue
-        dx = p[0] - float(px)
-        power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
-        if power > 0.0 or power < faint:
-            continue
-        gauss = exp32(power)
-        raw = co[3] * gauss
-        alpha = wp.min(ALPHA_MAX, raw)
-        if alpha < ALPHA_MIN:
+        dx, dy, gauss, raw, alpha = entry_at_pixel(p, co, faint, float(px), fpy)
+        if alpha == 0.0:
             continue
         t = transmittance[slot]
         test_t = t * (1.0 - alpha)
@@ -137,18 +178,13 @@ def row_gradients(
             continue
         g = wp.vec3(grad_image[py, px, 0], grad_image[py, px, 1], grad_image[py, px, 2])
         final = wp.vec3(image[py, px, 0], image[py, px, 1], image[py, px, 2])
-        weight = alpha * t
-        grgb = grgb + g * weight
-        in_front = front[slot] + rgb * weight
+        g_rgb, in_front, g_op, g_co, g_xy = pixel_terms(t, alpha, gauss, raw, dx, dy, co, rgb, g, final, front[slot])
         front[slot] = in_front
         transmittance[slot] = test_t
-        if raw < ALPHA_MAX:
-            # dL/dalpha = T rgb.g - B.g / (1 - alpha), B = C - C_<=k
-            g_alpha = t * wp.dot(rgb, g) - wp.dot(final - in_front, g) / (1.0 - alpha)
-            gop += g_alpha * gauss
-            g_power = g_alpha * alpha
-            gco = gco + g_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
-            gxy = gxy - g_power * wp.vec2(co[0] * dx + co[1] * dy, co[1] * dx + co[2] * dy)
+        grgb = grgb + g_rgb
+        gop += g_op  # +0 where the clamp holds: a sum from +0 is never -0, so adding 0 changes no bit
+        gco = gco + g_co
+        gxy = gxy + g_xy
     return gxy, gco, gop, grgb, finished
 
 
@@ -408,40 +444,28 @@ def composite_backward_pixels(
     final = wp.vec3(image[py, px, 0], image[py, px, 1], image[py, px, 2])
     t = float(1.0)
     front = wp.vec3(0.0, 0.0, 0.0)
-    dy_of = float(py)
+    fpx = float(px)
+    fpy = float(py)
     for k in range(tile_start[tile], tile_end[tile]):
         gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
         if px < gx0 or px > gx1 or py < gy0 or py > gy1:
             continue
-        p = e_xy[k]
         co = e_conic_opacity[k]
         faint = log32(ALPHA_MIN / co[3]) - FAINT_MARGIN
-        dy = p[1] - dy_of
-        dx = p[0] - float(px)
-        power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
-        if power > 0.0 or power < faint:
-            continue
-        gauss = exp32(power)
-        raw = co[3] * gauss
-        alpha = wp.min(ALPHA_MAX, raw)
-        if alpha < ALPHA_MIN:
+        dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], co, faint, fpx, fpy)
+        if alpha == 0.0:
             continue
         test_t = t * (1.0 - alpha)
         if test_t < T_MIN:
             break  # the pixel is finished: no later entry reaches it
         columns = gx1 - gx0 + 1
         slot = slot_ends[k] - columns * (gy1 - gy0 + 1) + (py - gy0) * columns + px - gx0
-        weight = alpha * t
-        p_rgb[slot] = g * weight
-        in_front = front + e_rgb[k] * weight
+        g_rgb, in_front, g_op, g_co, g_xy = pixel_terms(t, alpha, gauss, raw, dx, dy, co, e_rgb[k], g, final, front)
+        p_rgb[slot] = g_rgb
+        p_opacity[slot] = g_op
+        p_conic[slot] = g_co
+        p_xy[slot] = g_xy
         front = in_front
-        if raw < ALPHA_MAX:
-            # dL/dalpha = T rgb.g - B.g / (1 - alpha), B = C - C_<=k
-            g_alpha = t * wp.dot(e_rgb[k], g) - wp.dot(final - in_front, g) / (1.0 - alpha)
-            p_opacity[slot] = g_alpha * gauss
-            g_power = g_alpha * alpha
-            p_conic[slot] = g_power * wp.vec3(-0.5 * dx * dx, -dx * dy, -0.5 * dy * dy)
-            p_xy[slot] = -(g_power * wp.vec2(co[0] * dx + co[1] * dy, co[1] * dx + co[2] * dy))
         t = test_t
 
 

@@ -1,5 +1,5 @@
-"""The batch on this machine: one worker process per device (``spawn``; each initialises Warp and
-sees only its own GPU). The parent holds the queue, largest scene first, and keeps two scenes
+"""The batch on this machine: worker processes per device (``spawn``; each initialises Warp and
+sees only its own GPU; two on a GPU with the memory for them by default: ``gpu_workers``). The parent holds the queue, largest scene first, and keeps two scenes
 assigned to each worker, so that a worker reads and parses the next scene while the current one
 is on its device, and writes the outputs of the last one in the background. Each worker talks to
 the parent over its own pipe, so a worker killed at any moment (the out-of-memory killer) cannot
@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 
 from ..errors import InputError
+from .gpu_workers import auto_workers
 from .scenes import SceneJob, largest_first, scene_timeout, timed_out_error
 from .work import SceneResult
 
@@ -88,20 +89,25 @@ class _Worker:
 def run_local(
     jobs: list[SceneJob],
     devices: list[str],
-    workers_per_device: int,
+    workers_per_device: int | None,
     force: bool,
     progress,
     timeout_s: float | None = None,
     readers: int | None = None,
 ) -> list[SceneResult]:
-    """Runs every job on worker processes, ``workers_per_device`` per device; returns the results
+    """Runs every job on worker processes, ``workers_per_device`` per device (None: as many as
+    ``gpu_workers.auto_workers`` gives each); returns the results
     in the order the scenes finished. ``progress`` gets started / advanced / finished calls.
     ``timeout_s``: each scene's time limit on its worker (None: scaled with its size, see
     :func:`~nanogs_warp.batch.scenes.scene_timeout`; 0: none). ``readers``: threads per worker
     that read each input (None: :func:`default_readers`)."""
     context = multiprocessing.get_context("spawn")
+    if workers_per_device is None:
+        per_device = auto_workers(devices, [(job.input, job.size) for job in jobs])
+    else:
+        per_device = dict.fromkeys(devices, workers_per_device)
     if readers is None:
-        readers = default_readers(len(devices) * workers_per_device)
+        readers = default_readers(sum(per_device.values()))
     pending = deque(largest_first(jobs))
     results: list[SceneResult] = []
     workers: dict[str, _Worker] = {}
@@ -219,9 +225,9 @@ def run_local(
         limit = scene_timeout(worker.jobs[0], worker.device != "cpu", timeout_s)
         return None if limit is None else worker.head_since + limit
 
-    for _ in range(min(workers_per_device, len(pending))):  # never more workers than scenes
+    for round_ in range(min(max(per_device.values()), len(pending))):  # never more workers than scenes
         for device in devices:
-            if len(workers) < len(pending):
+            if round_ < per_device[device] and len(workers) < len(pending):
                 start(device)
     interrupted = True  # until the loop ends by itself: a signal, an error
     try:

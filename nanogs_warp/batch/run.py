@@ -23,7 +23,7 @@ __all__ = ["BatchProgress", "SceneJob", "SceneResult", "find_scenes", "format_pl
 def run_batch(
     jobs: list[SceneJob],
     devices: list[str] | None = None,
-    workers_per_device: int = 1,
+    workers_per_device: int | None = 1,
     ray_address: str | None = None,
     ray_gpu: bool | None = None,
     force: bool = False,
@@ -33,6 +33,8 @@ def run_batch(
 ) -> list[SceneResult]:
     """Simplifies every job, on local worker processes (``devices``, e.g. ``["cuda:0", "cuda:1"]``)
     or as Ray tasks (``ray_address``); returns one result per job, sorted by scene name.
+    ``workers_per_device``: local worker processes per device (None: two on a GPU that holds two of
+    the largest scene, else one: ``gpu_workers.auto_workers``).
     ``scene_timeout_s``: each scene's time limit (None: scaled with its size; 0: none).
     ``readers``: threads per worker that read each input (None: the cores shared out among the
     local workers, 1 to 8; a Ray task: the cores of its node, up to 8)."""

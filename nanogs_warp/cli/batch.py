@@ -24,13 +24,23 @@ from . import options as opts
 MAX_SCENE_TIMEOUT = 1e6
 
 
+def parse_workers(text: str) -> int | None:
+    """``--workers``: ``auto`` -> None (``gpu_workers.auto_workers`` decides), else a whole count >= 1."""
+    value = text.strip().lower()
+    if value == "auto":
+        return None
+    if not (value.isascii() and value.isdigit()) or int(value) < 1:
+        raise InputError(f"--workers must be auto or a whole number of at least 1, got {text!r}")
+    return int(value)
+
+
 def batch_command(
     input: Annotated[str, typer.Argument(metavar="INPUT", help="A directory (every .ply, .spz, .sog and .splat below it), a glob pattern such as 'scenes/**/point_cloud.ply' (quote it), or a manifest: one path per line, or a JSON list of paths or {\"path\": ..., \"ratio\"/\"count\"/<option>: ...} objects.", show_default=False)],
     output: Annotated[str, typer.Option("-o", "--output", metavar="DIRECTORY", help="Output directory: OUTPUT/<path below the input root>/<stem>_<budget>.<ext of --format>, and <stem>.nanogs.json records for resuming.", show_default=False)],
     ratio: opts.Ratio = None,
     count: opts.Count = None,
     devices: Annotated[str, typer.Option("--devices", help="auto (every GPU, else the CPU), all (every GPU), cpu, all,cpu (every GPU and the CPU), or a list such as cuda:0,cuda:1; one worker process each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.", metavar="DEVICES")] = "auto",
-    workers: Annotated[int, typer.Option("--workers", help="Worker processes per device (e.g. several on the CPU).", metavar="WORKERS")] = 1,
+    workers: Annotated[str, typer.Option("--workers", help="Worker processes per device: auto (two on a GPU whose memory holds two of the batch's largest scene, when every input is a plain PLY; one otherwise, and on the CPU) or a count (e.g. several on the CPU).", metavar="WORKERS")] = "auto",
     readers: Annotated[Optional[int], typer.Option("--readers", metavar="N", help="Threads per worker that read, check and hash each input file while the device works on the previous scene. [default: the CPU cores shared out among the workers, 1 to 8]", show_default=False)] = None,
     shard: Annotated[Optional[str], typer.Option("--shard", help="Only scenes i, i+n, i+2n, ... of the sorted list, as i/n (0-based), e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT.", show_default=False, metavar="SHARD")] = None,
     ray: Annotated[Optional[str], typer.Option("--ray", help="Run each scene as a Ray task: auto (the cluster this machine belongs to), local (a Ray instance started here) or the head's ADDRESS. Needs Ray (pip install 'ray>=2.9').", show_default=False, metavar="RAY")] = None,
@@ -79,8 +89,7 @@ def batch_command(
     shard_index, shard_count = parse_shard(shard)
     if scene_timeout is not None and not (0 <= scene_timeout <= MAX_SCENE_TIMEOUT):  # NaN too
         raise InputError(f"--scene-timeout must be 0 (no limit) to {MAX_SCENE_TIMEOUT:g} seconds, got {scene_timeout}")
-    if workers < 1:
-        raise InputError(f"--workers must be at least 1, got {workers}")
+    workers_per_device = parse_workers(workers)
     if readers is not None and readers < 1:
         raise InputError(f"--readers must be at least 1, got {readers}")
     if not output.strip():
@@ -122,7 +131,7 @@ def batch_command(
     if shard_count > 1 and not quiet:
         typer.echo(f"nanogs-warp batch: shard {shard_index}/{shard_count}: {len(selected)} of {len(jobs)} scenes", err=True)
     try:
-        results = run_batch(selected, device_list, workers, ray, ray_gpu, force, progress, scene_timeout, readers)
+        results = run_batch(selected, device_list, workers_per_device, ray, ray_gpu, force, progress, scene_timeout, readers)
     finally:  # a signal or Ctrl-C too: the empty folders this run made went with it
         if shard_count == 1:  # every worker was this run's and has ended: nothing else writes there now
             _remove_empty(made_here)
@@ -133,7 +142,7 @@ def batch_command(
             scene["input"] = os.path.abspath(scene["input"])
             for out in scene["outputs"]:
                 out["path"] = os.path.abspath(out["path"])
-        settings = {**vars(config), "devices": devices, "workers": workers, "readers": readers, "ray": ray, "drop_invalid": drop_invalid}
+        settings = {**vars(config), "devices": devices, "workers": "auto" if workers_per_device is None else workers_per_device, "readers": readers, "ray": ray, "drop_invalid": drop_invalid}
         if sh_degree is not None:
             settings["sh_degree"] = sh_degree
         summary = {"schema": opts.JSON_SCHEMA, "command": "batch", "output": os.path.abspath(output), "settings": settings, **summary}
