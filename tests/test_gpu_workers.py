@@ -1,5 +1,6 @@
 """``batch --workers auto``: two workers on a GPU that holds two of the largest scene, one elsewhere."""
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +45,9 @@ def test_unreadable_headers_are_not_counted(tmp_path):
         path.write_bytes(content)
         assert ply_splats(path) is None, name
     assert ply_splats(tmp_path / "missing.ply") is None
+    if hasattr(os, "mkfifo"):  # a pipe named like a scene: not opened (the read would block)
+        os.mkfifo(tmp_path / "pipe.ply")
+        assert ply_splats(tmp_path / "pipe.ply") is None
     huge = tmp_path / "huge.ply"  # a count no GPU holds twice: one worker
     huge.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999999999999999999\nproperty float x\nend_header\n")
     assert workers_for("cuda:0", ply_splats(huge), 141 * 2**30) == 1

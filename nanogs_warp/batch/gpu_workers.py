@@ -2,14 +2,16 @@
 
 One worker leaves a GPU idle while its Python launches the geometry fit's small kernels and
 between scenes; a second worker on the same GPU fills those gaps (on H200s, twelve 6M-splat
-scenes to three budgets: 0.86-0.87 scenes/s with one worker, 1.07-1.09 with two; docs/performance.md). Each
-worker needs the GPU memory of the scene it works on, so a GPU gets the second worker only where
-two of the batch's largest scene fit in its memory. The CPU gets one: its worker already spreads
+scenes to three budgets: 0.86-0.87 scenes/s with one worker, 1.07-1.09 with two;
+docs/performance.md). Each worker needs the GPU memory of the scene it works on, so a GPU gets
+the second worker only where two of the batch's largest scene fit in its memory. The CPU gets one: its worker already spreads
 every kernel over the cores.
 """
 
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 
 GPU_WORKERS = 2  # workers on a GPU that has the memory for them
@@ -28,6 +30,8 @@ def ply_splats(path: Path) -> int | None:
     from ..io.ply_header import parse_header
 
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return None  # a FIFO or a device would block the read, or never end it
         with open(path, "rb") as f:
             head = f.read(HEADER_BYTES)
         vertex = parse_header(head, str(path)).element("vertex")
