@@ -187,3 +187,24 @@ def test_per_pixel_backward_falls_back_to_the_lanes(device, rng, monkeypatch):
     got = [a.numpy().copy() for a in _forward_backward(splats, camera, weights, per_pixel=True)[1].arrays()]
     for a, b in zip(expected, got):
         assert a.tobytes() == b.tobytes()
+
+
+def test_per_pixel_backward_of_a_view_whose_entries_reach_no_pixel(device):
+    """A splat just off the image's right edge: its reach box touches the last tile column but no
+    pixel centre, so the view has entries and not one (entry, pixel) slot. Its gradients are zero,
+    by either backward (the per-pixel one once failed there for want of a buffer)."""
+    from nanogs_warp.eval.cameras import Camera
+
+    camera = Camera.look_at(np.array([0.0, 0.0, -5.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]), 50.0, 50.0, 32, 32, "edge", 0.2)
+    splats = SplatSet.from_numpy(means=np.array([[-1.85, 0.0, 0.0]]), rotations=np.array([[1.0, 0.0, 0.0, 0.0]]),
+                                 log_scales=np.full((1, 3), np.log(1e-3)), opacities=np.array([2.0]),
+                                 features=np.ones((1, 3)), device=device)  # fmt: skip
+    weights = np.ones((camera.height, camera.width, 3))
+    for per_pixel in (True, False):
+        rasteriser = GradRasteriser(splats, per_pixel=per_pixel)
+        image = wp.zeros((1, 32, 32, 3), dtype=wp.float32, device=device)
+        rasteriser.forward(camera, wp.vec3(0.0, 0.0, 0.0), image)
+        assert rasteriser.count > 0 and image.numpy().max() == 0.0
+        grads = SplatGradients.zeros_like(splats)
+        rasteriser.backward(image, wp.array(weights[None].astype(np.float32), dtype=wp.float32, device=device), grads)
+        assert all(not np.any(a.numpy()) for a in grads.arrays()), per_pixel

@@ -205,10 +205,10 @@ class GradRasteriser(_Rasteriser):
         self._rows(grad_kernels.pixel_areas, count, [*where, self.areas], 16384)
         wp.utils.array_scan(self.areas[:count], self.slot_ends[:count], inclusive=True)
         pairs = int(self.slot_ends[count - 1 : count].numpy()[0])
-        if pairs > self.pixel_capacity:
+        if pairs > self.pixel_capacity or self.pixel_capacity == 0:  # (none yet: a view whose entries reach no pixel)
             if pairs * PIXEL_BYTES > entry_memory(d):
                 return False
-            self.pixel_capacity = c = max(pairs, int(self.pixel_capacity * 1.5))
+            self.pixel_capacity = c = max(pairs, int(self.pixel_capacity * 1.5), 1024)
             self.p_xy = wp.empty(c, dtype=wp.vec2, device=d)
             self.p_conic = wp.empty(c, dtype=wp.vec3, device=d)
             self.p_opacity = wp.empty(c, dtype=wp.float32, device=d)
