@@ -60,6 +60,7 @@ from .render import (
     _sh_coef,
     gram,
     matrix_product,
+    pixel_of,
     scaled_columns,
     sh_to_rgb,
 )
@@ -200,6 +201,15 @@ def entry_columns(bx: wp.vec4, x_lo: int, x_hi: int, y_lo: int, y_hi: int):
 
 
 @wp.func
+def tile_bounds(tile: int, tiles_x: int, width: int, height: int):
+    """The pixels [x_lo, x_hi) x [y_lo, y_hi) of 16x16 tile ``tile`` (row-major, ``tiles_x`` a row)
+    in a width x height image: (x_lo, x_hi, y_lo, y_hi)."""
+    x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
+    y_lo = (tile / tiles_x) * TILE
+    return x_lo, wp.min(x_lo + TILE, width), y_lo, wp.min(y_lo + TILE, height)
+
+
+@wp.func
 def reset_rows(base: int, lane: int, lanes: int, transmittance: wp.array(dtype=float), front: wp.array(dtype=wp.vec3), done: wp.array(dtype=int)):
     """Starts the pixel state of the tile's rows lane, lane + lanes, ... (slots from ``base``)."""
     for r in range(lane, TILE, lanes):
@@ -242,10 +252,7 @@ def composite_backward(
     tile = tid / lanes
     lane = tid - tile * lanes
     base = tile * TILE_PIXELS
-    x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
-    y_lo = (tile / tiles_x) * TILE
-    x_hi = wp.min(x_lo + TILE, width)
-    y_hi = wp.min(y_lo + TILE, height)
+    x_lo, x_hi, y_lo, y_hi = tile_bounds(tile, tiles_x, width, height)
     reset_rows(base, lane, lanes, transmittance, front, done)
     own_rows = int(0)
     for r in range(lane, TILE, lanes):
@@ -304,10 +311,7 @@ def composite_backward_lanes_in_turn(
     of one per lane. (Pixels are independent: the order in which the lanes visit them is free.)"""
     tile = first + wp.tid()
     base = tile * TILE_PIXELS
-    x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
-    y_lo = (tile / tiles_x) * TILE
-    x_hi = wp.min(x_lo + TILE, width)
-    y_hi = wp.min(y_lo + TILE, height)
+    x_lo, x_hi, y_lo, y_hi = tile_bounds(tile, tiles_x, width, height)
     reset_rows(base, 0, 1, transmittance, front, done)
     remaining = (x_hi - x_lo) * (y_hi - y_lo)
     for k in range(tile_start[tile], tile_end[tile]):
@@ -377,10 +381,8 @@ def sum_lanes(
 @wp.func
 def entry_tile_columns(key: wp.int64, bx: wp.vec4, width: int, height: int, tiles_x: int):
     """``entry_columns`` of a sorted entry (key = tile << 32 | depth) in its own tile."""
-    tile = wp.int32(key >> wp.int64(32))
-    x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
-    y_lo = (tile / tiles_x) * TILE
-    return entry_columns(bx, x_lo, wp.min(x_lo + TILE, width), y_lo, wp.min(y_lo + TILE, height))
+    x_lo, x_hi, y_lo, y_hi = tile_bounds(wp.int32(key >> wp.int64(32)), tiles_x, width, height)
+    return entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
 
 
 @wp.kernel
@@ -431,15 +433,12 @@ def composite_backward_pixels(
     one per row."""
     tid = first + wp.tid()
     tile = tid / TILE_PIXELS
-    local = tid - tile * TILE_PIXELS
-    x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
-    y_lo = (tile / tiles_x) * TILE
-    px = x_lo + local - (local / TILE) * TILE
-    py = y_lo + local / TILE
+    pixel = pixel_of(tile, tid - tile * TILE_PIXELS, tiles_x)
+    px = pixel[0]
+    py = pixel[1]
     if px >= width or py >= height:
         return
-    x_hi = wp.min(x_lo + TILE, width)
-    y_hi = wp.min(y_lo + TILE, height)
+    x_lo, x_hi, y_lo, y_hi = tile_bounds(tile, tiles_x, width, height)
     g = wp.vec3(grad_image[py, px, 0], grad_image[py, px, 1], grad_image[py, px, 2])
     final = wp.vec3(image[py, px, 0], image[py, px, 1], image[py, px, 2])
     t = float(1.0)
