@@ -55,7 +55,8 @@ class SimplifyConfig:
 
     ``fit_geometry``: each of those outputs then has its splats' centres, rotations and scales (not
     their opacity or colour) fitted to renders of the input from cameras around it, a short
-    refinement kept only where it renders held-out views of the input better (``refinement.geometry_fit``).
+    refinement (a longer one for outputs of at most 0.1 %) kept only where it renders held-out views
+    of the input better (``refinement.geometry_fit``).
     """
 
     k: int | None = None

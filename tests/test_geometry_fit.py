@@ -5,10 +5,12 @@ tests/test_image_loss.py, tests/test_refine.py); here, what the fit may change a
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from test_size_fit import blob
 
-from nanogs_warp import SimplifyConfig, simplify
+from nanogs_warp import SimplifyConfig, SplatSet, simplify
 from nanogs_warp.refinement import geometry_fit, size_fit
 from nanogs_warp.refinement.refine import refine_with_report
 
@@ -77,3 +79,29 @@ def test_the_fit_is_refinement_with_appearance_frozen(device):
     assert report.kept_step in (0, config.steps) and kept == (report.kept_step > 0)
     for name in GEOMETRY + APPEARANCE:
         assert getattr(fitted, name).numpy().tobytes() == getattr(direct, name).numpy().tobytes()
+
+
+def test_the_smallest_outputs_get_the_long_fit_on_the_same_views(device, monkeypatch):
+    """Outputs of at most target_count(N, LONG_BELOW) splats are fitted by ``geometry_config(long=
+    True)`` (LONG_STEPS steps, the geometry's rates times LONG_RATE), one more splat by the short fit,
+    both on the one set of the input's views. (LONG_STEPS cut to 45 here: the routing, not the length.)"""
+    monkeypatch.setattr(geometry_fit, "LONG_STEPS", 45)
+    short, long = geometry_fit.geometry_config(), geometry_fit.geometry_config(long=True)
+    assert (long.steps, long.reference_views, long.size) == (45, short.reference_views, short.size)
+    for name in ("lr_means", "lr_rotations", "lr_log_scales"):
+        assert getattr(long, name) == geometry_fit.LONG_RATE * getattr(short, name)
+    assert (long.lr_opacities, long.lr_features_dc, long.lr_features_rest) == (0.0, 0.0, 0.0)
+
+    reference = blob(4000, 24, device, log_scale=(-3.0, -2.0))
+    fit = geometry_fit.GeometryFit(reference)
+    assert fit.longest == 4  # ceil(0.001 * 4000)
+    grown = size_fit.resized(reference.clone(), 1.65)
+    for count, config in ((4, long), (5, short)):
+        output = SplatSet.from_numpy(**{k: v[:count] for k, v in grown.to_numpy().items()}, device=device)
+        fitted, kept = fit(output)
+        direct, report = refine_with_report(output, reference, config, checkpoints=(1.0,), training_loss=False,
+                                            views=geometry_fit.ReferenceViews(reference, short))
+        assert kept == (report.kept_step > 0)
+        for name in GEOMETRY + APPEARANCE:
+            assert getattr(fitted, name).numpy().tobytes() == getattr(direct, name).numpy().tobytes()
+    assert fit.views.serves(reference, long, device) and not fit.views.serves(reference, dataclasses.replace(long, size=128), device)

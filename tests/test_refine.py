@@ -86,8 +86,8 @@ def test_refine_is_deterministic_and_keeps_the_count(device):
 
 def test_outputs_share_the_original_s_renders(device, monkeypatch):
     """Two outputs refined with one ``ReferenceViews`` (as a multi-budget run does): the same bytes as
-    each refined alone, with the original rendered once instead of twice; views made for another
-    configuration are refused."""
+    each refined alone, with the original rendered once instead of twice; views made for other
+    cameras are refused."""
     import nanogs_warp.refinement.refine as refine_module
 
     arrays = _toy_scene(3, device)
@@ -106,8 +106,18 @@ def test_outputs_share_the_original_s_renders(device, monkeypatch):
         b = b.to_numpy()
         for key in a:
             assert a[key].tobytes() == b[key].tobytes(), key
-    with pytest.raises(ValueError, match="another reference scene"):
-        refine_with_report(smalls[0], reference, RefineConfig(steps=9, size=40, reference_views=6), views=views)
+    # they serve another configuration with the same cameras (more steps, other rates: the same bytes
+    # as rendering its own) and refuse one with other cameras (size, seed, pool)
+    longer = RefineConfig(steps=9, size=40, reference_views=6, lr_means=3.2e-4)
+    a = refine_with_report(smalls[0], reference, longer)[0].to_numpy()
+    b = refine_with_report(smalls[0], reference, longer, views=views)[0].to_numpy()
+    assert renders == [6, refine_module.VALIDATION_VIEWS, 6, refine_module.VALIDATION_VIEWS]  # only the one alone rendered
+    for key in a:
+        assert a[key].tobytes() == b[key].tobytes(), key
+    for other in (RefineConfig(steps=9, size=48, reference_views=6), RefineConfig(steps=9, size=40, reference_views=6, seed=1),
+                  RefineConfig(steps=5, size=40, reference_views=6)):  # a pool of 5 views: one a step
+        with pytest.raises(ValueError, match="another reference scene"):
+            refine_with_report(smalls[0], reference, other, views=views)
 
 
 def test_refine_the_shipped_sample_on_the_cpu():

@@ -8,37 +8,57 @@ opacity and colour stay the merge's. Refining opacity and colour as well gains m
 but loses on close views of semi-transparent strands (docs/quality.md); so does training on fewer
 or smaller views. The result is kept only where it renders the held-out views of the input better
 than the size-fitted output did (``refine``'s checkpoint rule, one checkpoint at the end).
+
+The smallest outputs (at most LONG_BELOW of the input's splats, each splat standing for a thousand
+originals or more) are fitted longer: LONG_STEPS steps at LONG_RATE times the learning rates, on
+the same views. Their splats must move further than a larger output's to where the input shows
+them; forty steps at 3DGS's rates leave most of that gain (docs/quality.md).
 """
 
 from __future__ import annotations
 
+import dataclasses
+
+from ..config import target_count
 from ..splats import SplatSet
 from .config import RefineConfig
 from .refine import ReferenceViews, refine_with_report
 
 STEPS = 40
-VIEWS = 16
+VIEWS = 40
 SIZE = 256
+LONG_BELOW = "0.001"  # outputs of at most target_count(N, LONG_BELOW) splats get the long fit (an exact ratio)
+LONG_STEPS = 400
+LONG_RATE = 2.0  # the long fit's learning rates of centres, rotations and scales, times the short fit's
 
 
-def geometry_config(seed: int = 0) -> RefineConfig:
-    """The refinement the geometry fit runs: STEPS steps, VIEWS training views of SIZE pixels,
-    centres, rotations and scales only."""
-    return RefineConfig(steps=STEPS, size=SIZE, reference_views=VIEWS, seed=seed, lr_opacities=0.0,
-                        lr_features_dc=0.0, lr_features_rest=0.0)  # fmt: skip
+def geometry_config(seed: int = 0, long: bool = False) -> RefineConfig:
+    """The refinement the geometry fit runs: STEPS steps (LONG_STEPS at LONG_RATE times the rates
+    with ``long``), VIEWS training views of SIZE pixels, centres, rotations and scales only."""
+    config = RefineConfig(steps=STEPS, size=SIZE, reference_views=VIEWS, seed=seed, lr_opacities=0.0,
+                          lr_features_dc=0.0, lr_features_rest=0.0)  # fmt: skip
+    if not long:
+        return config
+    return dataclasses.replace(config, steps=LONG_STEPS, lr_means=config.lr_means * LONG_RATE,
+                               lr_rotations=config.lr_rotations * LONG_RATE,
+                               lr_log_scales=config.lr_log_scales * LONG_RATE)  # fmt: skip
 
 
 class GeometryFit:
     """Fits the outputs of one run against ``reference`` (the run's input, on its device). The
-    input's views are rendered once, for the first output fitted, and shared by the others."""
+    input's views are rendered once, for the first output fitted, and shared by the others (the
+    short and the long fit train on the same views)."""
 
     def __init__(self, reference: SplatSet, seed: int = 0):
         self.reference = reference
         self.config = geometry_config(seed)
+        self.long_config = geometry_config(seed, long=True)
+        self.longest = target_count(reference.count, LONG_BELOW)
         self.views = ReferenceViews(reference, self.config)
 
     def __call__(self, splats: SplatSet) -> tuple[SplatSet, bool]:
         """(the fitted splat set, whether the fitted geometry was kept: ``splats``' own otherwise)."""
-        fitted, report = refine_with_report(splats, self.reference, self.config, views=self.views, checkpoints=(1.0,),
+        config = self.long_config if splats.count <= self.longest else self.config
+        fitted, report = refine_with_report(splats, self.reference, config, views=self.views, checkpoints=(1.0,),
                                             training_loss=False)  # fmt: skip
         return fitted, report.kept_step > 0

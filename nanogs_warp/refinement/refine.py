@@ -56,6 +56,11 @@ def check_memory(config: RefineConfig, pool: int, device) -> None:
                          f"--refine-size or fewer --refine-steps")  # fmt: skip
 
 
+def view_pool(config: RefineConfig) -> int:
+    """How many training views a refinement of ``config`` renders of the original (at most one a step)."""
+    return max(1, min(config.reference_views, config.steps * config.views_per_step))
+
+
 @dataclass
 class RefineReport:
     """What a refinement did: steps, seconds (total and per phase), training loss before and after
@@ -152,7 +157,10 @@ class ReferenceViews:
         self.held_out_targets: list[wp.array] = []
 
     def serves(self, reference: SplatSet, config: RefineConfig, device) -> bool:
-        return reference is self.source and config == self.config and wp.get_device(device) == self.device
+        """Whether these are the views a refinement of ``config`` toward ``reference`` on ``device``
+        would render: the same cameras (pool, size, seed), whatever its steps and learning rates."""
+        same_views = view_pool(config) == view_pool(self.config) and (config.size, config.seed) == (self.config.size, self.config.seed)
+        return reference is self.source and same_views and wp.get_device(device) == self.device
 
     def render(self) -> float:
         """Renders the views unless done before; returns the seconds it took (0 when it had been)."""
@@ -172,7 +180,7 @@ class ReferenceViews:
         c = self.config
         _, p90, _ = scene_spread(means)
         self.extent = 2.2 * p90  # the scene's extent, which scales the means' learning rate
-        pool = max(1, min(c.reference_views, c.steps * c.views_per_step))
+        pool = view_pool(c)
         check_memory(c, pool, self.device)
         cameras = training_cameras(means, pool, c.size, c.seed)
         self.targets = _render_views(self.reference, cameras, self.device)
