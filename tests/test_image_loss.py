@@ -47,3 +47,39 @@ def test_identical_images_have_zero_loss(device, rng):
     loss(image, image, grad, 0.2)
     assert abs(loss.value()) <= 1e-6
     assert np.abs(grad.numpy()).max() <= 1e-6
+
+
+@pytest.mark.parametrize("channels", [15, 9])
+def test_blur_sums_in_its_documented_order(device, rng, channels):
+    """The separable blur, both directions, bit for bit against float32 numpy summing in the kernel's
+    order: the centre tap, then the other taps that land inside the image, left to right. Away from
+    the edges the kernel runs an unrolled loop, near them a bounded one; both must give these bits
+    (the outputs' bytes, and CPU = CUDA, rest on the order)."""
+    from nanogs_warp.eval.metrics import gaussian_window
+    from nanogs_warp.kernels import image_loss as kernels
+
+    h, w = 37, 29
+    vec = kernels.vec15 if channels == 15 else kernels.vec9
+    source = rng.standard_normal((h, w, channels)).astype(np.float32)
+    taps = gaussian_window().astype(np.float32)
+    radius = len(taps) // 2
+    src = wp.array(source, dtype=vec, device=device)
+    taps_wp = wp.array(taps, dtype=wp.float32, device=device)
+    for vertical in (0, 1):
+        target = wp.full((h, w), vec(float("nan")), dtype=vec, device=device)
+        wp.launch(kernels.blur, h * w, inputs=[0, src, taps_wp, vertical, target], device=device)
+        moved = source if vertical == 0 else source.transpose(1, 0, 2)  # blur along axis 1
+        expected = taps[radius] * moved
+        for j in range(len(taps)):
+            if j == radius:
+                continue
+            shift = j - radius
+            term = np.zeros_like(moved)
+            lo, hi = max(0, -shift), min(moved.shape[1], moved.shape[1] - shift)
+            term[:, lo:hi] = taps[j] * moved[:, lo + shift:hi + shift]
+            inside = np.zeros(moved.shape[1], bool)
+            inside[lo:hi] = True
+            expected = np.where(inside[None, :, None], expected + term, expected)  # float32, in order
+        if vertical:
+            expected = expected.transpose(1, 0, 2)
+        assert target.numpy().tobytes() == np.ascontiguousarray(expected, dtype=np.float32).tobytes()
