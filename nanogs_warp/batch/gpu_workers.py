@@ -3,9 +3,10 @@
 One worker leaves a GPU idle while its Python launches the geometry fit's small kernels and
 between scenes; a second worker on the same GPU fills those gaps (on H200s, twelve 6M-splat
 scenes to three budgets: 0.86-0.87 scenes/s with one worker, 1.07-1.09 with two, before the
-geometry fit's long fit of the smallest outputs made the GPU the limit; docs/performance.md). Each worker needs the GPU memory of the scene it works on, so a GPU gets
-the second worker only where two of the batch's largest scene fit in its memory. The CPU gets one: its worker already spreads
-every kernel over the cores.
+geometry fit's long fit of the smallest outputs made the GPU the limit; docs/performance.md).
+Each worker needs the GPU memory of the scene it works on, so a GPU gets the second worker only
+where two of the batch's largest scene fit in its memory. The CPU gets one: its worker already
+spreads every kernel over the cores.
 """
 
 from __future__ import annotations
