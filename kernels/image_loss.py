@@ -165,3 +165,17 @@ def loss_gradient(
         elif a < b:
             g -= l1_weight
         grad[py, px, ch] = g
+
+
+@wp.kernel
+def halved(first: int, image: wp.array3d(dtype=float), half: wp.array3d(dtype=float)):
+    """half[py, px] = the mean of image's 2x2 block at (2 py, 2 px), per channel: 0.25 ((a + b) + (c + d)),
+    a b the block's top row, c d its bottom row (a training view at half its size)."""
+    tid = first + wp.tid()
+    width = half.shape[1]
+    py = tid / width
+    px = tid - py * width
+    for ch in range(3):
+        top = image[2 * py, 2 * px, ch] + image[2 * py, 2 * px + 1, ch]
+        bottom = image[2 * py + 1, 2 * px, ch] + image[2 * py + 1, 2 * px + 1, ch]
+        half[py, px, ch] = 0.25 * (top + bottom)

@@ -83,3 +83,23 @@ def test_blur_sums_in_its_documented_order(device, rng, channels):
         if vertical:
             expected = expected.transpose(1, 0, 2)
         assert target.numpy().tobytes() == np.ascontiguousarray(expected, dtype=np.float32).tobytes()
+
+
+@pytest.mark.parametrize("shape", [(256, 192), (37, 29)])
+def test_halved_averages_each_2x2_block(device, rng, shape):
+    """``halved``: each pixel of the half-size view the mean of its 2x2 block (an odd last row or
+    column dropped), bit for bit against float32 numpy summing the rows first, and within float32
+    rounding of the float64 mean. Outputs poisoned with NaN before the launch."""
+    from nanogs_warp.kernels import image_loss as kernels
+
+    h, w = shape
+    image = rng.random((h, w, 3), dtype=np.float32)
+    half = wp.full((h // 2, w // 2, 3), float("nan"), dtype=wp.float32, device=device)
+    wp.launch(kernels.halved, (h // 2) * (w // 2), inputs=[0, wp.array(image, dtype=wp.float32, device=device), half],
+              device=device)  # fmt: skip
+    b = image[: 2 * (h // 2), : 2 * (w // 2)]
+    expected = np.float32(0.25) * ((b[0::2, 0::2] + b[0::2, 1::2]) + (b[1::2, 0::2] + b[1::2, 1::2]))
+    assert half.numpy().tobytes() == expected.tobytes()
+    b64 = b.astype(np.float64)
+    mean = (b64[0::2, 0::2] + b64[0::2, 1::2] + b64[1::2, 0::2] + b64[1::2, 1::2]) / 4.0
+    assert np.abs(half.numpy() - mean).max() <= 1e-6

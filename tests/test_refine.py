@@ -226,3 +226,58 @@ def test_refinement_sizes_and_steps_are_bounded(steps, size, message):
     with pytest.raises(InputError, match=message):
         RefineConfig(steps=steps, size=size).validate()
     RefineConfig(steps=100_000, size=4096).validate()
+
+
+def test_coarse_steps_train_on_the_views_at_half_size(device):
+    """``coarse_steps``: the first steps train on ``ReferenceViews.halved`` (each camera at half its
+    size, each target's 2x2 blocks averaged). A run whose every step is coarse gives the bytes of a
+    run on views whose training cameras and targets are those halved ones; the held-out views stay
+    full size."""
+    import dataclasses
+
+    import nanogs_warp.refinement.refine as refine_module
+
+    reference = SplatSet.from_numpy(**_toy_scene(5, device), device=device)
+    small = simplify(reference, count=15)
+    config = RefineConfig(steps=6, size=64, reference_views=4, coarse_steps=6)
+    views = refine_module.ReferenceViews(reference, config)
+    coarse = refine_with_report(small, reference, config, views=views)[0].to_numpy()
+    cameras, targets = views.halved()
+    assert [(c.width, c.height) for c in cameras] == [(c.width // 2, c.height // 2) for c in views.cameras]
+    standing_in = refine_module.ReferenceViews(reference, config)
+    standing_in.render()
+    standing_in.cameras, standing_in.targets = cameras, targets
+    fine = refine_with_report(small, reference, dataclasses.replace(config, coarse_steps=0), views=standing_in)[0].to_numpy()
+    for key in coarse:
+        assert coarse[key].tobytes() == fine[key].tobytes(), key
+    full = refine_with_report(small, reference, dataclasses.replace(config, coarse_steps=0), views=views)[0].to_numpy()
+    assert not np.array_equal(full["means"], coarse["means"])
+    with pytest.raises(InputError, match="coarse steps"):
+        RefineConfig(steps=6, coarse_steps=7).validate()
+
+
+def test_a_halved_camera_sees_the_blocks_of_the_full_one(device):
+    """A half-size camera (half the focal lengths and principal point) puts a small splat where the
+    full-size view's 2x2 blocks have it: the brightness-weighted centroids, in pixel indices,
+    agree within a tenth of a half-size pixel (x' = (x - 0.5) / 2; a principal point (c - 0.5) / 2
+    would be a quarter off)."""
+    import nanogs_warp.refinement.refine as refine_module
+    from nanogs_warp.eval.render import render_views_on_device
+
+    arrays = random_splat_arrays(1, seed=4)
+    arrays["means"] = np.array([[0.13, -0.07, 0.0]], np.float32)
+    arrays["log_scales"] = np.full((1, 3), np.log(0.02), np.float32)
+    arrays["opacities"] = np.array([3.0], np.float32)
+    splat = SplatSet.from_numpy(**arrays, device=device)
+    config = RefineConfig(steps=1, size=128, reference_views=1, coarse_steps=1)
+    views = refine_module.ReferenceViews(splat, config)
+    views.render()
+    camera, half_camera = views.cameras[0], views.halved()[0][0]
+    full, half = (render_views_on_device(splat, [c]).numpy()[0].sum(axis=2) for c in (camera, half_camera))
+
+    def centroid(image):
+        ys, xs = np.mgrid[: image.shape[0], : image.shape[1]]
+        return np.array([(xs * image).sum(), (ys * image).sum()]) / image.sum()
+
+    assert full.sum() > 0 and half.sum() > 0
+    np.testing.assert_allclose(centroid(half), (centroid(full) - 0.5) / 2.0, atol=0.1)

@@ -17,6 +17,7 @@ class RefineConfig:
     """Refinement settings; learning rates as in 3DGS (``lr_means`` is per unit of scene extent)."""
 
     steps: int = 300
+    coarse_steps: int = 0  # the first steps train on the views at half their size (``ReferenceViews.halved``)
     size: int = 256
     views_per_step: int = 1
     reference_views: int = 128
@@ -33,11 +34,13 @@ class RefineConfig:
     logit_range: tuple[float, float] = (-20.0, 20.0)
 
     def validate(self) -> None:
-        check_types(self, {"steps": "int", "size": "int", "views_per_step": "int", "reference_views": "int", "seed": "int"})
+        check_types(self, {"steps": "int", "coarse_steps": "int", "size": "int", "views_per_step": "int", "reference_views": "int", "seed": "int"})
         if not 0 <= self.seed <= MAX_SEED:
             raise InputError(f"--seed must be between 0 and {MAX_SEED}, got {self.seed}")
         if not 0 <= self.steps <= MAX_STEPS:
             raise InputError(f"--refine-steps must be in [0, {MAX_STEPS}], got {self.steps}")
+        if not 0 <= self.coarse_steps <= self.steps:
+            raise InputError(f"coarse steps must be in [0, {self.steps}] (the steps), got {self.coarse_steps}")
         if not MIN_SIZE <= self.size <= MAX_SIZE:
             raise InputError(f"--refine-size must be in [{MIN_SIZE}, {MAX_SIZE}] pixels, got {self.size}")
         if self.views_per_step < 1 or self.reference_views < 1:

@@ -31,7 +31,9 @@ class ImageLoss:
         wp.load_module(kernels, device=d)
 
     def _pixels(self, kernel, inputs: list) -> None:
-        launch_rows_from(kernel, self.height * self.width, inputs, self.device, min_rows=MIN_PIXELS_TO_SPLIT)
+        # one chunk a CPU worker: every pixel costs the same, and each further chunk is a launch's
+        # overhead (at 128 x 128 four a worker took 5.6 ms a loss against 1.8; docs/performance.md)
+        launch_rows_from(kernel, self.height * self.width, inputs, self.device, chunks_per_worker=1, min_rows=MIN_PIXELS_TO_SPLIT)
 
     def _blur(self, source, half, target) -> None:
         self._pixels(kernels.blur, [source, self.taps, 0, half])

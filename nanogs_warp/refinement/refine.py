@@ -12,6 +12,7 @@ progress report. The same inputs, seed and device give the same bytes.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -25,6 +26,7 @@ from ..device import memory_short
 from ..eval.render import _Rasteriser
 from ..eval.units import render_offset, render_units, rendered_as_is, rescaled
 from ..kernels import adam as adam_kernels
+from ..kernels import image_loss as image_kernels
 from ..parallel import launch_rows_from
 from ..splats import SplatSet
 from .cameras import VALIDATION_STREAM, sampled_means, scene_spread, training_cameras
@@ -47,7 +49,8 @@ def check_memory(config: RefineConfig, pool: int, device) -> None:
     """Refuses, before any rendering, a refinement whose views would not fit ``device``'s memory
     (a GPU's free memory, the host's available memory for the CPU)."""
     pixels = config.size * config.size
-    need = pixels * (STEP_BYTES_PER_PIXEL + VIEW_BYTES_PER_PIXEL * (pool + VALIDATION_VIEWS))
+    views = pool + VALIDATION_VIEWS + (pool / 4 if config.coarse_steps > 0 else 0)  # (the halved views: a quarter each)
+    need = int(pixels * (STEP_BYTES_PER_PIXEL + VIEW_BYTES_PER_PIXEL * views))
     available = memory_short(need, device)
     if available is not None:
         memory = "memory" if device.is_cpu else f"{device}'s memory"
@@ -155,12 +158,31 @@ class ReferenceViews:
         self.targets: list[wp.array] = []
         self.held_out: list = []
         self.held_out_targets: list[wp.array] = []
+        self._halved: tuple[list, list[wp.array]] | None = None
 
     def serves(self, reference: SplatSet, config: RefineConfig, device) -> bool:
         """Whether these are the views a refinement of ``config`` toward ``reference`` on ``device``
         would render: the same cameras (pool, size, seed), whatever its steps and learning rates."""
         same_views = view_pool(config) == view_pool(self.config) and (config.size, config.seed) == (self.config.size, self.config.seed)
         return reference is self.source and same_views and wp.get_device(device) == self.device
+
+    def halved(self) -> tuple[list, list[wp.array]]:
+        """The training views at half their size (rendered first where they were not): each camera
+        with half the focal lengths, principal point and pixels, and each target its 2x2 pixel blocks
+        averaged (pixel i covers [i, i + 1) of the image plane: a block's centre is the half-size
+        pixel's). Made once, on the views' device."""
+        self.render()
+        if self._halved is None:
+            cameras = [dataclasses.replace(c, fx=0.5 * c.fx, fy=0.5 * c.fy, cx=0.5 * c.cx, cy=0.5 * c.cy,
+                                           width=c.width // 2, height=c.height // 2) for c in self.cameras]  # fmt: skip
+            targets = []
+            for c, t in zip(cameras, self.targets):
+                half = wp.empty((1, c.height, c.width, 3), dtype=wp.float32, device=self.device)
+                launch_rows_from(image_kernels.halved, c.height * c.width, [t[0], half[0]], self.device, chunks_per_worker=1,
+                                 min_rows=4096)  # fmt: skip
+                targets.append(half)
+            self._halved = (cameras, targets)
+        return self._halved
 
     def render(self) -> float:
         """Renders the views unless done before; returns the seconds it took (0 when it had been)."""
@@ -316,6 +338,7 @@ def refine_with_report(
         best = _copy(refiner.splats, device)
         checkpoints = {max(1, round(f * config.steps)) for f in checkpoints}
 
+        halved = views.halved() if config.coarse_steps > 0 else None
         rng = np.random.default_rng([config.seed, 0xADA])
         order: list[int] = []
         weight = 1.0 / config.views_per_step
@@ -328,9 +351,10 @@ def refine_with_report(
                     order = rng.permutation(pool).tolist()
                 k = order.pop()
                 t1 = time.perf_counter()
-                image, grad_image, loss = refiner.buffers(cameras[k].width, cameras[k].height)
-                refiner.rasteriser.forward(cameras[k], wp.vec3(0.0, 0.0, 0.0), image)
-                loss(image[0], targets[k][0], grad_image[0], config.ssim_weight, weight)
+                camera, target = (halved[0][k], halved[1][k]) if step < config.coarse_steps else (cameras[k], targets[k])
+                image, grad_image, loss = refiner.buffers(camera.width, camera.height)
+                refiner.rasteriser.forward(camera, wp.vec3(0.0, 0.0, 0.0), image)
+                loss(image[0], target[0], grad_image[0], config.ssim_weight, weight)
                 sync()
                 t2 = time.perf_counter()
                 refiner.rasteriser.backward(image, grad_image, refiner.grads)
