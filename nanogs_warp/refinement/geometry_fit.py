@@ -14,9 +14,10 @@ originals or more) are fitted longer: LONG_STEPS steps at LONG_RATE times the le
 (LONG_MEANS_RATE for the centres), on the same views. Their splats must move further than a larger
 output's to where the input shows them; forty steps at 3DGS's rates leave most of that gain, and
 Adam moves a centre by about its rate a step: at twice 3DGS's (decaying tenfold) a centre could
-travel about 5 % of the scene's extent in 400 steps, at eight times about 20 % (docs/quality.md). The first LONG_COARSE
-of those steps train on the same views at half their size (``ReferenceViews.halved``): the same
-quality for a quarter of the pixels (on the CPU, where a step's cost is its pixels').
+travel about 5 % of the scene's extent in 400 steps, at eight times about 20 % (docs/quality.md).
+The first LONG_COARSE of those steps train on the same views at half their size
+(``ReferenceViews.halved``): the same quality for a quarter of the pixels (on the CPU, where a
+step's cost is its pixels').
 """
 
 from __future__ import annotations
