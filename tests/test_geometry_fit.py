@@ -84,8 +84,9 @@ def test_the_fit_is_refinement_with_appearance_frozen(device):
 def test_the_smallest_outputs_get_the_long_fit_on_the_same_views(device, monkeypatch):
     """Outputs of at most target_count(N, LONG_BELOW) splats are fitted by ``geometry_config(long=
     True)`` (LONG_STEPS steps, the first LONG_COARSE on the views at half size, the centres' rate
-    times LONG_MEANS_RATE, the rotations' and scales' times LONG_RATE), one more splat by the short fit (every step at full size), both on the one set
-    of the input's views. (LONG_STEPS and LONG_COARSE cut to 45 and 30 here: the routing, not the length.)"""
+    times LONG_MEANS_RATE, the rotations' and scales' times LONG_RATE), one more splat by the short
+    fit (every step at full size), both on the one set of the input's views. (LONG_STEPS and
+    LONG_COARSE cut to 45 and 30 here: the routing, not the length.)"""
     monkeypatch.setattr(geometry_fit, "LONG_STEPS", 45)
     monkeypatch.setattr(geometry_fit, "LONG_COARSE", 30)
     short, long = geometry_fit.geometry_config(), geometry_fit.geometry_config(long=True)

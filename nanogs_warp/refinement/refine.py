@@ -31,7 +31,7 @@ from ..parallel import launch_rows_from
 from ..splats import SplatSet
 from .cameras import VALIDATION_STREAM, sampled_means, scene_spread, training_cameras
 from .config import RefineConfig
-from .image_loss import ImageLoss
+from .image_loss import MIN_PIXELS_TO_SPLIT, ImageLoss
 from .render_grad import GradRasteriser, SplatGradients
 
 LOSS_VIEWS = 8  # pool views on which the training loss before and after is measured
@@ -49,8 +49,7 @@ def check_memory(config: RefineConfig, pool: int, device) -> None:
     """Refuses, before any rendering, a refinement whose views would not fit ``device``'s memory
     (a GPU's free memory, the host's available memory for the CPU)."""
     pixels = config.size * config.size
-    views = pool + VALIDATION_VIEWS + (pool / 4 if config.coarse_steps > 0 else 0)  # (the halved views: a quarter each)
-    need = int(pixels * (STEP_BYTES_PER_PIXEL + VIEW_BYTES_PER_PIXEL * views))
+    need = pixels * (STEP_BYTES_PER_PIXEL + VIEW_BYTES_PER_PIXEL * (pool + VALIDATION_VIEWS))
     available = memory_short(need, device)
     if available is not None:
         memory = "memory" if device.is_cpu else f"{device}'s memory"
@@ -179,7 +178,7 @@ class ReferenceViews:
             for c, t in zip(cameras, self.targets):
                 half = wp.empty((1, c.height, c.width, 3), dtype=wp.float32, device=self.device)
                 launch_rows_from(image_kernels.halved, c.height * c.width, [t[0], half[0]], self.device, chunks_per_worker=1,
-                                 min_rows=4096)  # fmt: skip
+                                 min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
                 targets.append(half)
             self._halved = (cameras, targets)
         return self._halved
@@ -338,7 +337,7 @@ def refine_with_report(
         best = _copy(refiner.splats, device)
         checkpoints = {max(1, round(f * config.steps)) for f in checkpoints}
 
-        halved = views.halved() if config.coarse_steps > 0 else None
+        coarse_cameras, coarse_targets = views.halved() if config.coarse_steps > 0 else ([], [])
         rng = np.random.default_rng([config.seed, 0xADA])
         order: list[int] = []
         weight = 1.0 / config.views_per_step
@@ -351,7 +350,8 @@ def refine_with_report(
                     order = rng.permutation(pool).tolist()
                 k = order.pop()
                 t1 = time.perf_counter()
-                camera, target = (halved[0][k], halved[1][k]) if step < config.coarse_steps else (cameras[k], targets[k])
+                coarse = step < config.coarse_steps
+                camera, target = (coarse_cameras[k], coarse_targets[k]) if coarse else (cameras[k], targets[k])
                 image, grad_image, loss = refiner.buffers(camera.width, camera.height)
                 refiner.rasteriser.forward(camera, wp.vec3(0.0, 0.0, 0.0), image)
                 loss(image[0], target[0], grad_image[0], config.ssim_weight, weight)
