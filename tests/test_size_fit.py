@@ -111,10 +111,14 @@ def test_a_right_size_is_kept(device, monkeypatch):
     assert fit(reference) is reference and fit.factors[reference.count] == 1.0
 
 
-def test_outputs_above_one_percent_and_far_scenes_are_left_alone(device):
+def test_outputs_above_ten_percent_and_far_scenes_are_left_alone(device):
+    """Size fit up to 10 % of the input, geometry fit (when asked for) up to 1 %; beyond, nothing."""
     reference = blob(1000, 13, device)
     fit = size_fit.SizeFit(reference)
-    assert fit.largest == 10 and fit.applies(10) and not fit.applies(11)
+    assert fit.largest == 100 and fit.applies(100) and not fit.applies(101)
+    assert not fit.applies_geometry(10)  # no geometry fit asked for
+    both = size_fit.SizeFit(reference, geometry=True)
+    assert both.applies_geometry(10) and not both.applies_geometry(11) and both.applies(11)
     big = size_fit.resized(reference, 2.0)
     assert fit(big) is big and fit.factors[1000] == 1.0
     # a scene far from the origin for its size is rendered recentred by eval: not fitted
@@ -140,13 +144,13 @@ def test_huge_splats_are_not_fitted(device, monkeypatch):
 
 
 def test_simplify_fits_by_default_and_only_there(device):
-    """``nanogs_warp.simplify`` is the merge, then the fits of the outputs at or below 1 % (here the
-    size fit alone; the geometry fit after it: tests/test_geometry_fit.py); the paper and fast
-    presets and fit_size=False are the merge alone."""
+    """``nanogs_warp.simplify`` is the merge, then the size fit of the outputs at or below 10 % (here
+    the size fit alone; the geometry fit of those at or below 1 % after it: tests/test_geometry_fit.py);
+    the paper and fast presets and fit_size=False are the merge alone."""
     splats = blob(3000, 15, device, log_scale=(-4.0, -2.5))
-    fitted = simplify(splats, ratio=[0.1, 0.01, 0.005], config=SimplifyConfig(fit_geometry=False))
-    merged = simplify_merged(splats, ratio=[0.1, 0.01, 0.005])
-    np.testing.assert_array_equal(fitted[0].log_scales.numpy(), merged[0].log_scales.numpy())  # above 1 %
+    fitted = simplify(splats, ratio=[0.2, 0.1, 0.01], config=SimplifyConfig(fit_geometry=False))
+    merged = simplify_merged(splats, ratio=[0.2, 0.1, 0.01])
+    np.testing.assert_array_equal(fitted[0].log_scales.numpy(), merged[0].log_scales.numpy())  # above 10 %
     for f, m in zip(fitted[1:], merged[1:]):
         ratio = np.exp(f.log_scales.numpy().astype(np.float64) - m.log_scales.numpy())
         assert np.allclose(ratio, ratio.flat[0], rtol=1e-5)  # one factor for every axis of every splat
@@ -164,11 +168,11 @@ def test_cli_reports_the_factor(tmp_path):
     source = tmp_path / "blob.ply"
     save_ply(splats, source)
     runner = CliRunner()
-    result = runner.invoke(app, ["simplify", str(source), "-o", str(tmp_path / "o.ply"), "--ratio", "0.1,0.01", "--device", "cpu", "--json"])
+    result = runner.invoke(app, ["simplify", str(source), "-o", str(tmp_path / "o.ply"), "--ratio", "0.2,0.1,0.01", "--device", "cpu", "--json"])
     assert result.exit_code == 0, result.output
     outputs = json.loads(result.stdout)["outputs"]
-    assert "size_factor" not in outputs[0] and outputs[1]["size_factor"] > 0
-    assert "geometry_fit" not in outputs[0] and isinstance(outputs[1]["geometry_fit"], bool)
+    assert "size_factor" not in outputs[0] and outputs[1]["size_factor"] > 0 and outputs[2]["size_factor"] > 0
+    assert "geometry_fit" not in outputs[0] and "geometry_fit" not in outputs[1] and isinstance(outputs[2]["geometry_fit"], bool)
     settings = json.loads(result.stdout)["settings"]
     assert settings["fit_size"] is True and settings["fit_geometry"] is True
     for flags, keys in ((["--no-fit-size"], {"geometry_fit"}), (["--no-fit-geometry"], {"size_factor"}),

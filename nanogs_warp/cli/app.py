@@ -367,7 +367,7 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
             if size_fit is not None and size_fit.applies(result.count):
                 if size_fit.size:
                     written[-1]["size_factor"] = round(size_fit.factors[result.count], 6)
-                if size_fit.geometry:
+                if size_fit.applies_geometry(result.count):
                     written[-1]["geometry_fit"] = size_fit.geometry_kept.get(result.count, False)
             if report is not None:
                 written[-1]["refine"] = report.to_json()

@@ -1,16 +1,17 @@
 """The size fit: a small output's splats all scaled by the one factor whose renders match the input's
 best, at a coarse and at a fine pixel size alike (``SimplifyConfig.fit_size``, on by default).
 
-At 1 % of the input and below, the merged splats of some scenes come out too large (a statue's
-faint halo spread into every merged splat) and the right factor is the scene's, not a constant's
-(docs/quality.md). The fit measures it: the input and the output are rendered from the same
-``VIEWS`` cameras around the scene (``training_cameras``' sampler, its own stream, ``SIZE`` pixels
-square) and from the same cameras zoomed ``ZOOM`` times (pixels that much smaller: most
-splats of a trained scene are smaller than a pixel of the coarse views, where a renderer's
-0.3-pixel blur makes them look larger than they are, and the fine views keep the fit from
-growing splats for that blur alone). A factor's gain is the smaller of its two PSNR changes
-(mean over the views, against factor 1); factors STEP^k, |k| <= MOST_STEPS, are tried outward
-from 1 while the gain rises, and the best one with a positive gain is kept (1 otherwise).
+At 10 % of the input and below, the merged splats of some scenes come out too large or too small (a
+statue's faint halo spread into every merged splat at 1 %; fur strands and flat panels merged too
+thin at 10 %), and the right factor is the scene's, not a constant's (docs/quality.md). The fit
+measures it: the input and the output are rendered from the same ``VIEWS`` cameras around the scene
+(``training_cameras``' sampler, its own stream, ``SIZE`` pixels square) and from the same cameras
+zoomed ``ZOOM`` times (pixels that much smaller: most splats of a trained scene are smaller than a
+pixel of the coarse views, where a renderer's 0.3-pixel blur makes them look larger than they are,
+and the fine views keep the fit from growing splats for that blur alone). A factor's gain is the
+smaller of its two PSNR changes (mean over the views, against factor 1); factors STEP^k, |k| <=
+MOST_STEPS, are tried outward from 1 while the gain rises, and the best one with a positive gain is
+kept (1 otherwise).
 
 The input is rendered once per run, when the first output to fit is reached. A scene that ``eval``
 would render rescaled or recentred (``eval.units``) is left as it is, and so is one whose renders
@@ -36,7 +37,11 @@ from ..kernels import splat_size as kernels
 from ..splats import SplatSet
 from .cameras import sampled_means, training_cameras
 
-FIT_BELOW = "0.01"  # outputs of at most target_count(N, FIT_BELOW) splats are fitted (an exact ratio)
+FIT_BELOW = "0.1"  # outputs of at most target_count(N, FIT_BELOW) splats are fitted for size (an exact ratio)
+# and those of at most target_count(N, GEOMETRY_FIT_BELOW) for geometry too (``GeometryFit``): at 10 %
+# the geometry fit gains on the orbit it trains around but loses on closer and sharper views
+# (docs/quality.md), the size fit gains on both
+GEOMETRY_FIT_BELOW = "0.01"
 VIEWS = 4
 SIZE = 256
 ZOOM = 4.0
@@ -94,6 +99,7 @@ class SizeFit:
         self.seed = int(seed)
         self.size, self.geometry = size, geometry
         self.largest = target_count(reference.count, FIT_BELOW)
+        self.largest_geometry = target_count(reference.count, GEOMETRY_FIT_BELOW)
         self._means: np.ndarray | None = None  # the centres that place the cameras (``sampled_means``)
         self._cameras: list | None = None
         self._images: tuple[wp.array, wp.array] | None = None  # the input's coarse and fine views, on its device
@@ -103,7 +109,12 @@ class SizeFit:
         self.geometry_kept: dict[int, bool] = {}  # count -> whether its geometry fit was kept
 
     def applies(self, count: int) -> bool:
+        """Whether an output of ``count`` splats is fitted for size (at most FIT_BELOW of the input)."""
         return count <= self.largest
+
+    def applies_geometry(self, count: int) -> bool:
+        """Whether it is fitted for geometry too, with ``geometry`` (at most GEOMETRY_FIT_BELOW)."""
+        return self.geometry and count <= self.largest_geometry
 
     def _in_frame(self) -> bool:
         """The centres that place the cameras, once; False where the scene is not fitted (one that
@@ -162,7 +173,7 @@ class SizeFit:
         and, with ``geometry``, whether its geometry fit was kept to ``geometry_kept``."""
         fitted, factor = self.fitted(splats) if self.size else (splats, 1.0)
         self.factors[splats.count] = factor
-        if self.geometry and self.applies(splats.count) and self._in_frame():
+        if self.applies_geometry(splats.count) and self._in_frame():
             fitted = self._fit_geometry(fitted)
         return fitted
 
