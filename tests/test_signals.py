@@ -136,3 +136,41 @@ def test_ctrl_c_while_the_command_is_imported_ends_it_without_a_traceback(tmp_pa
         assert "Traceback" not in err, err
         assert process.returncode in (0, 1, 130), (delay, process.returncode, err)  # 0: done first; 1: click's "Aborted!"
     assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_a_command_started_with_sighup_ignored_keeps_running(tmp_path):
+    """``nohup nanogs-warp ...``: SIGHUP ignored by the caller stays ignored (the command's own
+    handler, which ends it as an interrupt does, replaced it and ended a farm's batch when its
+    terminal closed); the run finishes and writes its output."""
+    scene = tmp_path / "big.ply"
+    random_splats_ply(scene, 200_000, sh_degree=1, seed=5)
+    out = tmp_path / "out"
+    out.mkdir()
+    process = subprocess.Popen([sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out / "o.ply"),
+                                "--ratio", "0.5", "--device", "cpu", "-q"], stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))  # fmt: skip
+    _wait_for(lambda: any(p.name.endswith(".tmp") for p in out.iterdir()) or process.poll() is not None)
+    process.send_signal(signal.SIGHUP)
+    assert process.wait(timeout=120) == 0, process.stderr.read()
+    assert [p.name for p in out.iterdir()] == ["o.ply"] and load_ply(out / "o.ply").count == 100_000
+
+
+def test_a_batch_worker_keeps_an_ignored_sighup_and_ends_on_sigterm():
+    """A worker of a batch started under ``nohup`` leaves SIGHUP (and an ignored SIGINT) ignored;
+    SIGTERM, the batch's own way of stopping it, still ends it as SystemExit(143)."""
+    code = (
+        "import os, signal, time\n"
+        "signal.signal(signal.SIGHUP, signal.SIG_IGN)\n"
+        "signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+        "from nanogs_warp.batch.local import _end_on_signals\n"
+        "_end_on_signals()\n"
+        "print(signal.getsignal(signal.SIGHUP) == signal.SIG_IGN, signal.getsignal(signal.SIGINT) == signal.SIG_IGN)\n"
+        "os.kill(os.getpid(), signal.SIGHUP)\n"
+        "try:\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    time.sleep(5)\n"
+        "except SystemExit as e:\n"
+        "    print('ended', e.code)\n"
+    )  # fmt: skip
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stdout.split() == ["True", "True", "ended", "143"], (result.stdout, result.stderr)

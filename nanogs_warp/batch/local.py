@@ -384,7 +384,8 @@ def _end_on_signals() -> None:
     """SIGTERM, SIGHUP and SIGINT end the worker as SystemExit(128 + signal) the first time and are
     ignored after that, so that ``_serve`` finishes the scene being written before the process ends.
     A process group's Ctrl-C, ``timeout`` or ``scancel`` reaches the workers too, and by default they
-    died at once, leaving the temporary files of the outputs they were writing."""
+    died at once, leaving the temporary files of the outputs they were writing. SIGHUP and SIGINT
+    stay ignored where the batch was started with them ignored."""
     names = [name for name in ("SIGTERM", "SIGHUP", "SIGINT") if hasattr(signal, name)]
 
     def ignore(signum, frame):
@@ -399,7 +400,10 @@ def _end_on_signals() -> None:
         raise SystemExit(128 + signum)
 
     for name in names:
-        signal.signal(getattr(signal, name), end)
+        number = getattr(signal, name)
+        if name != "SIGTERM" and signal.getsignal(number) == signal.SIG_IGN:
+            continue  # ignored by whoever started the batch (``nohup``, a background job): still ignored
+        signal.signal(number, end)  # SIGTERM always: it is how the batch itself stops its workers
 
 
 def _stop_with_parent(parent: int) -> None:

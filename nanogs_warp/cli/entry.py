@@ -1,6 +1,7 @@
 """The console script (``nanogs-warp``, and ``python -m nanogs_warp``): starts the CUDA driver on
 a background thread first (:mod:`.cuda_prestart`), has SIGTERM and SIGHUP end the command as an
-interrupt does, then imports and runs the command.
+interrupt does (unless the command was started with them ignored, as ``nohup`` does for SIGHUP),
+then imports and runs the command.
 
 Python's garbage collector is paused first, for the command's imports (:mod:`.gc_pause`). Only the
 interpreter's built-in modules are imported here, so that a Ctrl-C during the imports ends the
@@ -42,7 +43,9 @@ def main() -> None:
 
         start_cuda_early()
         for name in ("SIGTERM", "SIGHUP"):
-            if hasattr(signal, name):
+            # one the command was started with ignored stays ignored: ``nohup`` (SIGHUP) keeps a long
+            # batch running after its terminal closes, as the caller asked
+            if hasattr(signal, name) and signal.getsignal(getattr(signal, name)) != signal.SIG_IGN:
                 signal.signal(getattr(signal, name), _end_command)
         from .app import main as run_command
     except KeyboardInterrupt:  # Ctrl-C while the command is still being imported: nothing was started
