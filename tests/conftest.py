@@ -19,6 +19,7 @@ init_warp()
 # handler, as in a terminal (the commands they start then get the default disposition).
 if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
+
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
 
 
