@@ -38,7 +38,7 @@ class SimplifyConfig:
     generated stress scenes (docs/quality.md): the coverage merge operator, the field cost, at most
     45 % of the splats merged a pass and no pair above 3 times the pass's median pair cost, no
     opacity pruning, k = None: 24 neighbours below 65,536 splats, 16 from there on, and the size
-    fit of the outputs at or below 10 % of the input and the geometry fit of those at or below 1 %.
+    fit of every output and the geometry fit of those at or below 1 % of the input.
     ``SimplifyConfig.paper()`` is the NanoGS paper's configuration (``--preset paper``).
 
     ``pass_fraction``: at most this fraction of the current splats merge in one pass, the cheapest
@@ -49,9 +49,9 @@ class SimplifyConfig:
     the median pair's cost (at least half of them always merge): a region whose merges cost far
     more than the rest waits for a later pass instead of being forced. 0 turns the limit off.
 
-    ``fit_size``: each output of at most 10 % of the input's splats has its splats' axes scaled by
-    the one factor whose renders match the input's best at a coarse and at a fine pixel size
-    (``refinement.size_fit``); the merging itself, and every larger output, is unchanged.
+    ``fit_size``: each output has its splats' axes scaled by the one factor whose renders match the
+    input's best at a coarse and at a fine pixel size (``refinement.size_fit``); the merging itself
+    is unchanged.
 
     ``fit_geometry``: each output of at most 1 % then has its splats' centres, rotations and scales
     (not their opacity or colour) fitted to renders of the input from cameras around it, a short

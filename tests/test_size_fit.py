@@ -74,7 +74,6 @@ def test_squared_error_rows_and_psnr_against_float64(device, rng):
 def test_the_fit_undoes_a_wrong_size(device, monkeypatch, steps):
     """An output that is the input with every axis times STEP^steps is fitted back by STEP^-steps
     (the fit may look at outputs of any size here)."""
-    monkeypatch.setattr(size_fit, "FIT_BELOW", "1")
     reference = blob(600, 11, device)
     wrong = size_fit.resized(reference, size_fit.STEP**steps)
     fit = size_fit.SizeFit(reference)
@@ -86,7 +85,6 @@ def test_the_fit_undoes_a_wrong_size(device, monkeypatch, steps):
 def test_the_fit_takes_the_factor_its_rule_names(device, monkeypatch):
     """``fitted`` (which stops rendering early) chooses what its rule says of ``view_gains`` (which
     renders every factor): outward from 1 while the smaller gain rises, the best positive one."""
-    monkeypatch.setattr(size_fit, "FIT_BELOW", "1")
     reference = blob(600, 14, device)
     fit = size_fit.SizeFit(reference)
     # the input grown (the fit shrinks it back), a sparser set (grown), one of larger splats (kept)
@@ -105,22 +103,23 @@ def test_the_fit_takes_the_factor_its_rule_names(device, monkeypatch):
 
 
 def test_a_right_size_is_kept(device, monkeypatch):
-    monkeypatch.setattr(size_fit, "FIT_BELOW", "1")
     reference = blob(600, 12, device)
     fit = size_fit.SizeFit(reference)
     assert fit(reference) is reference and fit.factors[reference.count] == 1.0
 
 
-def test_outputs_above_ten_percent_and_far_scenes_are_left_alone(device):
-    """Size fit up to 10 % of the input, geometry fit (when asked for) up to 1 %; beyond, nothing."""
+def test_every_output_is_fitted_for_size_and_far_scenes_are_left_alone(device):
+    """The size fit takes every output, the geometry fit (when asked for) those of at most 1 %."""
     reference = blob(1000, 13, device)
     fit = size_fit.SizeFit(reference)
-    assert fit.largest == 100 and fit.applies(100) and not fit.applies(101)
+    assert fit.applies(1000) and fit.applies(1)
     assert not fit.applies_geometry(10)  # no geometry fit asked for
     both = size_fit.SizeFit(reference, geometry=True)
-    assert both.applies_geometry(10) and not both.applies_geometry(11) and both.applies(11)
-    big = size_fit.resized(reference, 2.0)
-    assert fit(big) is big and fit.factors[1000] == 1.0
+    assert both.applies_geometry(10) and not both.applies_geometry(11)
+    too_long = size_fit.STEP**3
+    shrunk = fit(size_fit.resized(reference, too_long))  # every axis 2^(3/12) too long: taken back
+    assert fit.factors[1000] == pytest.approx(1 / too_long, rel=1e-9)
+    np.testing.assert_allclose(shrunk.log_scales.numpy(), reference.log_scales.numpy(), atol=1e-5)
     # a scene far from the origin for its size is rendered recentred by eval: not fitted
     arrays = random_splat_arrays(1000, seed=14)
     arrays["means"] = (arrays["means"].astype(np.float64) + 1e9).astype(np.float32)
@@ -132,7 +131,6 @@ def test_outputs_above_ten_percent_and_far_scenes_are_left_alone(device):
 def test_huge_splats_are_not_fitted(device, monkeypatch):
     """Splats that each cover every tile of a view would make the fit's renders take as long as
     N x tiles entries: past ENTRIES_PER_SPLAT a splat the output is left as it is."""
-    monkeypatch.setattr(size_fit, "FIT_BELOW", "1")
     reference = blob(500, 17, device, log_scale=(2.0, 3.0))
     wrong = size_fit.resized(reference, size_fit.STEP**2)
     monkeypatch.setattr(size_fit, "MIN_ENTRIES", 0)
@@ -144,14 +142,13 @@ def test_huge_splats_are_not_fitted(device, monkeypatch):
 
 
 def test_simplify_fits_by_default_and_only_there(device):
-    """``nanogs_warp.simplify`` is the merge, then the size fit of the outputs at or below 10 % (here
-    the size fit alone; the geometry fit of those at or below 1 % after it: tests/test_geometry_fit.py);
-    the paper and fast presets and fit_size=False are the merge alone."""
+    """``nanogs_warp.simplify`` is the merge, then the size fit of every output (here the size fit
+    alone; the geometry fit of those at or below 1 % after it: tests/test_geometry_fit.py); the
+    paper and fast presets and fit_size=False are the merge alone."""
     splats = blob(3000, 15, device, log_scale=(-4.0, -2.5))
     fitted = simplify(splats, ratio=[0.2, 0.1, 0.01], config=SimplifyConfig(fit_geometry=False))
     merged = simplify_merged(splats, ratio=[0.2, 0.1, 0.01])
-    np.testing.assert_array_equal(fitted[0].log_scales.numpy(), merged[0].log_scales.numpy())  # above 10 %
-    for f, m in zip(fitted[1:], merged[1:]):
+    for f, m in zip(fitted, merged):
         ratio = np.exp(f.log_scales.numpy().astype(np.float64) - m.log_scales.numpy())
         assert np.allclose(ratio, ratio.flat[0], rtol=1e-5)  # one factor for every axis of every splat
         assert any(size_fit.STEP**k == pytest.approx(ratio.flat[0], rel=1e-5) for k in range(-size_fit.MOST_STEPS, size_fit.MOST_STEPS + 1))
@@ -171,7 +168,7 @@ def test_cli_reports_the_factor(tmp_path):
     result = runner.invoke(app, ["simplify", str(source), "-o", str(tmp_path / "o.ply"), "--ratio", "0.2,0.1,0.01", "--device", "cpu", "--json"])
     assert result.exit_code == 0, result.output
     outputs = json.loads(result.stdout)["outputs"]
-    assert "size_factor" not in outputs[0] and outputs[1]["size_factor"] > 0 and outputs[2]["size_factor"] > 0
+    assert all(output["size_factor"] > 0 for output in outputs)
     assert "geometry_fit" not in outputs[0] and "geometry_fit" not in outputs[1] and isinstance(outputs[2]["geometry_fit"], bool)
     settings = json.loads(result.stdout)["settings"]
     assert settings["fit_size"] is True and settings["fit_geometry"] is True

@@ -1,9 +1,9 @@
-"""The size fit: a small output's splats all scaled by the one factor whose renders match the input's
+"""The size fit: an output's splats all scaled by the one factor whose renders match the input's
 best, at a coarse and at a fine pixel size alike (``SimplifyConfig.fit_size``, on by default).
 
-At 10 % of the input and below, the merged splats of some scenes come out too large or too small (a
-statue's faint halo spread into every merged splat at 1 %; fur strands and flat panels merged too
-thin at 10 %), and the right factor is the scene's, not a constant's (docs/quality.md). The fit
+At every budget the merged splats of some scenes come out too large or too small (a statue's faint
+halo spread into every merged splat at 1 %; fur strands and flat panels merged too thin at 10 %
+and above), and the right factor is the scene's, not a constant's (docs/quality.md). The fit
 measures it: the input and the output are rendered from the same ``VIEWS`` cameras around the scene
 (``training_cameras``' sampler, its own stream, ``SIZE`` pixels square) and from the same cameras
 zoomed ``ZOOM`` times (pixels that much smaller: most splats of a trained scene are smaller than a
@@ -37,10 +37,10 @@ from ..kernels import splat_size as kernels
 from ..splats import SplatSet
 from .cameras import sampled_means, training_cameras
 
-FIT_BELOW = "0.1"  # outputs of at most target_count(N, FIT_BELOW) splats are fitted for size (an exact ratio)
+FIT_BELOW = "1"  # outputs of at most target_count(N, FIT_BELOW) splats are fitted for size (an exact ratio): all
 # and those of at most target_count(N, GEOMETRY_FIT_BELOW) for geometry too (``GeometryFit``): at 10 %
 # the geometry fit gains on the orbit it trains around but loses on closer and sharper views
-# (docs/quality.md), the size fit gains on both
+# (docs/quality.md), where the size fit gains on both at every budget
 GEOMETRY_FIT_BELOW = "0.01"
 VIEWS = 4
 SIZE = 256
