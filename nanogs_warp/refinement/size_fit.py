@@ -37,10 +37,9 @@ from ..kernels import splat_size as kernels
 from ..splats import SplatSet
 from .cameras import sampled_means, training_cameras
 
-FIT_BELOW = "1"  # outputs of at most target_count(N, FIT_BELOW) splats are fitted for size (an exact ratio): all
-# and those of at most target_count(N, GEOMETRY_FIT_BELOW) for geometry too (``GeometryFit``): at 10 %
-# the geometry fit gains on the orbit it trains around but loses on closer and sharper views
-# (docs/quality.md), where the size fit gains on both at every budget
+# Every output is fitted for size; those of at most target_count(N, GEOMETRY_FIT_BELOW) splats (an
+# exact ratio) for geometry too (``GeometryFit``): at 10 % the geometry fit gains on the orbit it trains
+# around but loses on closer and sharper views, where the size fit gains on both (docs/quality.md)
 GEOMETRY_FIT_BELOW = "0.01"
 VIEWS = 4
 SIZE = 256
@@ -98,7 +97,6 @@ class SizeFit:
         self.reference = reference
         self.seed = int(seed)
         self.size, self.geometry = size, geometry
-        self.largest = target_count(reference.count, FIT_BELOW)
         self.largest_geometry = target_count(reference.count, GEOMETRY_FIT_BELOW)
         self._means: np.ndarray | None = None  # the centres that place the cameras (``sampled_means``)
         self._cameras: list | None = None
@@ -109,8 +107,8 @@ class SizeFit:
         self.geometry_kept: dict[int, bool] = {}  # count -> whether its geometry fit was kept
 
     def applies(self, count: int) -> bool:
-        """Whether an output of ``count`` splats is fitted for size (at most FIT_BELOW of the input)."""
-        return count <= self.largest
+        """Whether an output of ``count`` splats is fitted for size: every output of the input is."""
+        return count <= self.reference.count
 
     def applies_geometry(self, count: int) -> bool:
         """Whether it is fitted for geometry too, with ``geometry`` (at most GEOMETRY_FIT_BELOW)."""
