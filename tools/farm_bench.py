@@ -7,7 +7,8 @@ Makes ``--scenes`` copies of SOURCE tiled to ``--splats`` splats (each a few spl
 the same file) in WORKDIR/scenes, reads them once into the page cache, then runs ``batch --force``
 over them once per entry of ``--runs`` (``--devices`` values; default: ``cuda:0`` and, with several
 GPUs, ``all``; ``cpu`` without a GPU). For each run it reports the wall time, the steady-state rate
-(scenes finished per second after the first, per device), the median read / upload / simplify /
+(scenes finished per second once every worker has finished its first scene, per device:
+``steady_rate``), the median read / upload / simplify /
 download / write seconds of a scene from the batch's JSON, the device stages' share of the wall
 time (upload + simplify + download summed over the scenes of a device, divided by the wall time:
 how busy the pipeline kept the device) and, when ``nvidia-smi`` is there, each GPU's busy
@@ -90,6 +91,18 @@ class GpuSampler:
                       "samples": len(s)} for gpu, s in sorted(self.samples.items()) if s}  # fmt: skip
 
 
+def steady_rate(finished_at: list[float], workers: int) -> float | None:
+    """Scenes finished per second once the pipeline is full: from the ``workers``-th finish (every
+    worker has finished its first scene) to the last, (N - W) / (t_N - t_W); None with no scene
+    after that. Counting from the first finish instead would credit the scenes that several
+    workers started together to a rate they were not finished at (twelve scenes on six workers
+    read twice the run's rate)."""
+    full = max(1, workers)
+    if len(finished_at) <= full or finished_at[-1] <= finished_at[full - 1]:
+        return None
+    return (len(finished_at) - full) / (finished_at[-1] - finished_at[full - 1])
+
+
 def run_batch(scenes_dir: Path, out_dir: Path, ratios: str, devices: str, extra: list[str]) -> dict:
     command = [sys.executable, "-m", "nanogs_warp", "batch", str(scenes_dir), "-o", str(out_dir), "--ratio", ratios,
                "--devices", devices, "--force", "--json", *extra]  # fmt: skip
@@ -98,13 +111,17 @@ def run_batch(scenes_dir: Path, out_dir: Path, ratios: str, devices: str, extra:
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
     finished_at = []
+    started_first = 0  # scenes started before any finished: one per worker
     stdout_parts = []
     reader = threading.Thread(target=lambda: stdout_parts.append(process.stdout.read()), daemon=True)
     reader.start()
     for line in process.stderr:
         if " splats in " in line or "FAILED" in line or "skipped" in line:
             finished_at.append(time.monotonic() - started)
-        elif line.strip() and "started on" not in line:
+        elif "started on" in line:
+            if not finished_at:
+                started_first += 1
+        elif line.strip():
             sys.stderr.write(line)
     process.wait()
     reader.join()
@@ -115,7 +132,7 @@ def run_batch(scenes_dir: Path, out_dir: Path, ratios: str, devices: str, extra:
     summary = json.loads("".join(stdout_parts))
     scenes = summary["scenes"]
     devices_used = sorted({s["device"] for s in scenes})
-    steady = (len(finished_at) - 1) / (finished_at[-1] - finished_at[0]) if len(finished_at) > 1 and finished_at[-1] > finished_at[0] else None
+    steady = steady_rate(finished_at, started_first)
 
     def median_stage(name):
         values = [s["stages"][name] for s in scenes if name in s.get("stages", {})]
