@@ -8,14 +8,13 @@ the same file) in WORKDIR/scenes, reads them once into the page cache, then runs
 over them once per entry of ``--runs`` (``--devices`` values; default: ``cuda:0`` and, with several
 GPUs, ``all``; ``cpu`` without a GPU). For each run it reports the wall time, the steady-state rate
 (scenes finished per second once every worker has finished its first scene, per device:
-``steady_rate``), the median read / upload / simplify /
-download / write seconds of a scene from the batch's JSON, the device stages' share of the wall
-time (upload + simplify + download summed over the scenes of a device, divided by the wall time:
-how busy the pipeline kept the device) and, when ``nvidia-smi`` is there, each GPU's busy
-fraction (samples every 100 ms with utilisation above 0) and mean utilisation. The last line
-gives the scaling of the last run over the first. ``--simplify`` also times ``nanogs-warp
-simplify`` of the first scene end to end (a fresh process each time, median of 3) and prints
-where its time went (``seconds.stages`` of its JSON, of the fastest run).
+``steady_rate``), the median read / upload / simplify / download / write seconds of a scene from the
+batch's JSON, the device stages' share of the wall time (upload + simplify + download summed over
+the scenes of a device, divided by the wall time: how busy the pipeline kept the device) and, when
+``nvidia-smi`` is there, each GPU's busy fraction (samples every 100 ms with utilisation above 0)
+and mean utilisation. The last line gives the scaling of the last run over the first. ``--simplify``
+also times ``nanogs-warp simplify`` of the first scene end to end (a fresh process each time, median
+of 3) and prints where its time went (``seconds.stages`` of its JSON, of the fastest run).
 Results are appended as JSON lines to ``--json``.
 """
 
