@@ -71,7 +71,7 @@ def test_squared_error_rows_and_psnr_against_float64(device, rng):
 
 
 @pytest.mark.parametrize("steps", [3, -2])
-def test_the_fit_undoes_a_wrong_size(device, monkeypatch, steps):
+def test_the_fit_undoes_a_wrong_size(device, steps):
     """An output that is the input with every axis times STEP^steps is fitted back by STEP^-steps
     (the fit may look at outputs of any size here)."""
     reference = blob(600, 11, device)
@@ -82,7 +82,7 @@ def test_the_fit_undoes_a_wrong_size(device, monkeypatch, steps):
     np.testing.assert_allclose(fitted.log_scales.numpy(), reference.log_scales.numpy(), atol=2e-6)
 
 
-def test_the_fit_takes_the_factor_its_rule_names(device, monkeypatch):
+def test_the_fit_takes_the_factor_its_rule_names(device):
     """``fitted`` (which stops rendering early) chooses what its rule says of ``view_gains`` (which
     renders every factor): outward from 1 while the smaller gain rises, the best positive one."""
     reference = blob(600, 14, device)
@@ -102,7 +102,7 @@ def test_the_fit_takes_the_factor_its_rule_names(device, monkeypatch):
         assert fit.fitted(output)[1] == pytest.approx(size_fit.STEP**best, rel=1e-12)
 
 
-def test_a_right_size_is_kept(device, monkeypatch):
+def test_a_right_size_is_kept(device):
     reference = blob(600, 12, device)
     fit = size_fit.SizeFit(reference)
     assert fit(reference) is reference and fit.factors[reference.count] == 1.0
