@@ -42,9 +42,10 @@ LOW_PASS = wp.constant(0.3)
 ALPHA_MIN = wp.constant(1.0 / 255.0)
 ALPHA_MAX = wp.constant(0.99)
 T_MIN = wp.constant(1.0e-4)
-# composite_tiles skips the exp where power < log(ALPHA_MIN / opacity) - FAINT_MARGIN: there the
-# float32 alpha is below ALPHA_MIN by ~1e-3 relative, far beyond the exp's and log's rounding, so
-# the skipped pixels are exactly those the alpha test would skip.
+# Every walk skips the exp where power < log(ALPHA_MIN / opacity) - FAINT_MARGIN (``project``'s faint
+# power, -log(255 opacity) - FAINT_MARGIN): there the float32 alpha is below ALPHA_MIN by ~1e-3
+# relative, far beyond the exp's and log's rounding, so the skipped pixels are exactly those the
+# alpha test would skip, and the images those of the test alone.
 FAINT_MARGIN = wp.constant(1.0e-3)
 
 SH_C0 = wp.constant(0.28209479177387814)
@@ -174,11 +175,12 @@ def project(
     conic_opacity: wp.array(dtype=wp.vec4),
     rgb: wp.array(dtype=wp.vec3),
     box: wp.array(dtype=wp.vec4),
+    faint: wp.array(dtype=float),
     rect: wp.array(dtype=wp.vec4i),
     touched: wp.array(dtype=wp.int32),
 ):
     """Per splat (row ``first + tid``): projected mean, depth, conic and opacity, colour, reach box,
-    tile rectangle [x0, x1) x [y0, y1) and its tile count (0 when culled)."""
+    faint power, tile rectangle [x0, x1) x [y0, y1) and its tile count (0 when culled)."""
     i = first + wp.tid()
     touched[i] = 0
     t = cam.rotation * means[i] + cam.translation
@@ -253,6 +255,7 @@ def project(
     rgb[i] = sh_to_rgb(features, i, degree, d)
     xy[i] = wp.vec2(px, py)
     box[i] = wp.vec4(px - half_x, px + half_x, py - half_y, py + half_y)
+    faint[i] = -reach - FAINT_MARGIN  # log(ALPHA_MIN / opacity) - FAINT_MARGIN: below it no exp is needed
     depth[i] = z
     conic_opacity[i] = wp.vec4(conic[0], conic[1], conic[2], opacity)
     rect[i] = wp.vec4i(x0, y0, x1, y1)
@@ -295,11 +298,13 @@ def gather_entries(
     conic_opacity: wp.array(dtype=wp.vec4),
     rgb: wp.array(dtype=wp.vec3),
     box: wp.array(dtype=wp.vec4),
+    faint: wp.array(dtype=float),
     first: int,
     e_xy: wp.array(dtype=wp.vec2),
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
     e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
 ):
@@ -311,6 +316,7 @@ def gather_entries(
     e_conic_opacity[k] = conic_opacity[i]
     e_rgb[k] = rgb[i]
     e_box[k] = box[i]
+    e_faint[k] = faint[i]
     tile = wp.int32(keys[k] >> wp.int64(32))
     if k == 0:
         tile_start[tile] = k
@@ -328,6 +334,7 @@ def composite(
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
     e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
     width: int,
@@ -360,7 +367,7 @@ def composite(
         dx = p[0] - fpx
         dy = p[1] - fpy
         power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
-        if power > 0.0:
+        if power > 0.0 or power < e_faint[k]:  # (below the faint power alpha < ALPHA_MIN: no exp)
             continue
         alpha = wp.min(ALPHA_MAX, co[3] * exp32(power))
         if alpha < ALPHA_MIN:
@@ -387,6 +394,7 @@ def entry_alpha(
     e_xy: wp.array(dtype=wp.vec2),
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
     k: int,
     fpx: float,
     fpy: float,
@@ -401,7 +409,7 @@ def entry_alpha(
     dx = p[0] - fpx
     dy = p[1] - fpy
     power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
-    if power > 0.0:
+    if power > 0.0 or power < e_faint[k]:
         return 0.0
     alpha = wp.min(ALPHA_MAX, co[3] * exp32(power))
     if alpha < ALPHA_MIN:
@@ -470,6 +478,7 @@ def chunk_transmittance(
     e_xy: wp.array(dtype=wp.vec2),
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
     tile_end: wp.array(dtype=wp.int32),
     chunk_ends: wp.array(dtype=wp.int32),
     chunk_tile: wp.array(dtype=wp.int32),
@@ -497,7 +506,7 @@ def chunk_transmittance(
     t = float(1.0)
     if pixel[0] < width and pixel[1] < height:
         for k in range(chunk_first[c], chunk_last[c]):
-            alpha = entry_alpha(e_xy, e_conic_opacity, e_box, k, fpx, fpy)
+            alpha = entry_alpha(e_xy, e_conic_opacity, e_box, e_faint, k, fpx, fpy)
             if alpha > 0.0:
                 t = t * (1.0 - alpha)
                 if t < T_MIN:
@@ -537,6 +546,7 @@ def composite_chunks(
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
     e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
     chunk_ends: wp.array(dtype=wp.int32),
     chunk_tile: wp.array(dtype=wp.int32),
     chunk_first: wp.array(dtype=wp.int32),
@@ -565,7 +575,7 @@ def composite_chunks(
     rgb = wp.vec3(0.0, 0.0, 0.0)
     stopped = float(1.0)
     for k in range(chunk_first[c], chunk_last[c]):
-        alpha = entry_alpha(e_xy, e_conic_opacity, e_box, k, fpx, fpy)
+        alpha = entry_alpha(e_xy, e_conic_opacity, e_box, e_faint, k, fpx, fpy)
         if alpha == 0.0:
             continue
         test_t = transmittance * (1.0 - alpha)
@@ -622,6 +632,7 @@ def composite_tiles(
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
     e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
     width: int,
@@ -686,7 +697,7 @@ def composite_tiles(
             p = e_xy[k]
             co = e_conic_opacity[k]
             rgb = e_rgb[k]
-            faint = log32(ALPHA_MIN / co[3]) - FAINT_MARGIN  # below this power alpha < ALPHA_MIN: no exp needed
+            faint = e_faint[k]
             for py in range(gy0, gy1 + 1):
                 row = base + (py - y_lo) * TILE - x_lo
                 dy = p[1] - float(py)

@@ -33,11 +33,10 @@ entries after the sort (``number_slots``, ``order_entries``) and the two backwar
 import warp as wp
 
 from .options import PORTABLE
-from .portable_math import exp32, log32, sigmoid32
+from .portable_math import exp32, sigmoid32
 from .render import (
     ALPHA_MAX,
     ALPHA_MIN,
-    FAINT_MARGIN,
     LOW_PASS,
     SH_C0,
     SH_C1,
@@ -228,6 +227,7 @@ def composite_backward(
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
     e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
     width: int,
@@ -267,7 +267,7 @@ def composite_backward(
         gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
         if remaining > 0 and gx0 <= gx1:  # else the lane is finished, or no pixel of it sees this entry
             co = e_conic_opacity[k]
-            faint = log32(ALPHA_MIN / co[3]) - FAINT_MARGIN
+            faint = e_faint[k]
             first_row = gy0 + ((lane - (gy0 - y_lo)) % lanes + lanes) % lanes  # the lane's first row >= gy0
             for py in range(first_row, gy1 + 1, lanes):
                 gxy, gco, gop, grgb, finished = row_gradients(
@@ -290,6 +290,7 @@ def composite_backward_lanes_in_turn(
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
     e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
     width: int,
@@ -324,7 +325,7 @@ def composite_backward_lanes_in_turn(
             p = e_xy[k]
             co = e_conic_opacity[k]
             rgb = e_rgb[k]
-            faint = log32(ALPHA_MIN / co[3]) - FAINT_MARGIN
+            faint = e_faint[k]
             for lane in range(lanes):
                 gxy = wp.vec2(0.0, 0.0)
                 gco = wp.vec3(0.0, 0.0, 0.0)
@@ -411,6 +412,7 @@ def composite_backward_pixels(
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
     e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
     width: int,
@@ -450,8 +452,7 @@ def composite_backward_pixels(
         if px < gx0 or px > gx1 or py < gy0 or py > gy1:
             continue
         co = e_conic_opacity[k]
-        faint = log32(ALPHA_MIN / co[3]) - FAINT_MARGIN
-        dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], co, faint, fpx, fpy)
+        dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], co, e_faint[k], fpx, fpy)
         if alpha == 0.0:
             continue
         test_t = t * (1.0 - alpha)

@@ -30,8 +30,8 @@ from .cameras import Camera
 
 TILE = 16
 # Bytes a (tile, splat) entry takes in the entry buffers: its key and value twice (the radix sort's
-# second buffer), then its 2D mean, conic and opacity, colour and box.
-ENTRY_BYTES = 2 * 8 + 2 * 4 + 8 + 16 + 12 + 16
+# second buffer), then its 2D mean, conic and opacity, colour, box and faint power.
+ENTRY_BYTES = 2 * 8 + 2 * 4 + 8 + 16 + 12 + 16 + 4
 INDEX_LIMIT = 2**31 - 1  # entries are indexed with int32
 # On the GPU a tile's entries are composited in chunks of at most this many, one block each
 # (``kernels/render.py``, ``chunk_counts`` to ``composite_merge``): a tile whose list is far longer
@@ -107,6 +107,7 @@ class _Rasteriser:
         self.conic_opacity = wp.empty(n, dtype=wp.vec4, device=d)
         self.rgb = wp.empty(n, dtype=wp.vec3, device=d)
         self.box = wp.empty(n, dtype=wp.vec4, device=d)
+        self.faint = wp.empty(n, dtype=wp.float32, device=d)
         self.rect = wp.empty(n, dtype=wp.vec4i, device=d)
         self.touched = wp.empty(n, dtype=wp.int32, device=d)
         self.ends = wp.empty(n, dtype=wp.int32, device=d)
@@ -132,6 +133,7 @@ class _Rasteriser:
         self.e_conic_opacity = wp.empty(c, dtype=wp.vec4, device=d)
         self.e_rgb = wp.empty(c, dtype=wp.vec3, device=d)
         self.e_box = wp.empty(c, dtype=wp.vec4, device=d)
+        self.e_faint = wp.empty(c, dtype=wp.float32, device=d)
 
     def _launch(self, kernel, dim: int, inputs_before: list, inputs_after: list) -> None:
         """Launches ``kernel`` over ``dim`` threads whose first argument after ``inputs_before`` is the
@@ -173,7 +175,7 @@ class _Rasteriser:
             kernels.project,
             self.n,
             [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p],
-            [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.rect, self.touched],
+            [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.faint, self.rect, self.touched],
         )
         wp.utils.array_scan(self.touched, self.ends, inclusive=True)
         if self.n * tiles <= INDEX_LIMIT:
@@ -208,13 +210,13 @@ class _Rasteriser:
             self._launch(
                 kernels.gather_entries,
                 count,
-                [self.keys, self.values, count, self.xy, self.conic_opacity, self.rgb, self.box],
-                [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end],
+                [self.keys, self.values, count, self.xy, self.conic_opacity, self.rgb, self.box, self.faint],
+                [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint, self.tile_start, self.tile_end],
             )
-            e_xy, e_co, e_rgb, e_box = self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box
+            entries = [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint]
         else:  # no entries: every tile range is empty; any arrays of the right type will do
-            e_xy, e_co, e_rgb, e_box = self.xy, self.conic_opacity, self.rgb, self.box
-        inputs = [e_xy, e_co, e_rgb, e_box, self.tile_start, self.tile_end]
+            entries = [self.xy, self.conic_opacity, self.rgb, self.box, self.faint]
+        inputs = [*entries, self.tile_start, self.tile_end]
         inputs += [p.width, p.height, p.tiles_x, background, view]
         if self.method == "tiles":
             self._composite_tiles(tiles, inputs, self.chunk, image)
@@ -242,7 +244,7 @@ class _Rasteriser:
         if int(self.longest.numpy()[0]) <= self.chunk:  # every tile is one chunk: the one walk, the same bits
             self._launch(kernels.composite, tiles * pixels, inputs, [image])
             return
-        e_xy, e_co, e_rgb, e_box = inputs[:4]
+        e_xy, e_co, e_rgb, e_box, e_faint = inputs[:5]
         background, view = inputs[-2:]
         wp.utils.array_scan(self.counts, self.chunk_ends, inclusive=True)
         # launched for a bound on the chunk count (a tile of n entries has at most n / chunk + 1), so
@@ -260,11 +262,11 @@ class _Rasteriser:
                      [self.chunk_tile, self.chunk_first, self.chunk_last])  # fmt: skip
         ranges = [self.chunk_ends, self.chunk_tile, self.chunk_first, self.chunk_last]
         size = [p.width, p.height, p.tiles_x]
-        self._launch(kernels.chunk_transmittance, chunks * pixels, [e_xy, e_co, e_box, self.tile_end, *ranges, *size, tiles],
+        self._launch(kernels.chunk_transmittance, chunks * pixels, [e_xy, e_co, e_box, e_faint, self.tile_end, *ranges, *size, tiles],
                      [self.chunk_before])  # fmt: skip
         self._launch(kernels.chunk_prefix, tiles * pixels, [self.counts, self.chunk_ends], [self.chunk_before])
         self._launch(kernels.composite_chunks, chunks * pixels,
-                     [e_xy, e_co, e_rgb, e_box, *ranges, self.chunk_before, *size, tiles], [self.chunk_colour])  # fmt: skip
+                     [e_xy, e_co, e_rgb, e_box, e_faint, *ranges, self.chunk_before, *size, tiles], [self.chunk_colour])  # fmt: skip
         self._launch(kernels.composite_merge, tiles * pixels,
                      [self.chunk_colour, self.chunk_before, self.counts, self.chunk_ends, *size, background, view], [image])  # fmt: skip
 

@@ -155,13 +155,13 @@ class GradRasteriser(_Rasteriser):
             self._launch(
                 kernels.gather_entries,
                 count,
-                [self.keys, self.entry_splat, count, self.xy, self.conic_opacity, self.rgb, self.box],
-                [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end],
+                [self.keys, self.entry_splat, count, self.xy, self.conic_opacity, self.rgb, self.box, self.faint],
+                [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint, self.tile_start, self.tile_end],
             )
-            e_xy, e_co, e_rgb, e_box = self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box
+            entries = [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint]
         else:
-            e_xy, e_co, e_rgb, e_box = self.xy, self.conic_opacity, self.rgb, self.box
-        inputs = [e_xy, e_co, e_rgb, e_box, self.tile_start, self.tile_end]
+            entries = [self.xy, self.conic_opacity, self.rgb, self.box, self.faint]
+        inputs = [*entries, self.tile_start, self.tile_end]
         inputs += [p.width, p.height, p.tiles_x, background, 0]
         if self.method == "tiles":
             self._composite_tiles(tiles, inputs, ONE_WALK, image)  # the backward replays one walk
@@ -183,7 +183,7 @@ class GradRasteriser(_Rasteriser):
             self.bw_done = wp.empty(pixels, dtype=wp.int32, device=d)
         per_entry = [self.e_g_xy, self.e_g_conic, self.e_g_opacity, self.e_g_rgb]
         per_lane = [self.lane_xy, self.lane_conic, self.lane_opacity, self.lane_rgb] if self.lane_buffers else per_entry
-        inputs = [self.lanes, self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end,
+        inputs = [self.lanes, self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint, self.tile_start, self.tile_end,
                   p.width, p.height, p.tiles_x, image[0], grad_image[0], self.bw_transmittance, self.bw_front, self.bw_done]  # fmt: skip
         if not (self.per_pixel and self._pixel_terms(image, grad_image, per_entry)):
             if self.lanes_in_turn:
@@ -219,7 +219,7 @@ class GradRasteriser(_Rasteriser):
         self._rows(
             grad_kernels.composite_backward_pixels,
             self.tiles * kernels.TILE_PIXELS,
-            [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.tile_start, self.tile_end,
+            [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint, self.tile_start, self.tile_end,
              p.width, p.height, p.tiles_x, image[0], grad_image[0], self.slot_ends, *terms],
             2048,
         )  # fmt: skip
