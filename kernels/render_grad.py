@@ -425,14 +425,16 @@ def composite_backward_pixels(
     p_conic: wp.array(dtype=wp.vec3),
     p_opacity: wp.array(dtype=float),
     p_rgb: wp.array(dtype=wp.vec3),
+    stops: wp.array(dtype=wp.int32),
 ):
     """One thread per pixel (256 per tile, as ``render.composite``): the pixel's own term of each
     entry's gradients (``row_gradients``' arithmetic, term by term), written to the entry's slot for
     this pixel (the pixel's place, row-major, in the entry's box, whose slots end at ``slot_ends[k]``:
-    the inclusive running sum of ``pixel_areas``); the slots of the
-    pixels an entry does not reach are left at the zero they were cleared to. ``sum_pixels`` then
-    adds them in ``composite_backward``'s order: the same bits, with a thread per pixel instead of
-    one per row."""
+    the inclusive running sum of ``pixel_areas``): zero where the entry's alpha is 0 there; and in
+    ``stops[py * width + px]`` the entry the pixel finished at (its tile's end if none), whose slot
+    and those of every later entry of the tile are not written. ``sum_pixels`` then adds the slots
+    before each pixel's stop in ``composite_backward``'s order: the same bits, with a thread per
+    pixel instead of one per row."""
     tid = first + wp.tid()
     tile = tid / TILE_PIXELS
     pixel = pixel_of(tile, tid - tile * TILE_PIXELS, tiles_x)
@@ -447,19 +449,25 @@ def composite_backward_pixels(
     front = wp.vec3(0.0, 0.0, 0.0)
     fpx = float(px)
     fpy = float(py)
+    stop = tile_end[tile]
     for k in range(tile_start[tile], tile_end[tile]):
         gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
         if px < gx0 or px > gx1 or py < gy0 or py > gy1:
             continue
+        columns = gx1 - gx0 + 1
+        slot = slot_ends[k] - columns * (gy1 - gy0 + 1) + (py - gy0) * columns + px - gx0
         co = e_conic_opacity[k]
         dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], co, e_faint[k], fpx, fpy)
         if alpha == 0.0:
+            p_rgb[slot] = wp.vec3(0.0, 0.0, 0.0)
+            p_opacity[slot] = 0.0
+            p_conic[slot] = wp.vec3(0.0, 0.0, 0.0)
+            p_xy[slot] = wp.vec2(0.0, 0.0)
             continue
         test_t = t * (1.0 - alpha)
         if test_t < T_MIN:
-            break  # the pixel is finished: no later entry reaches it
-        columns = gx1 - gx0 + 1
-        slot = slot_ends[k] - columns * (gy1 - gy0 + 1) + (py - gy0) * columns + px - gx0
+            stop = k  # the pixel is finished: no later entry reaches it
+            break
         g_rgb, in_front, g_op, g_co, g_xy = pixel_terms(t, alpha, gauss, raw, dx, dy, co, e_rgb[k], g, final, front)
         p_rgb[slot] = g_rgb
         p_opacity[slot] = g_op
@@ -467,6 +475,7 @@ def composite_backward_pixels(
         p_xy[slot] = g_xy
         front = in_front
         t = test_t
+    stops[py * width + px] = stop
 
 
 @wp.kernel
@@ -482,6 +491,7 @@ def sum_pixels(
     p_conic: wp.array(dtype=wp.vec3),
     p_opacity: wp.array(dtype=float),
     p_rgb: wp.array(dtype=wp.vec3),
+    stops: wp.array(dtype=wp.int32),
     g_xy: wp.array(dtype=wp.vec2),
     g_conic: wp.array(dtype=wp.vec3),
     g_opacity: wp.array(dtype=float),
@@ -489,8 +499,9 @@ def sum_pixels(
 ):
     """Per entry k: its per-pixel terms summed row by row (each row from 0 in column order), the
     rows from 0 in row order: ``composite_backward``'s order at 16 lanes followed by ``sum_lanes``
-    (a lane per row). A term left at zero adds nothing: a sum that starts at +0 is never -0, and
-    adding +0 or -0 to it changes no bit, so the zeros of pixels the entry skips are harmless."""
+    (a lane per row), leaving out the pixels that finished at or before k (``stops``), whose slots
+    were not written. The lanes add a zero there and wherever the entry's alpha is 0 (a zero slot
+    here): a sum that starts at +0 is never -0, and adding +0 or -0 to it changes no bit."""
     k = first + wp.tid()
     gx0, gx1, gy0, gy1 = entry_tile_columns(keys[k], e_box[k], width, height, tiles_x)
     sum_xy = wp.vec2(0.0, 0.0)
@@ -499,16 +510,17 @@ def sum_pixels(
     sum_rgb = wp.vec3(0.0, 0.0, 0.0)
     if gx0 <= gx1 and gy0 <= gy1:
         slot = slot_ends[k] - (gx1 - gx0 + 1) * (gy1 - gy0 + 1)
-        for _py in range(gy0, gy1 + 1):
+        for py in range(gy0, gy1 + 1):
             gxy = wp.vec2(0.0, 0.0)
             gco = wp.vec3(0.0, 0.0, 0.0)
             gop = float(0.0)
             grgb = wp.vec3(0.0, 0.0, 0.0)
-            for _px in range(gx0, gx1 + 1):
-                gxy = gxy + p_xy[slot]
-                gco = gco + p_conic[slot]
-                gop = gop + p_opacity[slot]
-                grgb = grgb + p_rgb[slot]
+            for px in range(gx0, gx1 + 1):
+                if k < stops[py * width + px]:
+                    gxy = gxy + p_xy[slot]
+                    gco = gco + p_conic[slot]
+                    gop = gop + p_opacity[slot]
+                    grgb = grgb + p_rgb[slot]
                 slot += 1
             sum_xy = sum_xy + gxy
             sum_co = sum_co + gco

@@ -99,6 +99,7 @@ class GradRasteriser(_Rasteriser):
         self.entry_bytes += GRAD_ENTRY_BYTES + (lanes * LANE_BYTES if self.lane_buffers else 0)
         self.entry_bytes += PIXEL_ENTRY_BYTES if per_pixel else 0
         self.pixel_capacity = 0
+        self.stops = None  # per pixel of the last view, the entry its per-pixel backward finished at
         wp.load_module(grad_kernels, device=self.device)
         self.grad_capacity = 0
         self.scratch_pixels = 0
@@ -213,17 +214,17 @@ class GradRasteriser(_Rasteriser):
             self.p_conic = wp.empty(c, dtype=wp.vec3, device=d)
             self.p_opacity = wp.empty(c, dtype=wp.float32, device=d)
             self.p_rgb = wp.empty(c, dtype=wp.vec3, device=d)
+        if self.stops is None or self.stops.shape[0] < p.width * p.height:
+            self.stops = wp.empty(p.width * p.height, dtype=wp.int32, device=d)
         terms = [self.p_xy, self.p_conic, self.p_opacity, self.p_rgb]
-        for a in terms:
-            a[:pairs].zero_()
         self._rows(
             grad_kernels.composite_backward_pixels,
             self.tiles * kernels.TILE_PIXELS,
             [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint, self.tile_start, self.tile_end,
-             p.width, p.height, p.tiles_x, image[0], grad_image[0], self.slot_ends, *terms],
+             p.width, p.height, p.tiles_x, image[0], grad_image[0], self.slot_ends, *terms, self.stops],
             2048,
         )  # fmt: skip
-        self._rows(grad_kernels.sum_pixels, count, [*where, self.slot_ends, *terms, *per_entry], 16384)
+        self._rows(grad_kernels.sum_pixels, count, [*where, self.slot_ends, *terms, self.stops, *per_entry], 16384)
         return True
 
     def _splat_backward(self, grads: SplatGradients) -> None:
