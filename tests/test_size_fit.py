@@ -105,7 +105,27 @@ def test_the_fit_takes_the_factor_its_rule_names(device):
 def test_a_right_size_is_kept(device):
     reference = blob(600, 12, device)
     fit = size_fit.SizeFit(reference)
-    assert fit(reference) is reference and fit.factors[reference.count] == 1.0
+    same = SplatSet.from_numpy(**reference.to_numpy(), device=device)  # the input's values, another set: fitted
+    assert fit(same) is same and fit.factors[reference.count] == 1.0
+    assert fit._images is not None  # it was rendered and compared
+
+
+def test_the_input_itself_is_returned_unrendered(device, monkeypatch):
+    """A budget of every splat (nothing pruned or merged) yields the input itself, which no fit can
+    improve: neither fit renders anything for it, whatever the scene's size."""
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered")
+
+    monkeypatch.setattr(size_fit, "_render", no_render)
+    monkeypatch.setattr(size_fit.SizeFit, "_fit_geometry", no_render)
+    for n in (1, 2, 600):
+        reference = blob(n, 20 + n, device)
+        fit = size_fit.SizeFit(reference, geometry=True)
+        assert fit(reference) is reference and fit.factors[n] == 1.0 and n not in fit.geometry_kept
+        out = simplify(reference, count=n)  # (a set of its own, the input's values)
+        for name, values in reference.to_numpy().items():
+            np.testing.assert_array_equal(out.to_numpy()[name], values)
 
 
 def test_every_output_is_fitted_for_size_and_far_scenes_are_left_alone(device):

@@ -168,7 +168,12 @@ class SizeFit:
 
     def __call__(self, splats: SplatSet) -> SplatSet:
         """The fitted splat set (``splats`` itself when nothing gains); its factor goes to ``factors``
-        and, with ``geometry``, whether its geometry fit was kept to ``geometry_kept``."""
+        and, with ``geometry``, whether its geometry fit was kept to ``geometry_kept``. The input itself
+        (a budget of all its splats: nothing pruned or merged) is its own best fit: it is returned
+        without rendering anything."""
+        if splats is self.reference:
+            self.factors[splats.count] = 1.0
+            return splats
         fitted, factor = self.fitted(splats) if self.size else (splats, 1.0)
         self.factors[splats.count] = factor
         if self.applies_geometry(splats.count) and self._in_frame():
