@@ -5,7 +5,31 @@ use, with Warp's start-up and module-load messages off, and its notice that a ma
 driver dropped (NANOGS_DEBUG=1 turns them on).
 """
 
+import os as _os
+import signal as _signal
+import sys as _sys
+
 __version__ = "0.1.0"
+
+
+def _quiet_interrupt(signum, frame) -> None:
+    """Ctrl-C before the command has started: nothing was started, so it ends at once (exit code 130)."""
+    _os._exit(130)
+
+
+def _started_as_the_command() -> bool:
+    """Whether this process is the ``nanogs-warp`` console script or ``python -m nanogs_warp``, not a
+    program that imports the package."""
+    argv = getattr(_sys, "orig_argv", [])
+    module = next((argv[k + 1] for k in range(len(argv) - 1) if argv[k] == "-m"), None)
+    return module == "nanogs_warp" or _os.path.basename(_sys.argv[0] if _sys.argv else "") in ("nanogs-warp", "nanogs-warp.exe")
+
+
+# The command's own start (``cli/entry.py``) ends a Ctrl-C during its imports quietly; before it runs,
+# ``python -m`` executes this package and its ``__main__`` and the console script imports its entry
+# point: a Ctrl-C there ends quietly too (a SIGINT the command was started with ignored stays so).
+if _started_as_the_command() and _signal.getsignal(_signal.SIGINT) is _signal.default_int_handler:
+    _signal.signal(_signal.SIGINT, _quiet_interrupt)
 
 # name -> module that defines it
 _EXPORTS = {

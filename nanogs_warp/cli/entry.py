@@ -50,4 +50,8 @@ def main() -> None:
         from .app import main as run_command
     except KeyboardInterrupt:  # Ctrl-C while the command is still being imported: nothing was started
         os._exit(130)
+    from .. import _quiet_interrupt
+
+    if signal.getsignal(signal.SIGINT) is _quiet_interrupt:  # the package's start-up handler: the command's own from here
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     run_command()
