@@ -20,9 +20,10 @@ def _quiet_interrupt(signum, frame) -> None:
 def _started_as_the_command() -> bool:
     """Whether this process is the ``nanogs-warp`` console script or ``python -m nanogs_warp``, not a
     program that imports the package."""
-    argv = getattr(_sys, "orig_argv", [])
+    argv = getattr(_sys, "orig_argv", None) or []
     module = next((argv[k + 1] for k in range(len(argv) - 1) if argv[k] == "-m"), None)
-    return module == "nanogs_warp" or _os.path.basename(_sys.argv[0] if _sys.argv else "") in ("nanogs-warp", "nanogs-warp.exe")
+    script = (getattr(_sys, "argv", None) or [""])[0]  # (an embedded interpreter may have no argv)
+    return module == "nanogs_warp" or _os.path.basename(str(script)) in ("nanogs-warp", "nanogs-warp.exe")
 
 
 # The command's own start (``cli/entry.py``) ends a Ctrl-C during its imports quietly; before it runs,
