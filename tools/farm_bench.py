@@ -1,6 +1,7 @@
 """Render-farm throughput of ``nanogs-warp batch``: N tiled scenes of a given size, to several budgets.
 
     python tools/farm_bench.py SOURCE.ply --scenes 8 --splats 6000000 --workdir /tmp/farm
+    python tools/farm_bench.py SOURCE.ply --scenes 24 --splats 6000000 --workdir /tmp/farm --runs cuda:0 "cuda:0 --mps"
     python tools/farm_bench.py SOURCE.ply --scenes 4 --splats 200000 --runs cpu      # on a CPU machine
 
 Makes ``--scenes`` copies of SOURCE tiled to ``--splats`` splats (each a few splats apart, so none is

@@ -95,16 +95,17 @@ def run_local(
     progress,
     timeout_s: float | None = None,
     readers: int | None = None,
+    mps: bool = False,
 ) -> list[SceneResult]:
     """Runs every job on worker processes, ``workers_per_device`` per device (None: as many as
-    ``gpu_workers.auto_workers`` gives each); returns the results
+    ``gpu_workers.auto_workers`` gives each, ``mps``: the GPUs' workers under MPS); returns the results
     in the order the scenes finished. ``progress`` gets started / advanced / finished calls.
     ``timeout_s``: each scene's time limit on its worker (None: scaled with its size, see
     :func:`~nanogs_warp.batch.scenes.scene_timeout`; 0: none). ``readers``: threads per worker
     that read each input (None: :func:`default_readers`)."""
     context = multiprocessing.get_context("spawn")
     if workers_per_device is None:
-        per_device = auto_workers(devices, [(job.input, job.size) for job in jobs])
+        per_device = auto_workers(devices, [(job.input, job.size) for job in jobs], mps)
     else:
         per_device = dict.fromkeys(devices, workers_per_device)
     if readers is None:

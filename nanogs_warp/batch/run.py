@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from contextlib import nullcontext
 
 from ..errors import one_line, printable
 from .scenes import SceneJob, find_scenes, parse_shard, select_shard
@@ -30,6 +31,7 @@ def run_batch(
     progress: BatchProgress | None = None,
     scene_timeout_s: float | None = None,
     readers: int | None = None,
+    mps: bool = False,
 ) -> list[SceneResult]:
     """Simplifies every job, on local worker processes (``devices``, e.g. ``["cuda:0", "cuda:1"]``)
     or as Ray tasks (``ray_address``); returns one result per job, sorted by scene name.
@@ -37,7 +39,10 @@ def run_batch(
     the largest scene, else one: ``gpu_workers.auto_workers``).
     ``scene_timeout_s``: each scene's time limit (None: scaled with its size; 0: none).
     ``readers``: threads per worker that read each input (None: the cores shared out among the
-    local workers, 1 to 8; a Ray task: the cores of its node, up to 8)."""
+    local workers, 1 to 8; a Ray task: the cores of its node, up to 8).
+    ``mps``: the local GPU workers run under CUDA MPS (:func:`~nanogs_warp.batch.mps.mps_for_batch`:
+    a running MPS control daemon, else one started for the batch); a GPU's workers auto then count
+    as under MPS, as they do whenever such a daemon is running."""
     progress = progress or BatchProgress(len(jobs), quiet=True)
     try:
         if not jobs:
@@ -48,8 +53,12 @@ def run_batch(
             results = run_ray(jobs, ray_address, ray_gpu, force, progress, scene_timeout_s, readers)
         else:
             from .local import run_local
+            from .mps import mps_for_batch, running_mps
 
-            results = run_local(jobs, devices or ["cpu"], workers_per_device, force, progress, scene_timeout_s, readers)
+            devices = devices or ["cpu"]
+            with mps_for_batch() if mps else nullcontext():
+                under_mps = running_mps() is not None and devices != ["cpu"]
+                results = run_local(jobs, devices, workers_per_device, force, progress, scene_timeout_s, readers, under_mps)
     finally:
         progress.close()
     return sorted(results, key=lambda r: r.relative)

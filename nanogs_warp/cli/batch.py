@@ -40,7 +40,8 @@ def batch_command(
     ratio: opts.Ratio = None,
     count: opts.Count = None,
     devices: Annotated[str, typer.Option("--devices", help="auto (every GPU, else the CPU), all (every GPU), cpu, all,cpu (every GPU and the CPU), or a list such as cuda:0,cuda:1; --workers sets the worker processes on each. With --ray: cpu asks for CPU tasks, cuda/all for GPU tasks, auto for GPU tasks when the cluster has GPUs.", metavar="DEVICES")] = "auto",
-    workers: Annotated[str, typer.Option("--workers", help="Worker processes per device: auto (two on a GPU whose memory holds two of the batch's largest scene, when every input is a plain PLY; one otherwise, and on the CPU) or a count (e.g. several on the CPU).", metavar="WORKERS")] = "auto",
+    workers: Annotated[str, typer.Option("--workers", help="Worker processes per device: auto (two on a GPU whose memory holds two of the batch's largest scene, when every input is a plain PLY, six under MPS; one otherwise, and on the CPU) or a count (e.g. several on the CPU).", metavar="WORKERS")] = "auto",
+    mps: Annotated[bool, typer.Option("--mps", help="Run the GPU workers under CUDA MPS, so that their kernels share each GPU at once instead of in turns (about twice the scenes a second on a GPU): an MPS control daemon already running is used, else one is started for this batch and stopped at its end.")] = False,
     readers: Annotated[Optional[int], typer.Option("--readers", metavar="N", help="Threads per worker that read, check and hash each input file while the device works on the previous scene. [default: the CPU cores shared out among the workers, 1 to 8]", show_default=False)] = None,
     shard: Annotated[Optional[str], typer.Option("--shard", help="Only scenes i, i+n, i+2n, ... of the sorted list, as i/n (0-based), e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT.", show_default=False, metavar="SHARD")] = None,
     ray: Annotated[Optional[str], typer.Option("--ray", help="Run each scene as a Ray task: auto (the cluster this machine belongs to), local (a Ray instance started here) or the head's ADDRESS. Needs Ray (pip install 'ray>=2.9').", show_default=False, metavar="RAY")] = None,
@@ -124,6 +125,10 @@ def batch_command(
         from ..batch.local import parse_devices
 
         device_list = parse_devices(devices)
+        if mps and device_list == ["cpu"]:
+            raise InputError("--mps shares a GPU among its workers; --devices names none")
+    if mps and ray is not None:
+        raise InputError("--mps is for this machine's workers; a Ray cluster's GPUs run one task each")
     made_here = _missing_folders(output, [job.out_dir for job in selected])
     writable_folder(output, f"--output {output}")
 
@@ -131,7 +136,7 @@ def batch_command(
     if shard_count > 1 and not quiet:
         typer.echo(f"nanogs-warp batch: shard {shard_index}/{shard_count}: {len(selected)} of {len(jobs)} scenes", err=True)
     try:
-        results = run_batch(selected, device_list, workers_per_device, ray, ray_gpu, force, progress, scene_timeout, readers)
+        results = run_batch(selected, device_list, workers_per_device, ray, ray_gpu, force, progress, scene_timeout, readers, mps)
     finally:  # a signal or Ctrl-C too: the empty folders this run made went with it
         if shard_count == 1:  # every worker was this run's and has ended: nothing else writes there now
             _remove_empty(made_here)
@@ -142,7 +147,7 @@ def batch_command(
             scene["input"] = os.path.abspath(scene["input"])
             for out in scene["outputs"]:
                 out["path"] = os.path.abspath(out["path"])
-        settings = {**vars(config), "devices": devices, "workers": "auto" if workers_per_device is None else workers_per_device, "readers": readers, "ray": ray, "drop_invalid": drop_invalid}
+        settings = {**vars(config), "devices": devices, "workers": "auto" if workers_per_device is None else workers_per_device, "readers": readers, "ray": ray, "mps": mps, "drop_invalid": drop_invalid}
         if sh_degree is not None:
             settings["sh_degree"] = sh_degree
         summary = {"schema": opts.JSON_SCHEMA, "command": "batch", "output": os.path.abspath(output), "settings": settings, **summary}
