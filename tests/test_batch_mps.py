@@ -137,3 +137,15 @@ def test_mps_without_a_gpu_is_refused_in_one_line(tmp_path):
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert len(lines) == 1 and "--mps" in lines[0] and "Traceback" not in result.output
     assert not out.exists()
+
+
+def test_mps_with_ray_is_refused_in_one_line(tmp_path):
+    pytest.importorskip("ray")
+    scene = tmp_path / "a.ply"
+    random_splats_ply(scene, 50)
+    out = tmp_path / "out"
+    result = runner.invoke(app, ["batch", str(scene), "-o", str(out), "--ratio", "0.5", "--ray", "local", "--mps"])
+    assert result.exit_code != 0
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--mps" in lines[0] and "Ray" in lines[0]
+    assert not out.exists()
