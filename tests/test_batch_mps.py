@@ -128,24 +128,15 @@ def test_up_to_six_workers_a_gpu_under_mps_as_its_memory_holds():
     assert workers_for("cpu", largest, 10**15, GPU_WORKERS_MPS) == 1
 
 
-def test_mps_without_a_gpu_is_refused_in_one_line(tmp_path):
+@pytest.mark.parametrize("where, says", [(["--devices", "cpu"], "names none"), (["--ray", "local"], "Ray")])
+def test_mps_is_refused_in_one_line_without_a_local_gpu(tmp_path, where, says):
+    if "--ray" in where:
+        pytest.importorskip("ray")
     scene = tmp_path / "a.ply"
     random_splats_ply(scene, 50)
     out = tmp_path / "out"
-    result = runner.invoke(app, ["batch", str(scene), "-o", str(out), "--ratio", "0.5", "--devices", "cpu", "--mps"])
+    result = runner.invoke(app, ["batch", str(scene), "-o", str(out), "--ratio", "0.5", *where, "--mps"])
     assert result.exit_code != 0
     lines = [line for line in result.output.splitlines() if line.strip()]
-    assert len(lines) == 1 and "--mps" in lines[0] and "Traceback" not in result.output
-    assert not out.exists()
-
-
-def test_mps_with_ray_is_refused_in_one_line(tmp_path):
-    pytest.importorskip("ray")
-    scene = tmp_path / "a.ply"
-    random_splats_ply(scene, 50)
-    out = tmp_path / "out"
-    result = runner.invoke(app, ["batch", str(scene), "-o", str(out), "--ratio", "0.5", "--ray", "local", "--mps"])
-    assert result.exit_code != 0
-    lines = [line for line in result.output.splitlines() if line.strip()]
-    assert len(lines) == 1 and "--mps" in lines[0] and "Ray" in lines[0]
+    assert len(lines) == 1 and "--mps" in lines[0] and says in lines[0] and "Traceback" not in result.output
     assert not out.exists()
