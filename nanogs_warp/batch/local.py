@@ -1,6 +1,6 @@
 """The batch on this machine: worker processes per device (``spawn``; each initialises Warp and
-sees only its own GPU; by default two on a GPU with the memory for them, one elsewhere:
-``gpu_workers``). The parent holds the queue, largest scene first, and keeps two scenes
+sees only its own GPU; by default two on a GPU with the memory for them, six under CUDA MPS,
+one elsewhere: ``gpu_workers``, ``mps``). The parent holds the queue, largest scene first, and keeps two scenes
 assigned to each worker, so that a worker reads and parses the next scene while the current one
 is on its device, and writes the outputs of the last one in the background. Each worker talks to
 the parent over its own pipe, so a worker killed at any moment (the out-of-memory killer) cannot
