@@ -64,7 +64,7 @@ def test_a_private_daemon_is_started_for_the_workers_and_quit_after(tmp_path, mo
     with mps.mps_for_batch() as pipe:
         assert os.environ[mps.PIPE_VARIABLE] == str(pipe) != before  # what spawned workers inherit
         assert Path(os.environ[mps.LOG_VARIABLE]).is_dir()
-        assert mps.running_mps() == pipe
+        assert stat.S_ISSOCK(os.stat(pipe / "control").st_mode)
         scratch = pipe.parent
     calls = [line.split("|") for line in log.read_text().splitlines()]
     assert [c[0] for c in calls] == ["-d", ""]  # started, then told to quit (on stdin)
@@ -88,6 +88,7 @@ def test_a_running_daemon_is_used_as_it_is(tmp_path, monkeypatch):
     pipe.mkdir()
     listening = socket.socket(socket.AF_UNIX)
     listening.bind(str(pipe / "control"))
+    listening.listen()
     monkeypatch.setenv(mps.PIPE_VARIABLE, str(pipe))
     try:
         assert mps.running_mps() == pipe
@@ -99,10 +100,18 @@ def test_a_running_daemon_is_used_as_it_is(tmp_path, monkeypatch):
         listening.close()
 
 
-def test_a_plain_file_is_not_a_daemon(tmp_path, monkeypatch):
+def test_neither_a_plain_file_nor_a_socket_left_by_an_ended_daemon_is_a_daemon(tmp_path, monkeypatch):
     (tmp_path / "control").write_text("")
     monkeypatch.setenv(mps.PIPE_VARIABLE, str(tmp_path))
     assert mps.running_mps() is None
+    left = tmp_path / "left"
+    left.mkdir()
+    with socket.socket(socket.AF_UNIX) as ended:
+        ended.bind(str(left / "control"))
+        ended.listen()
+        monkeypatch.setenv(mps.PIPE_VARIABLE, str(left))
+        assert mps.running_mps() == left
+    assert (left / "control").exists() and mps.running_mps() is None  # the file stays; nobody listens
 
 
 def test_a_daemon_that_cannot_start_is_one_line(tmp_path, monkeypatch):

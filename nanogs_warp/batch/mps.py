@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import socket
 import stat
 import subprocess
 import tempfile
@@ -28,6 +29,7 @@ SYSTEM_PIPE = Path("/tmp/nvidia-mps")  # where a daemon started without CUDA_MPS
 PIPE_VARIABLE = "CUDA_MPS_PIPE_DIRECTORY"
 LOG_VARIABLE = "CUDA_MPS_LOG_DIRECTORY"
 START_S = 10.0  # for the started daemon's control socket to appear
+STOP_S = 10.0  # for the told daemon to end (no longer listening): it ends after its server
 COMMAND_S = 30.0  # for the daemon's command to start it or to quit it
 
 
@@ -38,11 +40,25 @@ def _is_socket(path: Path) -> bool:
         return False
 
 
+def _listening(path: Path) -> bool:
+    """Whether a daemon accepts connections on the socket ``path`` (a socket file left by a daemon
+    that has ended refuses them: the daemon does not remove it)."""
+    if not _is_socket(path):
+        return False
+    with socket.socket(socket.AF_UNIX) as probe:
+        probe.settimeout(1.0)
+        try:
+            probe.connect(str(path))
+        except OSError:
+            return False
+    return True
+
+
 def running_mps() -> Path | None:
     """The pipe directory of the MPS control daemon that this process's CUDA clients would join
-    (``CUDA_MPS_PIPE_DIRECTORY``, else the system's), when its control socket is there; else None."""
+    (``CUDA_MPS_PIPE_DIRECTORY``, else the system's), when it is listening there; else None."""
     pipe = Path(os.environ.get(PIPE_VARIABLE) or SYSTEM_PIPE)
-    return pipe if _is_socket(pipe / "control") else None
+    return pipe if _listening(pipe / "control") else None
 
 
 def _control(arguments: list[str], env: dict[str, str], stdin: str | None = None) -> subprocess.CompletedProcess:
@@ -99,4 +115,7 @@ def mps_for_batch() -> Iterator[Path]:
                 _control([], env, stdin="quit\n")
             except (OSError, subprocess.SubprocessError):
                 pass  # the daemon was gone already
+            deadline = time.monotonic() + STOP_S
+            while _listening(pipe / "control") and time.monotonic() < deadline:
+                time.sleep(0.05)
         shutil.rmtree(scratch, ignore_errors=True)

@@ -57,7 +57,7 @@ def run_batch(
 
             devices = devices or ["cpu"]
             with mps_for_batch() if mps else nullcontext():
-                under_mps = running_mps() is not None and devices != ["cpu"]
+                under_mps = devices != ["cpu"] and (mps or running_mps() is not None)
                 results = run_local(jobs, devices, workers_per_device, force, progress, scene_timeout_s, readers, under_mps)
     finally:
         progress.close()
