@@ -15,7 +15,6 @@ in chunks from one thread per core (they use no atomics, so the chunks are indep
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from typing import Sequence
 
 import numpy as np
@@ -24,7 +23,7 @@ import warp as wp
 from ..device import device_memory
 from ..errors import InputError
 from ..kernels import render as kernels
-from ..parallel import cpu_workers
+from ..parallel import cpu_workers, in_turn
 from ..splats import SplatSet
 from .cameras import Camera
 
@@ -100,7 +99,6 @@ class _Rasteriser:
         if method not in ("tiles", "pixels"):
             raise ValueError(f"composite method {method!r}: expected 'tiles' or 'pixels'")
         self.method = method
-        self.pool = ThreadPoolExecutor(workers) if workers > 1 else None
         n, d = self.n, self.device
         self.xy = wp.empty(n, dtype=wp.vec2, device=d)
         self.depth = wp.empty(n, dtype=wp.float32, device=d)
@@ -119,8 +117,7 @@ class _Rasteriser:
         wp.load_module(kernels, device=d)
 
     def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown()
+        """Nothing to release: the CPU's worker threads are the process's (``parallel.worker_pool``)."""
 
     def _reserve(self, entries: int) -> None:
         if entries <= self.capacity:
@@ -139,7 +136,7 @@ class _Rasteriser:
         """Launches ``kernel`` over ``dim`` threads whose first argument after ``inputs_before`` is the
         first thread's index; on the CPU in CHUNKS_PER_WORKER chunks per worker thread, taken as the
         workers free up (a view's busy tiles lie together, so one chunk each left a worker idle)."""
-        if self.pool is None or dim < 64:
+        if self.workers <= 1 or dim < 64:
             wp.launch(kernel, dim, inputs=[*inputs_before, 0, *inputs_after], device=self.device)
             return
         chunks = self.workers * CHUNKS_PER_WORKER
@@ -150,7 +147,7 @@ class _Rasteriser:
             if hi > lo:
                 wp.launch(kernel, hi - lo, inputs=[*inputs_before, lo, *inputs_after], device=self.device)
 
-        list(self.pool.map(run, range(chunks)))
+        in_turn(self.workers, range(chunks), run)
 
     def _project(self, p, tiles: int) -> int:
         """Clears (or makes) the per-tile entry ranges for ``tiles`` tiles and projects every splat

@@ -1,0 +1,47 @@
+"""``parallel.in_turn``: every item once, on the calling thread and the pool's, the first failure re-raised."""
+
+import threading
+
+import pytest
+
+from nanogs_warp.parallel import in_turn
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_every_item_once_on_the_calling_thread_and_the_pool(workers):
+    seen, threads, lock = [], set(), threading.Lock()
+    together = threading.Barrier(workers)
+
+    def work(item):
+        if item < workers:  # each of the first items waits for the others: one on each thread
+            together.wait(timeout=10)
+        with lock:
+            seen.append(item)
+            threads.add(threading.get_ident())
+
+    in_turn(workers, range(50), work)
+    assert sorted(seen) == list(range(50))
+    assert len(threads) == workers and threading.get_ident() in threads  # the calling thread works too
+    if workers == 1:
+        assert seen == list(range(50))  # one thread: in order
+
+
+def test_the_first_failure_is_re_raised_and_no_item_is_taken_after_it():
+    taken, lock = [], threading.Lock()
+
+    def work(item):
+        with lock:
+            taken.append(item)
+        if item == 3:
+            raise ValueError("item 3")
+
+    with pytest.raises(ValueError, match="item 3"):
+        in_turn(2, range(1000), work)
+    assert 3 in taken and len(taken) < 10  # the threads stop at their next item
+
+
+def test_no_items_and_one_item():
+    calls = []
+    in_turn(4, [], calls.append)
+    in_turn(4, [7], calls.append)
+    assert calls == [7]
