@@ -28,6 +28,7 @@ MIN_ROWS_TO_SPLIT = 16384
 
 
 _pools: dict[tuple[int, int], ThreadPoolExecutor] = {}
+POOL_THREADS = "nanogs-warp"  # the name prefix of the pools' threads
 
 
 def worker_pool(workers: int) -> ThreadPoolExecutor:
@@ -36,7 +37,7 @@ def worker_pool(workers: int) -> ThreadPoolExecutor:
     key = (os.getpid(), workers)
     pool = _pools.get(key)
     if pool is None:
-        pool = _pools[key] = ThreadPoolExecutor(workers, thread_name_prefix="nanogs-warp")
+        pool = _pools[key] = ThreadPoolExecutor(workers, thread_name_prefix=POOL_THREADS)
     return pool
 
 
@@ -64,8 +65,8 @@ def in_turn(workers: int, items: Sequence, work: Callable) -> None:
     pool instead cost a second hand-over to a thread a launch (on the 2-core machine two chunks of
     a small launch took 146-205 us through the pool, 102 us with one on this thread; one launch
     alone 25 us). Re-raises the first failure, once every thread has stopped taking items."""
-    if workers <= 1 or len(items) <= 1:
-        for item in items:
+    if workers <= 1 or len(items) <= 1 or threading.current_thread().name.startswith(POOL_THREADS):
+        for item in items:  # (on a pool thread itself: its helpers could wait behind it for ever)
             work(item)
         return
     pending = iter(items)

@@ -45,3 +45,16 @@ def test_no_items_and_one_item():
     in_turn(4, [], calls.append)
     in_turn(4, [7], calls.append)
     assert calls == [7]
+
+
+def test_a_call_from_a_pool_thread_runs_there_instead_of_waiting_behind_itself():
+    from nanogs_warp.parallel import worker_pool
+
+    inner = []
+
+    def outer(_):  # on the one-thread pool that in_turn(2, ...) hands items to
+        in_turn(2, range(5), inner.append)
+        return threading.current_thread().name
+
+    name = worker_pool(1).submit(outer, None).result(timeout=10)
+    assert name.startswith("nanogs-warp") and inner == list(range(5))
