@@ -101,7 +101,6 @@ def test_renders_same_on_cpu_and_cuda(chunk):
         for view, camera in enumerate(cameras):
             if (camera.width, camera.height) == (48, 48):
                 rasteriser.render_into(camera, wp.vec3(0.1, 0.2, 0.3), image, view)
-        rasteriser.close()
         images.append(image.numpy())
     assert images[0].tobytes() == images[1].tobytes()
     assert np.isfinite(images[0]).sum() >= 48 * 48 * 3  # at least one square view was drawn

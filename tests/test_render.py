@@ -142,7 +142,6 @@ def test_empty_and_invisible_scenes_show_the_background(device, rng):
         image = wp.full((1, 48, 64, 3), float("nan"), dtype=wp.float32, device=device)
         rasteriser = _Rasteriser(empty, method=method)
         rasteriser.render_into(camera, wp.vec3(0.1, 0.2, 0.3), image, 0)
-        rasteriser.close()
         np.testing.assert_array_equal(image.numpy()[0], np.broadcast_to(np.float32([0.1, 0.2, 0.3]), (48, 64, 3)))
     behind = random_scene(rng, 50, 1)
     behind["means"] = camera.centre - 2.0 * camera.rotation[2] + rng.normal(0, 0.1, (50, 3))  # behind the camera
@@ -173,7 +172,6 @@ def test_tile_and_pixel_composites_are_identical(device, rng, workers):
         image = wp.full((1, 45, 70, 3), float("nan"), dtype=wp.float32, device=device)
         rasteriser = _Rasteriser(splats, workers=workers if device == "cpu" else 1, method=method)
         rasteriser.render_into(camera, wp.vec3(0.3, 0.3, 0.3), image, 0)
-        rasteriser.close()
         images.append(image.numpy())
     np.testing.assert_array_equal(images[0], images[1])
     assert not np.isnan(images[0]).any()
@@ -203,7 +201,6 @@ def test_tiles_composited_in_chunks_equal_one_walk(device, rng, chunk):
             assert longest > 3 * chunk and chunks > 3 * tiles
         else:  # every tile one chunk: ``composite`` itself
             assert 0 < longest <= chunk
-        rasteriser.close()
         np.testing.assert_array_equal(images[1], images[0])
         stats = compare(splats, camera, (0.2, 0.5, 1.0), images[1][0])
         assert stats["terminated"] > (1000 if trial else 0)

@@ -35,7 +35,6 @@ def _forward_backward(splats, camera, weights, method=None, lanes=None, lanes_in
     grads = SplatGradients.zeros_like(splats)  # backward adds to these
     g_image = wp.array(weights[None].astype(np.float32), dtype=wp.float32, device=splats.device)
     rasteriser.backward(image, g_image, grads)
-    rasteriser.close()
     return image.numpy()[0], grads
 
 

@@ -116,9 +116,6 @@ class _Rasteriser:
         self.counts = None
         wp.load_module(kernels, device=d)
 
-    def close(self) -> None:
-        """Nothing to release: the CPU's worker threads are the process's (``parallel.worker_pool``)."""
-
     def _reserve(self, entries: int) -> None:
         if entries <= self.capacity:
             return
@@ -280,11 +277,7 @@ def render(splats: SplatSet, camera: Camera, background=(0.0, 0.0, 0.0)) -> wp.a
     not clamped to [0, 1]; ``.numpy()`` copies it to the host)."""
     _check_camera(camera)
     image = wp.full((1, camera.height, camera.width, 3), float("nan"), dtype=wp.float32, device=splats.device)
-    rasteriser = _Rasteriser(splats)
-    try:
-        rasteriser.render_into(camera, _background(background), image, 0)
-    finally:
-        rasteriser.close()
+    _Rasteriser(splats).render_into(camera, _background(background), image, 0)
     return image.reshape((camera.height, camera.width, 3))
 
 
@@ -310,9 +303,6 @@ def render_views_on_device(splats: SplatSet, cameras: Sequence[Camera], backgrou
     (width, height), bg = sizes.pop(), _background(background)
     images = wp.full((len(cameras), height, width, 3), float("nan"), dtype=wp.float32, device=splats.device)
     rasteriser = _Rasteriser(splats, max_entries=max_entries)
-    try:
-        for view, camera in enumerate(cameras):
-            rasteriser.render_into(camera, bg, images, view)
-    finally:
-        rasteriser.close()
+    for view, camera in enumerate(cameras):
+        rasteriser.render_into(camera, bg, images, view)
     return images

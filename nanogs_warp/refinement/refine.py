@@ -130,14 +130,11 @@ def _render_views(reference: SplatSet, cameras, device) -> list[wp.array]:
     """``reference`` rendered from each camera on a black background, one (1, H, W, 3) array each."""
     rasteriser = _Rasteriser(reference)
     black = wp.vec3(0.0, 0.0, 0.0)
-    try:
-        targets = []
-        for camera in cameras:
-            image = wp.empty((1, camera.height, camera.width, 3), dtype=wp.float32, device=device)
-            rasteriser.render_into(camera, black, image, 0)
-            targets.append(image)
-    finally:
-        rasteriser.close()
+    targets = []
+    for camera in cameras:
+        image = wp.empty((1, camera.height, camera.width, 3), dtype=wp.float32, device=device)
+        rasteriser.render_into(camera, black, image, 0)
+        targets.append(image)
     return targets
 
 
@@ -282,9 +279,6 @@ class _Refiner:
             [lo, hi + math.log(self.extent), *c.logit_range, s.rotations, s.log_scales, s.opacities], self.device,
         )  # fmt: skip
 
-    def close(self) -> None:
-        self.rasteriser.close()
-
 
 def refine_with_report(
     simplified: SplatSet,
@@ -323,65 +317,62 @@ def refine_with_report(
         views = ReferenceViews(reference, config, device)
     report.seconds_reference = views.render()
     refiner = _Refiner(rescaled(simplified, views.scale, views.offset), views.extent, config, device)
-    try:
-        cameras, targets = views.cameras, views.targets
-        pool = len(cameras)
-        report.views = pool
-        loss_views = min(LOSS_VIEWS, pool) if training_loss else 0
-        if loss_views:
-            report.loss_before = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
-        # The held-out views: the run returns the checkpoint (or the input) that renders them best,
-        # so a run that overfits its training views never hands back a scene worse than it started.
-        held_out, held_out_targets = views.held_out, views.held_out_targets
-        report.validation_before = report.validation_after = refiner.mean_loss(held_out, held_out_targets)
-        best = _copy(refiner.splats, device)
-        checkpoints = {max(1, round(f * config.steps)) for f in checkpoints}
+    cameras, targets = views.cameras, views.targets
+    pool = len(cameras)
+    report.views = pool
+    loss_views = min(LOSS_VIEWS, pool) if training_loss else 0
+    if loss_views:
+        report.loss_before = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
+    # The held-out views: the run returns the checkpoint (or the input) that renders them best,
+    # so a run that overfits its training views never hands back a scene worse than it started.
+    held_out, held_out_targets = views.held_out, views.held_out_targets
+    report.validation_before = report.validation_after = refiner.mean_loss(held_out, held_out_targets)
+    best = _copy(refiner.splats, device)
+    checkpoints = {max(1, round(f * config.steps)) for f in checkpoints}
 
-        coarse_cameras, coarse_targets = views.halved() if config.coarse_steps > 0 else ([], [])
-        rng = np.random.default_rng([config.seed, 0xADA])
-        order: list[int] = []
-        weight = 1.0 / config.views_per_step
-        sync = (lambda: wp.synchronize_device(device)) if timing else (lambda: None)
-        for step in range(config.steps):
-            t0 = time.perf_counter()
-            refiner.grads.zero_()
-            for _ in range(config.views_per_step):
-                if not order:
-                    order = rng.permutation(pool).tolist()
-                k = order.pop()
-                t1 = time.perf_counter()
-                coarse = step < config.coarse_steps
-                camera, target = (coarse_cameras[k], coarse_targets[k]) if coarse else (cameras[k], targets[k])
-                image, grad_image, loss = refiner.buffers(camera.width, camera.height)
-                refiner.rasteriser.forward(camera, wp.vec3(0.0, 0.0, 0.0), image)
-                loss(image[0], target[0], grad_image[0], config.ssim_weight, weight)
-                sync()
-                t2 = time.perf_counter()
-                refiner.rasteriser.backward(image, grad_image, refiner.grads)
-                sync()
-                t3 = time.perf_counter()
-                report.seconds_forward += t2 - t1
-                report.seconds_backward += t3 - t2
-            t4 = time.perf_counter()
-            refiner.adam(step)
+    coarse_cameras, coarse_targets = views.halved() if config.coarse_steps > 0 else ([], [])
+    rng = np.random.default_rng([config.seed, 0xADA])
+    order: list[int] = []
+    weight = 1.0 / config.views_per_step
+    sync = (lambda: wp.synchronize_device(device)) if timing else (lambda: None)
+    for step in range(config.steps):
+        t0 = time.perf_counter()
+        refiner.grads.zero_()
+        for _ in range(config.views_per_step):
+            if not order:
+                order = rng.permutation(pool).tolist()
+            k = order.pop()
+            t1 = time.perf_counter()
+            coarse = step < config.coarse_steps
+            camera, target = (coarse_cameras[k], coarse_targets[k]) if coarse else (cameras[k], targets[k])
+            image, grad_image, loss = refiner.buffers(camera.width, camera.height)
+            refiner.rasteriser.forward(camera, wp.vec3(0.0, 0.0, 0.0), image)
+            loss(image[0], target[0], grad_image[0], config.ssim_weight, weight)
             sync()
-            report.seconds_optimiser += time.perf_counter() - t4
-            if step + 1 in checkpoints:
-                held_out_loss = refiner.mean_loss(held_out, held_out_targets)
-                if held_out_loss < report.validation_after:
-                    report.validation_after, report.kept_step = held_out_loss, step + 1
-                    for target, source in zip(best.arrays(), refiner.splats.arrays()):
-                        wp.copy(target, source)
-            if on_step is not None:
-                on_step(step + 1, config.steps)
-        if report.kept_step != config.steps:
-            for target, source in zip(refiner.splats.arrays(), best.arrays()):
-                wp.copy(target, source)
-        if loss_views:
-            report.loss_after = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
-        out = rescaled(best, 1.0 / views.scale, None if views.offset is None else -views.offset * views.scale)
-    finally:
-        refiner.close()
+            t2 = time.perf_counter()
+            refiner.rasteriser.backward(image, grad_image, refiner.grads)
+            sync()
+            t3 = time.perf_counter()
+            report.seconds_forward += t2 - t1
+            report.seconds_backward += t3 - t2
+        t4 = time.perf_counter()
+        refiner.adam(step)
+        sync()
+        report.seconds_optimiser += time.perf_counter() - t4
+        if step + 1 in checkpoints:
+            held_out_loss = refiner.mean_loss(held_out, held_out_targets)
+            if held_out_loss < report.validation_after:
+                report.validation_after, report.kept_step = held_out_loss, step + 1
+                for target, source in zip(best.arrays(), refiner.splats.arrays()):
+                    wp.copy(target, source)
+        if on_step is not None:
+            on_step(step + 1, config.steps)
+    if report.kept_step != config.steps:
+        for target, source in zip(refiner.splats.arrays(), best.arrays()):
+            wp.copy(target, source)
+    if loss_views:
+        report.loss_after = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
+    out = rescaled(best, 1.0 / views.scale, None if views.offset is None else -views.offset * views.scale)
     wp.synchronize_device(device)
     report.seconds = time.perf_counter() - started
     return out, report
