@@ -19,6 +19,9 @@ Conventions (shared with ``tests/reference_render.py``):
   where its alpha is below 1/255 for certain (see ``project``): the same image, fewer entries.
 - Entries are keyed ``tile << 32 | float bits of depth`` (depth > near > 0, so the bits sort as the
   floats do) and radix-sorted stably; splats of equal depth keep their row order.
+- Several views at once (refinement's steps): ``project_views`` writes splat i seen by camera v to
+  row v n + i, and ``emit_entries`` numbers view v's tiles after the earlier views' (tile v view_tiles
+  + t), so each tile's list, and each pixel, is that of its view rendered alone.
 - Compositing, per pixel in depth order: alpha = min(0.99, opacity exp(-d^T conic d / 2)); skip
   alpha < 1/255; stop before accumulating when T (1 - alpha) < 1e-4; C += rgb alpha T, T *= 1 - alpha;
   finally C + T background.
@@ -160,8 +163,10 @@ def gram(m: wp.mat33):
     return g
 
 
-@wp.kernel
-def project(
+@wp.func
+def project_splat(
+    i: int,
+    out: int,
     means: wp.array(dtype=wp.vec3),
     rotations: wp.array(dtype=wp.quat),
     log_scales: wp.array(dtype=wp.vec3),
@@ -169,7 +174,6 @@ def project(
     features: wp.array2d(dtype=float),
     degree: int,
     cam: CameraParams,
-    first: int,
     xy: wp.array(dtype=wp.vec2),
     depth: wp.array(dtype=float),
     conic_opacity: wp.array(dtype=wp.vec4),
@@ -179,10 +183,10 @@ def project(
     rect: wp.array(dtype=wp.vec4i),
     touched: wp.array(dtype=wp.int32),
 ):
-    """Per splat (row ``first + tid``): projected mean, depth, conic and opacity, colour, reach box,
-    faint power, tile rectangle [x0, x1) x [y0, y1) and its tile count (0 when culled)."""
-    i = first + wp.tid()
-    touched[i] = 0
+    """Splat i seen by ``cam``, written to row ``out``: projected mean, depth, conic and opacity,
+    colour, reach box, faint power, tile rectangle [x0, x1) x [y0, y1) and its tile count (0 when
+    culled)."""
+    touched[out] = 0
     t = cam.rotation * means[i] + cam.translation
     z = t[2]
     if z <= cam.near:
@@ -252,14 +256,67 @@ def project(
     dn = wp.length(d)
     if dn > 0.0:
         d = d / dn
-    rgb[i] = sh_to_rgb(features, i, degree, d)
-    xy[i] = wp.vec2(px, py)
-    box[i] = wp.vec4(px - half_x, px + half_x, py - half_y, py + half_y)
-    faint[i] = -reach - FAINT_MARGIN  # log(ALPHA_MIN / opacity) - FAINT_MARGIN: below it no exp is needed
-    depth[i] = z
-    conic_opacity[i] = wp.vec4(conic[0], conic[1], conic[2], opacity)
-    rect[i] = wp.vec4i(x0, y0, x1, y1)
-    touched[i] = (x1 - x0) * (y1 - y0)
+    rgb[out] = sh_to_rgb(features, i, degree, d)
+    xy[out] = wp.vec2(px, py)
+    box[out] = wp.vec4(px - half_x, px + half_x, py - half_y, py + half_y)
+    faint[out] = -reach - FAINT_MARGIN  # log(ALPHA_MIN / opacity) - FAINT_MARGIN: below it no exp is needed
+    depth[out] = z
+    conic_opacity[out] = wp.vec4(conic[0], conic[1], conic[2], opacity)
+    rect[out] = wp.vec4i(x0, y0, x1, y1)
+    touched[out] = (x1 - x0) * (y1 - y0)
+
+
+@wp.kernel
+def project(
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    features: wp.array2d(dtype=float),
+    degree: int,
+    cam: CameraParams,
+    first: int,
+    xy: wp.array(dtype=wp.vec2),
+    depth: wp.array(dtype=float),
+    conic_opacity: wp.array(dtype=wp.vec4),
+    rgb: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4),
+    faint: wp.array(dtype=float),
+    rect: wp.array(dtype=wp.vec4i),
+    touched: wp.array(dtype=wp.int32),
+):
+    """``project_splat`` of splat ``first + tid`` into its own row."""
+    i = first + wp.tid()
+    project_splat(i, i, means, rotations, log_scales, opacities, features, degree, cam, xy, depth, conic_opacity, rgb, box,
+                  faint, rect, touched)  # fmt: skip
+
+
+@wp.kernel
+def project_views(
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    features: wp.array2d(dtype=float),
+    degree: int,
+    cams: wp.array(dtype=CameraParams),
+    first: int,
+    xy: wp.array(dtype=wp.vec2),
+    depth: wp.array(dtype=float),
+    conic_opacity: wp.array(dtype=wp.vec4),
+    rgb: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4),
+    faint: wp.array(dtype=float),
+    rect: wp.array(dtype=wp.vec4i),
+    touched: wp.array(dtype=wp.int32),
+):
+    """Several views at once: row v n + i (n splats) is ``project_splat`` of splat i by camera v."""
+    row = first + wp.tid()
+    n = means.shape[0]
+    v = row / n
+    i = row - v * n
+    project_splat(i, row, means, rotations, log_scales, opacities, features, degree, cams[v], xy, depth, conic_opacity, rgb,
+                  box, faint, rect, touched)  # fmt: skip
 
 
 @wp.kernel
@@ -269,12 +326,16 @@ def emit_entries(
     touched: wp.array(dtype=wp.int32),
     ends: wp.array(dtype=wp.int32),
     tiles_x: int,
+    splats: int,
+    view_tiles: int,
     first: int,
     keys: wp.array(dtype=wp.int64),
     values: wp.array(dtype=wp.int32),
 ):
-    """Writes one (tile << 32 | depth bits, splat) entry per covered tile, at the splat's slots
-    [ends[i] - touched[i], ends[i]) of the inclusive prefix sum."""
+    """Writes one (tile << 32 | depth bits, row) entry per covered tile, at the row's slots
+    [ends[i] - touched[i], ends[i]) of the inclusive prefix sum. Rows of several views
+    (``project_views``: ``splats`` rows a view) number their tiles after the earlier views'
+    ``view_tiles`` each (``tiles_x`` a row): view v's tile t is v view_tiles + t."""
     i = first + wp.tid()
     n = touched[i]
     if n == 0:
@@ -282,9 +343,10 @@ def emit_entries(
     slot = ends[i] - n
     bits = wp.int64(wp.cast(depth[i], wp.int32))
     r = rect[i]
+    offset = (i / splats) * view_tiles
     for ty in range(r[1], r[3]):
         for tx in range(r[0], r[2]):
-            keys[slot] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | bits
+            keys[slot] = (wp.int64(offset + ty * tiles_x + tx) << wp.int64(32)) | bits
             values[slot] = i
             slot += 1
 
@@ -342,16 +404,20 @@ def composite(
     tiles_x: int,
     background: wp.vec3,
     view: int,
+    view_tiles: int,
     first: int,
     image: wp.array4d(dtype=float),
 ):
     """One thread per pixel, 256 consecutive threads per 16x16 tile (one CUDA block per tile):
-    front-to-back alpha compositing of the tile's depth-sorted entries, INRIA's renderCUDA."""
+    front-to-back alpha compositing of the tile's depth-sorted entries, INRIA's renderCUDA. Tiles
+    of several views (``emit_entries``): tile v view_tiles + t is tile t of view ``view`` + v."""
     tid = first + wp.tid()
     tile = tid / TILE_PIXELS
     local = tid - (tid / TILE_PIXELS) * TILE_PIXELS
-    px = (tile - (tile / tiles_x) * tiles_x) * TILE + local - (local / TILE) * TILE
-    py = (tile / tiles_x) * TILE + local / TILE
+    shown = tile / view_tiles
+    tile_of_view = tile - shown * view_tiles
+    px = (tile_of_view - (tile_of_view / tiles_x) * tiles_x) * TILE + local - (local / TILE) * TILE
+    py = (tile_of_view / tiles_x) * TILE + local / TILE
     if px >= width or py >= height:
         return
     fpx = float(px)
@@ -378,9 +444,9 @@ def composite(
         c = c + e_rgb[k] * (alpha * transmittance)
         transmittance = test_t
     c = c + background * transmittance
-    image[view, py, px, 0] = c[0]
-    image[view, py, px, 1] = c[1]
-    image[view, py, px, 2] = c[2]
+    image[view + shown, py, px, 0] = c[0]
+    image[view + shown, py, px, 1] = c[1]
+    image[view + shown, py, px, 2] = c[2]
 
 
 @wp.func
@@ -640,6 +706,7 @@ def composite_tiles(
     tiles_x: int,
     background: wp.vec3,
     view: int,
+    view_tiles: int,
     chunk: int,
     first: int,
     transmittance: wp.array(dtype=float),
@@ -655,11 +722,14 @@ def composite_tiles(
     in ``composite``, so the images are identical. A tile of more than ``chunk`` entries is composited
     as ``chunk_transmittance`` to ``composite_merge`` do it on the GPU, chunk by chunk, with their
     arithmetic (per pixel in ``chunk_state``: the transmittance before the chunk and the chunk's own,
-    and in ``total`` the colour of the chunks before): the same bits as the GPU's chunked image."""
+    and in ``total`` the colour of the chunks before): the same bits as the GPU's chunked image.
+    Tiles of several views as in ``composite``."""
     tile = first + wp.tid()
     base = tile * TILE_PIXELS
-    x_lo = (tile - (tile / tiles_x) * tiles_x) * TILE
-    y_lo = (tile / tiles_x) * TILE
+    shown = tile / view_tiles
+    tile_of_view = tile - shown * view_tiles
+    x_lo = (tile_of_view - (tile_of_view / tiles_x) * tiles_x) * TILE
+    y_lo = (tile_of_view / tiles_x) * TILE
     x_hi = wp.min(x_lo + TILE, width)  # exclusive
     y_hi = wp.min(y_lo + TILE, height)
     for s in range(TILE_PIXELS):
@@ -758,6 +828,6 @@ def composite_tiles(
             if chunked:
                 c = total[slot]
             c = c + background * transmittance[slot]
-            image[view, py, px, 0] = c[0]
-            image[view, py, px, 1] = c[1]
-            image[view, py, px, 2] = c[2]
+            image[view + shown, py, px, 0] = c[0]
+            image[view + shown, py, px, 1] = c[1]
+            image[view + shown, py, px, 2] = c[2]

@@ -28,6 +28,11 @@ entries after the sort (``number_slots``, ``order_entries``) and the two backwar
    projection J W Sigma W^T J^T (with the FOV clamp of J), Sigma = R S S^T R^T, the quaternion
    normalisation, the sigmoid and the SH colour (its clamp at 0, and its view direction), adding to the
    per-splat gradient arrays: thread i writes only row i, so the order is fixed on every device.
+
+Several views are back-propagated together as ``render.project_views`` and ``render.emit_entries``
+lay them out (view v's tile t is tile v view_tiles + t, its splat i row v n + i): a tile's
+kernels find their view and its own size (``view_tile_bounds``), and ``splat_backward`` adds the views
+to a splat's gradients one after another, in the order of one-at-a-time back-propagation: the same bits.
 """
 
 import warp as wp
@@ -59,7 +64,6 @@ from .render import (
     _sh_coef,
     gram,
     matrix_product,
-    pixel_of,
     scaled_columns,
     sh_to_rgb,
 )
@@ -139,6 +143,7 @@ def pixel_terms(
 
 @wp.func
 def row_gradients(
+    view: int,
     py: int,
     gx0: int,
     gx1: int,
@@ -147,8 +152,8 @@ def row_gradients(
     co: wp.vec4,
     rgb: wp.vec3,
     faint: float,
-    image: wp.array3d(dtype=float),
-    grad_image: wp.array3d(dtype=float),
+    image: wp.array4d(dtype=float),
+    grad_image: wp.array4d(dtype=float),
     transmittance: wp.array(dtype=float),
     front: wp.array(dtype=wp.vec3),
     done: wp.array(dtype=int),
@@ -157,7 +162,7 @@ def row_gradients(
     gop: float,
     grgb: wp.vec3,
 ):
-    """An entry's gradients over pixels gx0..gx1 of pixel row py (their state in slots row + px),
+    """An entry's gradients over pixels gx0..gx1 of pixel row py of view ``view`` (their state in slots row + px),
     added to the running sums (gxy, gco, gop, grgb) pixel by pixel; also the number of pixels the
     entry finished (module docstring). Below the power ``faint`` alpha < ALPHA_MIN: the pixel is
     skipped without its exp, as ``composite_tiles`` skips it."""
@@ -176,8 +181,8 @@ def row_gradients(
             done[slot] = 1
             finished += 1
             continue
-        g = wp.vec3(grad_image[py, px, 0], grad_image[py, px, 1], grad_image[py, px, 2])
-        final = wp.vec3(image[py, px, 0], image[py, px, 1], image[py, px, 2])
+        g = wp.vec3(grad_image[view, py, px, 0], grad_image[view, py, px, 1], grad_image[view, py, px, 2])
+        final = wp.vec3(image[view, py, px, 0], image[view, py, px, 1], image[view, py, px, 2])
         g_rgb, in_front, g_op, g_co, g_xy = pixel_terms(t, alpha, gauss, raw, dx, dy, co, rgb, g, final, front[slot])
         front[slot] = in_front
         transmittance[slot] = test_t
@@ -209,6 +214,17 @@ def tile_bounds(tile: int, tiles_x: int, width: int, height: int):
 
 
 @wp.func
+def view_tile_bounds(tile: int, tiles_x: int, view_tiles: int, cams: wp.array(dtype=CameraParams)):
+    """Tile ``tile`` of several views' tiles (``render.emit_entries``: view v's tile t is
+    v view_tiles + t, ``tiles_x`` a row): (v, ``tile_bounds`` of t in view v's own image)."""
+    view = tile / view_tiles
+    own = tile - view * view_tiles
+    cam = cams[view]
+    x_lo, x_hi, y_lo, y_hi = tile_bounds(own, tiles_x, cam.width, cam.height)
+    return view, x_lo, x_hi, y_lo, y_hi
+
+
+@wp.func
 def reset_rows(base: int, lane: int, lanes: int, transmittance: wp.array(dtype=float), front: wp.array(dtype=wp.vec3), done: wp.array(dtype=int)):
     """Starts the pixel state of the tile's rows lane, lane + lanes, ... (slots from ``base``)."""
     for r in range(lane, TILE, lanes):
@@ -230,11 +246,11 @@ def composite_backward(
     e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
-    width: int,
-    height: int,
+    cams: wp.array(dtype=CameraParams),
     tiles_x: int,
-    image: wp.array3d(dtype=float),
-    grad_image: wp.array3d(dtype=float),
+    view_tiles: int,
+    image: wp.array4d(dtype=float),
+    grad_image: wp.array4d(dtype=float),
     transmittance: wp.array(dtype=float),
     front: wp.array(dtype=wp.vec3),
     done: wp.array(dtype=wp.int32),
@@ -245,14 +261,14 @@ def composite_backward(
 ):
     """``lanes`` threads per tile (1, 2, 4, 8 or 16), lane l owning the tile's pixel rows l, l + lanes, ...:
     per entry k, dL/d(mean 2D, conic, opacity, colour) summed over the lane's pixels in row order
-    (see the module docstring), written to slot k * lanes + l. ``image`` is the forward's (H, W, 3)
-    output, ``grad_image`` dL/dimage. Per-pixel state lives in the tile's 256 slots of the scratch
+    (see the module docstring), written to slot k * lanes + l. ``image`` is the forward's (V, H, W, 3)
+    output, ``grad_image`` dL/dimage; tiles and ``cams`` of several views as in ``view_tile_bounds``. Per-pixel state lives in the tile's 256 slots of the scratch
     arrays (each lane touches only its rows')."""
     tid = first + wp.tid()
     tile = tid / lanes
     lane = tid - tile * lanes
     base = tile * TILE_PIXELS
-    x_lo, x_hi, y_lo, y_hi = tile_bounds(tile, tiles_x, width, height)
+    view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(tile, tiles_x, view_tiles, cams)
     reset_rows(base, lane, lanes, transmittance, front, done)
     own_rows = int(0)
     for r in range(lane, TILE, lanes):
@@ -271,7 +287,7 @@ def composite_backward(
             first_row = gy0 + ((lane - (gy0 - y_lo)) % lanes + lanes) % lanes  # the lane's first row >= gy0
             for py in range(first_row, gy1 + 1, lanes):
                 gxy, gco, gop, grgb, finished = row_gradients(
-                    py, gx0, gx1, base + (py - y_lo) * TILE - x_lo, e_xy[k], co, e_rgb[k], faint,
+                    view, py, gx0, gx1, base + (py - y_lo) * TILE - x_lo, e_xy[k], co, e_rgb[k], faint,
                     image, grad_image, transmittance, front, done, gxy, gco, gop, grgb,
                 )
                 remaining -= finished
@@ -293,11 +309,11 @@ def composite_backward_lanes_in_turn(
     e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
-    width: int,
-    height: int,
+    cams: wp.array(dtype=CameraParams),
     tiles_x: int,
-    image: wp.array3d(dtype=float),
-    grad_image: wp.array3d(dtype=float),
+    view_tiles: int,
+    image: wp.array4d(dtype=float),
+    grad_image: wp.array4d(dtype=float),
     transmittance: wp.array(dtype=float),
     front: wp.array(dtype=wp.vec3),
     done: wp.array(dtype=wp.int32),
@@ -312,7 +328,7 @@ def composite_backward_lanes_in_turn(
     of one per lane. (Pixels are independent: the order in which the lanes visit them is free.)"""
     tile = first + wp.tid()
     base = tile * TILE_PIXELS
-    x_lo, x_hi, y_lo, y_hi = tile_bounds(tile, tiles_x, width, height)
+    view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(tile, tiles_x, view_tiles, cams)
     reset_rows(base, 0, 1, transmittance, front, done)
     remaining = (x_hi - x_lo) * (y_hi - y_lo)
     for k in range(tile_start[tile], tile_end[tile]):
@@ -334,7 +350,7 @@ def composite_backward_lanes_in_turn(
                 first_row = gy0 + ((lane - (gy0 - y_lo)) % lanes + lanes) % lanes
                 for py in range(first_row, gy1 + 1, lanes):
                     gxy, gco, gop, grgb, finished = row_gradients(
-                        py, gx0, gx1, base + (py - y_lo) * TILE - x_lo, p, co, rgb, faint,
+                        view, py, gx0, gx1, base + (py - y_lo) * TILE - x_lo, p, co, rgb, faint,
                         image, grad_image, transmittance, front, done, gxy, gco, gop, grgb,
                     )
                     remaining -= finished
@@ -380,10 +396,12 @@ def sum_lanes(
 
 
 @wp.func
-def entry_tile_columns(key: wp.int64, bx: wp.vec4, width: int, height: int, tiles_x: int):
-    """``entry_columns`` of a sorted entry (key = tile << 32 | depth) in its own tile."""
-    x_lo, x_hi, y_lo, y_hi = tile_bounds(wp.int32(key >> wp.int64(32)), tiles_x, width, height)
-    return entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
+def entry_tile_columns(key: wp.int64, bx: wp.vec4, tiles_x: int, view_tiles: int, cams: wp.array(dtype=CameraParams)):
+    """``entry_columns`` of a sorted entry (key = tile << 32 | depth) in its own tile, and the
+    tile's first pixel (x_lo, y_lo)."""
+    view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(wp.int32(key >> wp.int64(32)), tiles_x, view_tiles, cams)
+    gx0, gx1, gy0, gy1 = entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
+    return gx0, gx1, gy0, gy1, x_lo, y_lo
 
 
 @wp.kernel
@@ -391,14 +409,14 @@ def pixel_areas(
     first: int,
     keys: wp.array(dtype=wp.int64),
     e_box: wp.array(dtype=wp.vec4),
-    width: int,
-    height: int,
+    cams: wp.array(dtype=CameraParams),
     tiles_x: int,
+    view_tiles: int,
     areas: wp.array(dtype=wp.int32),
 ):
     """Per entry: the pixels of its tile that its box reaches (its slots in the per-pixel buffers)."""
     k = first + wp.tid()
-    gx0, gx1, gy0, gy1 = entry_tile_columns(keys[k], e_box[k], width, height, tiles_x)
+    gx0, gx1, gy0, gy1, x_lo, y_lo = entry_tile_columns(keys[k], e_box[k], tiles_x, view_tiles, cams)
     area = int(0)
     if gx0 <= gx1 and gy0 <= gy1:
         area = (gx1 - gx0 + 1) * (gy1 - gy0 + 1)
@@ -415,11 +433,11 @@ def composite_backward_pixels(
     e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
-    width: int,
-    height: int,
+    cams: wp.array(dtype=CameraParams),
     tiles_x: int,
-    image: wp.array3d(dtype=float),
-    grad_image: wp.array3d(dtype=float),
+    view_tiles: int,
+    image: wp.array4d(dtype=float),
+    grad_image: wp.array4d(dtype=float),
     slot_ends: wp.array(dtype=wp.int32),
     p_xy: wp.array(dtype=wp.vec2),
     p_conic: wp.array(dtype=wp.vec3),
@@ -431,20 +449,20 @@ def composite_backward_pixels(
     entry's gradients (``row_gradients``' arithmetic, term by term), written to the entry's slot for
     this pixel (the pixel's place, row-major, in the entry's box, whose slots end at ``slot_ends[k]``:
     the inclusive running sum of ``pixel_areas``): zero where the entry's alpha is 0 there; and in
-    ``stops[py * width + px]`` the entry the pixel finished at (its tile's end if none), whose slot
-    and those of every later entry of the tile are not written. ``sum_pixels`` then adds the slots
-    before each pixel's stop in ``composite_backward``'s order: the same bits, with a thread per
-    pixel instead of one per row."""
+    ``stops[tid]`` (the pixel's slot of its tile) the entry the pixel finished at (its tile's end
+    if none), whose slot and those of every later entry of the tile are not written. ``sum_pixels``
+    then adds the slots before each pixel's stop in ``composite_backward``'s order: the same bits,
+    with a thread per pixel instead of one per row. Tiles of several views as in ``view_tile_bounds``."""
     tid = first + wp.tid()
     tile = tid / TILE_PIXELS
-    pixel = pixel_of(tile, tid - tile * TILE_PIXELS, tiles_x)
-    px = pixel[0]
-    py = pixel[1]
-    if px >= width or py >= height:
+    view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(tile, tiles_x, view_tiles, cams)
+    local = tid - tile * TILE_PIXELS
+    px = x_lo + local - (local / TILE) * TILE
+    py = y_lo + local / TILE
+    if px >= x_hi or py >= y_hi:
         return
-    x_lo, x_hi, y_lo, y_hi = tile_bounds(tile, tiles_x, width, height)
-    g = wp.vec3(grad_image[py, px, 0], grad_image[py, px, 1], grad_image[py, px, 2])
-    final = wp.vec3(image[py, px, 0], image[py, px, 1], image[py, px, 2])
+    g = wp.vec3(grad_image[view, py, px, 0], grad_image[view, py, px, 1], grad_image[view, py, px, 2])
+    final = wp.vec3(image[view, py, px, 0], image[view, py, px, 1], image[view, py, px, 2])
     t = float(1.0)
     front = wp.vec3(0.0, 0.0, 0.0)
     fpx = float(px)
@@ -475,7 +493,7 @@ def composite_backward_pixels(
         p_xy[slot] = g_xy
         front = in_front
         t = test_t
-    stops[py * width + px] = stop
+    stops[tid] = stop
 
 
 @wp.kernel
@@ -483,9 +501,9 @@ def sum_pixels(
     first: int,
     keys: wp.array(dtype=wp.int64),
     e_box: wp.array(dtype=wp.vec4),
-    width: int,
-    height: int,
+    cams: wp.array(dtype=CameraParams),
     tiles_x: int,
+    view_tiles: int,
     slot_ends: wp.array(dtype=wp.int32),
     p_xy: wp.array(dtype=wp.vec2),
     p_conic: wp.array(dtype=wp.vec3),
@@ -503,7 +521,8 @@ def sum_pixels(
     were not written. The lanes add a zero there and wherever the entry's alpha is 0 (a zero slot
     here): a sum that starts at +0 is never -0, and adding +0 or -0 to it changes no bit."""
     k = first + wp.tid()
-    gx0, gx1, gy0, gy1 = entry_tile_columns(keys[k], e_box[k], width, height, tiles_x)
+    gx0, gx1, gy0, gy1, x_lo, y_lo = entry_tile_columns(keys[k], e_box[k], tiles_x, view_tiles, cams)
+    base = wp.int32(keys[k] >> wp.int64(32)) * TILE_PIXELS - y_lo * TILE - x_lo  # + py TILE + px: the pixel's stop
     sum_xy = wp.vec2(0.0, 0.0)
     sum_co = wp.vec3(0.0, 0.0, 0.0)
     sum_op = float(0.0)
@@ -516,7 +535,7 @@ def sum_pixels(
             gop = float(0.0)
             grgb = wp.vec3(0.0, 0.0, 0.0)
             for px in range(gx0, gx1 + 1):
-                if k < stops[py * width + px]:
+                if k < stops[base + py * TILE + px]:
                     gxy = gxy + p_xy[slot]
                     gco = gco + p_conic[slot]
                     gop = gop + p_opacity[slot]
@@ -635,9 +654,10 @@ def quat_matrix_backward(q: wp.quat, g: wp.mat33):
     return wp.quat(gx, gy, gz, gw)
 
 
-@wp.kernel
-def splat_backward(
-    first: int,
+@wp.func
+def splat_view_backward(
+    i: int,
+    row: int,
     means: wp.array(dtype=wp.vec3),
     rotations: wp.array(dtype=wp.quat),
     log_scales: wp.array(dtype=wp.vec3),
@@ -658,17 +678,17 @@ def splat_backward(
     g_opacities: wp.array(dtype=float),
     g_features: wp.array2d(dtype=float),
 ):
-    """Per splat: its entries' gradients summed in slot order, then the chain rule back to the
-    parameters (``render.project`` differentiated), added to row i of the g_ arrays."""
-    i = first + wp.tid()
-    n = touched[i]
+    """Splat i in the view of ``cam`` (its projection in row ``row``: ``render.project_splat``): its
+    entries' gradients summed in slot order, then the chain rule back to the parameters
+    (``render.project_splat`` differentiated), added to row i of the g_ arrays."""
+    n = touched[row]
     if n == 0:
         return  # culled in this view: no pixel depends on it
     gxy = wp.vec2(0.0, 0.0)
     gco = wp.vec3(0.0, 0.0, 0.0)
     gop = float(0.0)
     grgb = wp.vec3(0.0, 0.0, 0.0)
-    for slot in range(ends[i] - n, ends[i]):
+    for slot in range(ends[row] - n, ends[row]):
         k = entry_of_slot[slot]
         gxy = gxy + e_g_xy[k]
         gco = gco + e_g_conic[k]
@@ -768,3 +788,37 @@ def splat_backward(
     g_rotations[i] = g_rotations[i] + gq
     g_log_scales[i] = g_log_scales[i] + g_scale
     g_opacities[i] = g_opacities[i] + gop * opacity * (1.0 - opacity)
+
+
+@wp.kernel
+def splat_backward(
+    first: int,
+    means: wp.array(dtype=wp.vec3),
+    rotations: wp.array(dtype=wp.quat),
+    log_scales: wp.array(dtype=wp.vec3),
+    opacities: wp.array(dtype=float),
+    features: wp.array2d(dtype=float),
+    degree: int,
+    cams: wp.array(dtype=CameraParams),
+    touched: wp.array(dtype=wp.int32),
+    ends: wp.array(dtype=wp.int32),
+    entry_of_slot: wp.array(dtype=wp.int32),
+    e_g_xy: wp.array(dtype=wp.vec2),
+    e_g_conic: wp.array(dtype=wp.vec3),
+    e_g_opacity: wp.array(dtype=float),
+    e_g_rgb: wp.array(dtype=wp.vec3),
+    g_means: wp.array(dtype=wp.vec3),
+    g_rotations: wp.array(dtype=wp.quat),
+    g_log_scales: wp.array(dtype=wp.vec3),
+    g_opacities: wp.array(dtype=float),
+    g_features: wp.array2d(dtype=float),
+):
+    """Per splat i: ``splat_view_backward`` for each of the views of ``cams`` in order (its rows
+    v n + i of ``render.project_views``), so that its gradients add up view by view in the same
+    order as when the views are back-propagated one at a time."""
+    i = first + wp.tid()
+    n = means.shape[0]
+    for v in range(cams.shape[0]):
+        splat_view_backward(i, v * n + i, means, rotations, log_scales, opacities, features, degree, cams[v], touched, ends,
+                            entry_of_slot, e_g_xy, e_g_conic, e_g_opacity, e_g_rgb, g_means, g_rotations, g_log_scales,
+                            g_opacities, g_features)  # fmt: skip

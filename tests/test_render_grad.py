@@ -31,7 +31,7 @@ def _forward_backward(splats, camera, weights, method=None, lanes=None, lanes_in
     rasteriser = GradRasteriser(splats, method=method, lanes=lanes, lanes_in_turn=lanes_in_turn, per_pixel=per_pixel)
     h, w = camera.height, camera.width
     image = wp.full((1, h, w, 3), float("nan"), dtype=wp.float32, device=splats.device)
-    rasteriser.forward(camera, wp.vec3(0.1, 0.2, 0.3), image)
+    rasteriser.forward([camera], wp.vec3(0.1, 0.2, 0.3), image)
     grads = SplatGradients.zeros_like(splats)  # backward adds to these
     g_image = wp.array(weights[None].astype(np.float32), dtype=wp.float32, device=splats.device)
     rasteriser.backward(image, g_image, grads)
@@ -149,7 +149,7 @@ def test_the_backward_buffers_count_in_the_memory_bound(monkeypatch, lanes):
     rasteriser = GradRasteriser(splats, lanes=lanes)
     image = wp.zeros((1, 64, 64, 3), dtype=wp.float32, device="cpu")
     with pytest.raises(InputError, match="covers 3,200"):
-        rasteriser.forward(camera, wp.vec3(0.0, 0.0, 0.0), image)
+        rasteriser.forward([camera], wp.vec3(0.0, 0.0, 0.0), image)
 
 
 @pytest.mark.parametrize("size", [(70, 45), (32, 32)])
@@ -202,8 +202,46 @@ def test_per_pixel_backward_of_a_view_whose_entries_reach_no_pixel(device):
     for per_pixel in (True, False):
         rasteriser = GradRasteriser(splats, per_pixel=per_pixel)
         image = wp.zeros((1, 32, 32, 3), dtype=wp.float32, device=device)
-        rasteriser.forward(camera, wp.vec3(0.0, 0.0, 0.0), image)
+        rasteriser.forward([camera], wp.vec3(0.0, 0.0, 0.0), image)
         assert rasteriser.count > 0 and image.numpy().max() == 0.0
         grads = SplatGradients.zeros_like(splats)
         rasteriser.backward(image, wp.array(weights[None].astype(np.float32), dtype=wp.float32, device=device), grads)
         assert all(not np.any(a.numpy()) for a in grads.arrays()), per_pixel
+
+
+@pytest.mark.parametrize("backward", ["per_pixel", "lanes", "lanes_in_turn"])
+def test_views_rendered_together_give_the_bytes_of_one_at_a_time(device, rng, backward):
+    """Several views of different sizes (one not a whole number of tiles) rendered and back-propagated
+    together: each view's pixels are those of its camera rendered alone, and the gradients those of
+    back-propagating the views one after another into the same arrays, to the bit."""
+    sizes = [(48, 48), (48, 36), (36, 48), (24, 24), (45, 29)]
+    cameras = [random_camera(rng, width=w, height=h) for w, h in sizes]
+    arrays = random_scene(rng, 300, 2, camera_centre=cameras[0].centre, behind=0.1, opacity=(0.2, 1.0), log_scale=(np.log(0.3), 0.6))
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    options = {"per_pixel": dict(lanes=16, per_pixel=True), "lanes": dict(lanes=16, lanes_in_turn=False, per_pixel=False),
+               "lanes_in_turn": dict(lanes=16, lanes_in_turn=True, per_pixel=False)}[backward]  # fmt: skip
+    weights = [rng.normal(size=(c.height, c.width, 3)).astype(np.float32) for c in cameras]
+    one_at_a_time = SplatGradients.zeros_like(splats)
+    rasteriser = GradRasteriser(splats, **options)
+    alone = []
+    for camera, w in zip(cameras, weights):
+        image = wp.full((1, camera.height, camera.width, 3), float("nan"), dtype=wp.float32, device=device)
+        rasteriser.forward([camera], wp.vec3(0.1, 0.2, 0.3), image)
+        rasteriser.backward(image, wp.array(w[None], dtype=wp.float32, device=device), one_at_a_time)
+        alone.append(image.numpy()[0])
+    width, height = max(w for w, _ in sizes), max(h for _, h in sizes)
+    image = wp.full((len(cameras), height, width, 3), float("nan"), dtype=wp.float32, device=device)
+    g_image = np.full((len(cameras), height, width, 3), np.nan, np.float32)  # NaN outside each view: never read
+    for v, (camera, w) in enumerate(zip(cameras, weights)):
+        g_image[v, : camera.height, : camera.width] = w
+    together = SplatGradients.zeros_like(splats)
+    rasteriser = GradRasteriser(splats, **options)
+    rasteriser.forward(cameras, wp.vec3(0.1, 0.2, 0.3), image)
+    rasteriser.backward(image, wp.array(g_image, dtype=wp.float32, device=device), together)
+    images = image.numpy()
+    for v, camera in enumerate(cameras):
+        assert images[v, : camera.height, : camera.width].tobytes() == alone[v].tobytes()
+    for a, b in zip(one_at_a_time.arrays(), together.arrays()):
+        a, b = a.numpy(), b.numpy()
+        assert np.isfinite(b).all() and np.abs(b).max() > 0
+        assert a.tobytes() == b.tobytes()

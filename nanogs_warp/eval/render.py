@@ -99,22 +99,30 @@ class _Rasteriser:
         if method not in ("tiles", "pixels"):
             raise ValueError(f"composite method {method!r}: expected 'tiles' or 'pixels'")
         self.method = method
-        n, d = self.n, self.device
-        self.xy = wp.empty(n, dtype=wp.vec2, device=d)
-        self.depth = wp.empty(n, dtype=wp.float32, device=d)
-        self.conic_opacity = wp.empty(n, dtype=wp.vec4, device=d)
-        self.rgb = wp.empty(n, dtype=wp.vec3, device=d)
-        self.box = wp.empty(n, dtype=wp.vec4, device=d)
-        self.faint = wp.empty(n, dtype=wp.float32, device=d)
-        self.rect = wp.empty(n, dtype=wp.vec4i, device=d)
-        self.touched = wp.empty(n, dtype=wp.int32, device=d)
-        self.ends = wp.empty(n, dtype=wp.int32, device=d)
+        self.rows = 0
+        self._reserve_rows(self.n)
         self.capacity = 0
         self.chunk_capacity = 0
         self.entry_bytes = ENTRY_BYTES  # what an entry takes in this rasteriser's buffers
         self.tile_start = self.tile_end = None
         self.counts = None
-        wp.load_module(kernels, device=d)
+        wp.load_module(kernels, device=self.device)
+
+    def _reserve_rows(self, rows: int) -> None:
+        """Room for ``rows`` projected splats (a row per splat and view rendered together)."""
+        if rows <= self.rows and self.rows > 0:
+            return
+        self.rows = rows
+        d = self.device
+        self.xy = wp.empty(rows, dtype=wp.vec2, device=d)
+        self.depth = wp.empty(rows, dtype=wp.float32, device=d)
+        self.conic_opacity = wp.empty(rows, dtype=wp.vec4, device=d)
+        self.rgb = wp.empty(rows, dtype=wp.vec3, device=d)
+        self.box = wp.empty(rows, dtype=wp.vec4, device=d)
+        self.faint = wp.empty(rows, dtype=wp.float32, device=d)
+        self.rect = wp.empty(rows, dtype=wp.vec4i, device=d)
+        self.touched = wp.empty(rows, dtype=wp.int32, device=d)
+        self.ends = wp.empty(rows, dtype=wp.int32, device=d)
 
     def _reserve(self, entries: int) -> None:
         if entries <= self.capacity:
@@ -146,10 +154,13 @@ class _Rasteriser:
 
         in_turn(self.workers, range(chunks), run)
 
-    def _project(self, p, tiles: int) -> int:
+    def _project(self, p, tiles: int, kernel=kernels.project, rows: int | None = None, views: str | None = None) -> int:
         """Clears (or makes) the per-tile entry ranges for ``tiles`` tiles and projects every splat
-        for camera ``p``; returns the number of (tile, splat) entries the view needs."""
+        for camera ``p`` (``kernel``: ``project``; ``project_views`` for an array of cameras, ``rows``
+        = views x splats, ``views`` naming them in an error); returns the number of (tile, splat)
+        entries the view(s) need."""
         s = self.splats
+        rows = self.n if rows is None else rows
         if self.tile_start is None or self.tile_start.shape[0] < tiles:
             self.tile_start = wp.zeros(tiles, dtype=wp.int32, device=self.device)
             self.tile_end = wp.zeros(tiles, dtype=wp.int32, device=self.device)
@@ -166,22 +177,23 @@ class _Rasteriser:
         if self.n == 0:
             return 0
         self._launch(
-            kernels.project,
-            self.n,
+            kernel,
+            rows,
             [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p],
             [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.faint, self.rect, self.touched],
         )
-        wp.utils.array_scan(self.touched, self.ends, inclusive=True)
-        if self.n * tiles <= INDEX_LIMIT:
-            count = int(self.ends[self.n - 1 :].numpy()[0])
+        wp.utils.array_scan(self.touched[:rows], self.ends[:rows], inclusive=True)
+        if rows * tiles <= INDEX_LIMIT:
+            count = int(self.ends[rows - 1 : rows].numpy()[0])
         else:  # the int32 running sum may have wrapped: the total in int64, on the host
-            count = int(self.touched.numpy().sum(dtype=np.int64))
+            count = int(self.touched[:rows].numpy().sum(dtype=np.int64))
         limit = min(INDEX_LIMIT, max(self.capacity, entry_memory(self.device) // self.entry_bytes))  # what it holds, or can
         if self.max_entries is not None:
             limit = min(limit, self.max_entries)
         if count > limit:
+            views = views or f"a {p.width}x{p.height} view"
             raise InputError(
-                f"a {p.width}x{p.height} view of these {self.n:,} splats covers {count:,} (tile, splat) pairs "
+                f"{views} of these {self.n:,} splats cover{'s' if rows == self.n else ''} {count:,} (tile, splat) pairs "
                 f"({count * self.entry_bytes / 2**30:.1f} GiB); {self.device} has room for {limit:,}: "
                 "render smaller images (eval --size, --refine-size)"
             )
@@ -197,7 +209,7 @@ class _Rasteriser:
             self._launch(
                 kernels.emit_entries,
                 self.n,
-                [self.depth, self.rect, self.touched, self.ends, p.tiles_x],
+                [self.depth, self.rect, self.touched, self.ends, p.tiles_x, self.n, tiles],
                 [self.keys, self.values],
             )
             wp.utils.radix_sort_pairs(self.keys, self.values, count, 0, 32 + max(1, int(tiles - 1).bit_length()))
@@ -211,7 +223,7 @@ class _Rasteriser:
         else:  # no entries: every tile range is empty; any arrays of the right type will do
             entries = [self.xy, self.conic_opacity, self.rgb, self.box, self.faint]
         inputs = [*entries, self.tile_start, self.tile_end]
-        inputs += [p.width, p.height, p.tiles_x, background, view]
+        inputs += [p.width, p.height, p.tiles_x, background, view, tiles]
         if self.method == "tiles":
             self._composite_tiles(tiles, inputs, self.chunk, image)
         else:
@@ -239,7 +251,7 @@ class _Rasteriser:
             self._launch(kernels.composite, tiles * pixels, inputs, [image])
             return
         e_xy, e_co, e_rgb, e_box, e_faint = inputs[:5]
-        background, view = inputs[-2:]
+        background, view = inputs[-3:-1]
         wp.utils.array_scan(self.counts, self.chunk_ends, inclusive=True)
         # launched for a bound on the chunk count (a tile of n entries has at most n / chunk + 1), so
         # that the count is never read back: the threads beyond the last chunk return at once

@@ -16,6 +16,7 @@ fit its memory, it sums them as the CPU does, one thread per tile.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import warp as wp
@@ -103,7 +104,6 @@ class GradRasteriser(_Rasteriser):
         wp.load_module(grad_kernels, device=self.device)
         self.grad_capacity = 0
         self.scratch_pixels = 0
-        self.camera = None
         self.count = 0
 
     def _reserve_grad(self, entries: int) -> None:
@@ -133,19 +133,28 @@ class GradRasteriser(_Rasteriser):
         if rows > 0:
             launch_rows_from(kernel, rows, inputs, self.device, min_rows=min_rows)
 
-    def forward(self, camera: Camera, background: wp.vec3, image: wp.array) -> None:
-        """Renders ``camera`` into ``image`` (1, H, W, 3), exactly as ``render.render`` would, and keeps
-        the view's entries for ``backward``."""
-        p = camera_params(camera)
-        tiles = p.tiles_x * p.tiles_y
-        count = self._project(p, tiles)
+    def forward(self, cameras: Sequence[Camera], background: wp.vec3, image: wp.array) -> None:
+        """Renders ``cameras`` together into ``image`` (V, H, W, 3; H, W at least the largest view's),
+        view v into the top-left corner of image[v], and keeps the views' entries for ``backward``.
+        Each view's pixels are ``render.render``'s of that camera alone, bit for bit (the views'
+        splats are projected into rows of their own and their tiles numbered one view after the
+        other: ``kernels/render.py``); outside a view's own size image[v] holds nothing of use."""
+        params = [camera_params(c) for c in cameras]
+        views, n = len(params), self.n
+        tiles_x = max(p.tiles_x for p in params)
+        view_tiles = tiles_x * max(p.tiles_y for p in params)
+        tiles = views * view_tiles
+        self.cams = wp.array(params, dtype=kernels.CameraParams, device=self.device)
+        self._reserve_rows(views * n)
+        named = f"a {params[0].width}x{params[0].height} view" if views == 1 else f"{views} views rendered together"
+        count = self._project(self.cams, tiles, kernels.project_views, views * n, named)
         if count > 0:
             self._reserve(count)
             self._reserve_grad(count)
             self._launch(
                 kernels.emit_entries,
-                self.n,
-                [self.depth, self.rect, self.touched, self.ends, p.tiles_x],
+                views * n,
+                [self.depth, self.rect, self.touched, self.ends, tiles_x, n, view_tiles],
                 [self.keys, self.values],
             )
             self._rows(grad_kernels.number_slots, count, [self.values, self.slot_splat], 16384)
@@ -163,19 +172,19 @@ class GradRasteriser(_Rasteriser):
         else:
             entries = [self.xy, self.conic_opacity, self.rgb, self.box, self.faint]
         inputs = [*entries, self.tile_start, self.tile_end]
-        inputs += [p.width, p.height, p.tiles_x, background, 0]
+        inputs += [image.shape[2], image.shape[1], tiles_x, background, 0, view_tiles]
         if self.method == "tiles":
             self._composite_tiles(tiles, inputs, ONE_WALK, image)  # the backward replays one walk
         else:
             self._launch(kernels.composite, tiles * kernels.TILE_PIXELS, inputs, [image])
-        self.camera, self.params, self.count, self.tiles = camera, p, count, tiles
+        self.count, self.tiles, self.tiles_x, self.view_tiles = count, tiles, tiles_x, view_tiles
 
     def backward(self, image: wp.array, grad_image: wp.array, grads: SplatGradients) -> None:
-        """Adds to ``grads`` the gradient of L given dL/dimage ``grad_image`` (1, H, W, 3) for the view
-        last rendered by ``forward`` into ``image`` (the splats unchanged since)."""
+        """Adds to ``grads`` the gradient of L given dL/dimage ``grad_image`` (V, H, W, 3) for the views
+        last rendered by ``forward`` into ``image`` (the splats unchanged since), view after view."""
         if self.count == 0:
             return
-        s, p, d = self.splats, self.params, self.device
+        d = self.device
         pixels = self.tiles * kernels.TILE_PIXELS
         if self.scratch_pixels < pixels:
             self.scratch_pixels = pixels
@@ -185,7 +194,8 @@ class GradRasteriser(_Rasteriser):
         per_entry = [self.e_g_xy, self.e_g_conic, self.e_g_opacity, self.e_g_rgb]
         per_lane = [self.lane_xy, self.lane_conic, self.lane_opacity, self.lane_rgb] if self.lane_buffers else per_entry
         inputs = [self.lanes, self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint, self.tile_start, self.tile_end,
-                  p.width, p.height, p.tiles_x, image[0], grad_image[0], self.bw_transmittance, self.bw_front, self.bw_done]  # fmt: skip
+                  self.cams, self.tiles_x, self.view_tiles, image, grad_image, self.bw_transmittance, self.bw_front,
+                  self.bw_done]  # fmt: skip
         if not (self.per_pixel and self._pixel_terms(image, grad_image, per_entry)):
             if self.lanes_in_turn:
                 self._rows(grad_kernels.composite_backward_lanes_in_turn, self.tiles, [*inputs, *per_entry], 1)
@@ -199,10 +209,10 @@ class GradRasteriser(_Rasteriser):
         """The per-pixel backward into ``per_entry``: each (entry, pixel) term in its own slot, then
         every entry's terms summed (``kernels/render_grad.py``). False, doing nothing, where the
         slots would not fit the device (the lanes then give the same sums)."""
-        p, d, count = self.params, self.device, self.count
+        d, count = self.device, self.count
         if count * kernels.TILE_PIXELS > INDEX_LIMIT:
             return False  # the slots' int32 offsets could wrap
-        where = [self.keys, self.e_box, p.width, p.height, p.tiles_x]
+        where = [self.keys, self.e_box, self.cams, self.tiles_x, self.view_tiles]
         self._rows(grad_kernels.pixel_areas, count, [*where, self.areas], 16384)
         wp.utils.array_scan(self.areas[:count], self.slot_ends[:count], inclusive=True)
         pairs = int(self.slot_ends[count - 1 : count].numpy()[0])
@@ -214,25 +224,26 @@ class GradRasteriser(_Rasteriser):
             self.p_conic = wp.empty(c, dtype=wp.vec3, device=d)
             self.p_opacity = wp.empty(c, dtype=wp.float32, device=d)
             self.p_rgb = wp.empty(c, dtype=wp.vec3, device=d)
-        if self.stops is None or self.stops.shape[0] < p.width * p.height:
-            self.stops = wp.empty(p.width * p.height, dtype=wp.int32, device=d)
+        pixels = self.tiles * kernels.TILE_PIXELS
+        if self.stops is None or self.stops.shape[0] < pixels:
+            self.stops = wp.empty(pixels, dtype=wp.int32, device=d)
         terms = [self.p_xy, self.p_conic, self.p_opacity, self.p_rgb]
         self._rows(
             grad_kernels.composite_backward_pixels,
-            self.tiles * kernels.TILE_PIXELS,
+            pixels,
             [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint, self.tile_start, self.tile_end,
-             p.width, p.height, p.tiles_x, image[0], grad_image[0], self.slot_ends, *terms, self.stops],
+             self.cams, self.tiles_x, self.view_tiles, image, grad_image, self.slot_ends, *terms, self.stops],
             2048,
         )  # fmt: skip
         self._rows(grad_kernels.sum_pixels, count, [*where, self.slot_ends, *terms, self.stops, *per_entry], 16384)
         return True
 
     def _splat_backward(self, grads: SplatGradients) -> None:
-        s, p = self.splats, self.params
+        s = self.splats
         self._rows(
             grad_kernels.splat_backward,
             self.n,
-            [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p,
+            [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, self.cams,
              self.touched, self.ends, self.entry_of_slot,
              self.e_g_xy, self.e_g_conic, self.e_g_opacity, self.e_g_rgb,
              grads.means, grads.rotations, grads.log_scales, grads.opacities, grads.features],
