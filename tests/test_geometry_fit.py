@@ -83,7 +83,7 @@ def test_the_fit_is_refinement_with_appearance_frozen(device):
 
 def test_the_smallest_outputs_get_the_long_fit_on_the_same_views(device, monkeypatch):
     """Outputs of at most target_count(N, LONG_BELOW) splats are fitted by ``geometry_config(long=
-    True)`` (LONG_STEPS steps, the first LONG_COARSE on the views at half size, the centres' rate
+    True)`` (LONG_STEPS steps of LONG_VIEWS views, the first LONG_COARSE on the views at half size, the centres' rate
     times LONG_MEANS_RATE, the rotations' and scales' times LONG_RATE), one more splat by the short
     fit (every step at full size), both on the one set of the input's views. (LONG_STEPS and
     LONG_COARSE cut to 45 and 30 here: the routing, not the length.)"""
@@ -91,7 +91,7 @@ def test_the_smallest_outputs_get_the_long_fit_on_the_same_views(device, monkeyp
     monkeypatch.setattr(geometry_fit, "LONG_COARSE", 30)
     short, long = geometry_fit.geometry_config(), geometry_fit.geometry_config(long=True)
     assert (long.steps, long.coarse_steps, long.reference_views, long.size) == (45, 30, short.reference_views, short.size)
-    assert short.coarse_steps == 0
+    assert short.coarse_steps == 0 and (short.views_per_step, long.views_per_step) == (1, geometry_fit.LONG_VIEWS)
     for name in ("lr_rotations", "lr_log_scales"):
         assert getattr(long, name) == geometry_fit.LONG_RATE * getattr(short, name)
     assert long.lr_means == geometry_fit.LONG_MEANS_RATE * short.lr_means

@@ -10,14 +10,16 @@ or smaller views. The result is kept only where it renders the held-out views of
 than the size-fitted output did (``refine``'s checkpoint rule, one checkpoint at the end).
 
 The smallest outputs (at most LONG_BELOW of the input's splats, each splat standing for a thousand
-originals or more) are fitted longer: LONG_STEPS steps at LONG_RATE times the learning rates
+originals or more) are fitted longer: LONG_STEPS steps of LONG_VIEWS views each (rendered and
+back-propagated together, their gradients averaged) at LONG_RATE times the learning rates
 (LONG_MEANS_RATE for the centres), on the same views. Their splats must move further than a larger
 output's to where the input shows them; forty steps at 3DGS's rates leave most of that gain, and
-Adam moves a centre by about its rate a step: at twice 3DGS's (decaying tenfold) a centre could
-travel about 5 % of the scene's extent in 400 steps, at eight times about 20 % (docs/quality.md).
-The first LONG_COARSE of those steps train on the same views at half their size
-(``ReferenceViews.halved``): the same quality for a quarter of the pixels (on the CPU, where a
-step's cost is its pixels').
+Adam moves a centre by about its rate a step: at 24 times 3DGS's rate (decaying tenfold) a centre
+can travel about a fifth of the scene's extent in 125 steps. Four views a step average out more of
+a single view's noise than the 400 one-view steps of an earlier default, at the same travel, and
+take a third of the launches (docs/quality.md, docs/performance.md). The first LONG_COARSE of
+those steps train on the same views at half their size (``ReferenceViews.halved``): the same
+quality for a quarter of the pixels (on the CPU, where a step's cost is its pixels').
 """
 
 from __future__ import annotations
@@ -33,22 +35,24 @@ STEPS = 40
 VIEWS = 40
 SIZE = 256
 LONG_BELOW = "0.001"  # outputs of at most target_count(N, LONG_BELOW) splats get the long fit (an exact ratio)
-LONG_STEPS = 400
-LONG_RATE = 2.0  # the long fit's learning rates of rotations and scales, times the short fit's
-LONG_MEANS_RATE = 8.0  # the long fit's learning rate of the centres, times the short fit's
-LONG_COARSE = 300  # of the long fit's steps, the first train on the views at half their size
+LONG_STEPS = 125
+LONG_VIEWS = 4  # views a long-fit step trains on together
+LONG_RATE = 6.0  # the long fit's learning rates of rotations and scales, times the short fit's
+LONG_MEANS_RATE = 24.0  # the long fit's learning rate of the centres, times the short fit's
+LONG_COARSE = 93  # of the long fit's steps, the first (three quarters) train on the views at half their size
 
 
 def geometry_config(seed: int = 0, long: bool = False) -> RefineConfig:
-    """The refinement the geometry fit runs: STEPS steps (with ``long``, LONG_STEPS, the first
-    LONG_COARSE on the views at half size, the centres' rate LONG_MEANS_RATE and the rotations' and
-    scales' LONG_RATE times the short fit's), VIEWS training views of SIZE pixels, centres, rotations
-    and scales only."""
+    """The refinement the geometry fit runs: STEPS steps of one view (with ``long``, LONG_STEPS of
+    LONG_VIEWS views, the first LONG_COARSE on the views at half size, the centres' rate
+    LONG_MEANS_RATE and the rotations' and scales' LONG_RATE times the short fit's), VIEWS training
+    views of SIZE pixels, centres, rotations and scales only."""
     config = RefineConfig(steps=STEPS, size=SIZE, reference_views=VIEWS, seed=seed, lr_opacities=0.0,
                           lr_features_dc=0.0, lr_features_rest=0.0)  # fmt: skip
     if not long:
         return config
-    return dataclasses.replace(config, steps=LONG_STEPS, coarse_steps=LONG_COARSE, lr_means=config.lr_means * LONG_MEANS_RATE,
+    return dataclasses.replace(config, steps=LONG_STEPS, coarse_steps=LONG_COARSE, views_per_step=LONG_VIEWS,
+                               lr_means=config.lr_means * LONG_MEANS_RATE,
                                lr_rotations=config.lr_rotations * LONG_RATE,
                                lr_log_scales=config.lr_log_scales * LONG_RATE)  # fmt: skip
 
