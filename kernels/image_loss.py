@@ -17,7 +17,12 @@ and as the zero-padded Gaussian correlation is its own transpose,
 
     dL/dX = G*(dL/dmx) + 2 X G*(dL/dG*X^2) + Y G*(dL/dG*XY) + l1_weight sign(X - Y).
 
-Every kernel is one thread per pixel (``first`` + tid in row-major order) writing only its own pixel.
+Several views at once: X is (V, H, W, 3), Y a stack of targets, and view v compares X[v] with
+target ``views[v].target``, both of its own size ``views[v].width`` x ``views[v].height`` in the
+top-left corner (H, W at least every view's). Every kernel is one thread per pixel of the stack
+(``first`` + tid, view-major, then row-major) writing only its own pixel; a pixel outside its view's
+size is left alone, and the blur reads none (its zero padding is at the view's own edges), so each
+view's loss and gradient are the bits of that view computed alone.
 """
 
 from typing import Any
@@ -36,90 +41,120 @@ vec15 = wp.types.vector(length=15, dtype=wp.float32)  # X, Y, X^2, Y^2, XY for 3
 vec9 = wp.types.vector(length=9, dtype=wp.float32)  # dL/d(mx, G*X^2, G*XY) for 3 channels
 
 
+@wp.struct
+class LossView:
+    """One view of a loss over several: its target in the stack, its size and its two weights."""
+
+    target: int
+    width: int
+    height: int
+    l1_weight: float
+    ssim_weight: float
+
+
+@wp.func
+def view_pixel(tid: int, height: int, width: int):
+    """(view, row, column) of pixel ``tid`` of a (V, height, width) stack, view-major then row-major."""
+    view = tid / (height * width)
+    rest = tid - view * (height * width)
+    py = rest / width
+    return view, py, rest - py * width
+
+
 @wp.kernel
-def ssim_inputs(first: int, x: wp.array3d(dtype=float), y: wp.array3d(dtype=float), stack: wp.array2d(dtype=vec15)):
-    """stack[py, px] = (X, Y, X^2, Y^2, XY), each for channels 0..2 (15 values)."""
-    tid = first + wp.tid()
-    width = x.shape[1]
-    py = tid / width
-    px = tid - py * width
+def ssim_inputs(
+    first: int,
+    x: wp.array4d(dtype=float),
+    y: wp.array4d(dtype=float),
+    views: wp.array(dtype=LossView),
+    stack: wp.array3d(dtype=vec15),
+):
+    """stack[v, py, px] = (X, Y, X^2, Y^2, XY), each for channels 0..2 (15 values)."""
+    view, py, px = view_pixel(first + wp.tid(), x.shape[1], x.shape[2])
+    lv = views[view]
+    if px >= lv.width or py >= lv.height:
+        return
     v = vec15()
     for ch in range(3):
-        a = x[py, px, ch]
-        b = y[py, px, ch]
+        a = x[view, py, px, ch]
+        b = y[lv.target, py, px, ch]
         v[ch] = a
         v[3 + ch] = b
         v[6 + ch] = a * a
         v[9 + ch] = b * b
         v[12 + ch] = a * b
-    stack[py, px] = v
+    stack[view, py, px] = v
 
 
 @wp.kernel
 def blur(
     first: int,
-    source: wp.array2d(dtype=Any),
+    source: wp.array3d(dtype=Any),
     taps: wp.array(dtype=float),
     vertical: int,
-    target: wp.array2d(dtype=Any),
+    views: wp.array(dtype=LossView),
+    target: wp.array3d(dtype=Any),
 ):
-    """target[py, px] = sum_j taps[j] source[py, px + j - 5] (vertically: py + j - 5); zero outside.
-    The centre tap first, then the others in order: away from the edges an unrolled loop, near them
-    a loop over the taps that land inside the image (the same sums in the same order)."""
-    tid = first + wp.tid()
-    height = source.shape[0]
-    width = source.shape[1]
-    py = tid / width
-    px = tid - py * width
+    """target[v, py, px] = sum_j taps[j] source[v, py, px + j - 5] (vertically: py + j - 5); zero
+    outside view v's own size. The centre tap first, then the others in order: away from the edges
+    an unrolled loop, near them a loop over the taps that land inside the view (the same sums in the
+    same order)."""
+    view, py, px = view_pixel(first + wp.tid(), source.shape[1], source.shape[2])
+    lv = views[view]
+    if px >= lv.width or py >= lv.height:
+        return
     position = px
-    length = width
+    length = lv.width
     if vertical != 0:
         position = py
-        length = height
-    acc = taps[RADIUS] * source[py, px]
-    if position >= RADIUS and position + RADIUS < length:  # every tap inside the image
+        length = lv.height
+    acc = taps[RADIUS] * source[view, py, px]
+    if position >= RADIUS and position + RADIUS < length:  # every tap inside the view
         if vertical != 0:
             for j in range(wp.static(2 * RADIUS + 1)):
                 if wp.static(j != RADIUS):
-                    acc += taps[j] * source[py + j - RADIUS, px]
+                    acc += taps[j] * source[view, py + j - RADIUS, px]
         else:
             for j in range(wp.static(2 * RADIUS + 1)):
                 if wp.static(j != RADIUS):
-                    acc += taps[j] * source[py, px + j - RADIUS]
+                    acc += taps[j] * source[view, py, px + j - RADIUS]
     else:
-        lo = wp.max(0, RADIUS - position)  # taps that land inside the image
+        lo = wp.max(0, RADIUS - position)  # taps that land inside the view
         hi = wp.min(2 * RADIUS, length - 1 - position + RADIUS)
         for j in range(lo, hi + 1):
             if j != RADIUS:
                 if vertical != 0:
-                    acc += taps[j] * source[py + j - RADIUS, px]
+                    acc += taps[j] * source[view, py + j - RADIUS, px]
                 else:
-                    acc += taps[j] * source[py, px + j - RADIUS]
-    target[py, px] = acc
+                    acc += taps[j] * source[view, py, px + j - RADIUS]
+    target[view, py, px] = acc
 
 
-wp.overload(blur, {"source": wp.array2d(dtype=vec15), "target": wp.array2d(dtype=vec15)})
-wp.overload(blur, {"source": wp.array2d(dtype=vec9), "target": wp.array2d(dtype=vec9)})
+wp.overload(blur, {"source": wp.array3d(dtype=vec15), "target": wp.array3d(dtype=vec15)})
+wp.overload(blur, {"source": wp.array3d(dtype=vec9), "target": wp.array3d(dtype=vec9)})
 
 
 @wp.kernel
 def ssim_terms(
     first: int,
-    x: wp.array3d(dtype=float),
-    y: wp.array3d(dtype=float),
-    moments: wp.array2d(dtype=vec15),
-    l1_weight: float,
-    ssim_weight: float,
-    loss: wp.array2d(dtype=float),
-    partials: wp.array2d(dtype=vec9),
+    x: wp.array4d(dtype=float),
+    y: wp.array4d(dtype=float),
+    views: wp.array(dtype=LossView),
+    moments: wp.array3d(dtype=vec15),
+    loss: wp.array3d(dtype=float),
+    partials: wp.array3d(dtype=vec9),
 ):
-    """Per pixel: its loss terms (summed over channels) and dL/d(mx, G*X^2, G*XY) per channel."""
-    tid = first + wp.tid()
-    width = x.shape[1]
-    py = tid / width
-    px = tid - py * width
+    """Per pixel: its loss terms (summed over channels, 0 outside its view) and dL/d(mx, G*X^2, G*XY)
+    per channel, with its view's weights."""
+    view, py, px = view_pixel(first + wp.tid(), x.shape[1], x.shape[2])
+    lv = views[view]
+    if px >= lv.width or py >= lv.height:
+        loss[view, py, px] = 0.0
+        return
+    l1_weight = lv.l1_weight
+    ssim_weight = lv.ssim_weight
     total = float(0.0)
-    mo = moments[py, px]
+    mo = moments[view, py, px]
     out = vec9()
     for ch in range(3):
         mx = mo[ch]
@@ -132,39 +167,39 @@ def ssim_terms(
         b1 = mx * mx + my * my + SSIM_C1
         b2 = sxx + syy + SSIM_C2
         s = (a1 * a2) / (b1 * b2)
-        total += l1_weight * wp.abs(x[py, px, ch] - y[py, px, ch]) + ssim_weight * (1.0 - s)
+        total += l1_weight * wp.abs(x[view, py, px, ch] - y[lv.target, py, px, ch]) + ssim_weight * (1.0 - s)
         g_s = -ssim_weight
         out[ch] = g_s * (2.0 * my * (a2 - a1) / (b1 * b2) - 2.0 * mx * s * (1.0 / b1 - 1.0 / b2))
         out[3 + ch] = g_s * (-s / b2)
         out[6 + ch] = g_s * (2.0 * a1 / (b1 * b2))
-    partials[py, px] = out
-    loss[py, px] = total
+    partials[view, py, px] = out
+    loss[view, py, px] = total
 
 
 @wp.kernel
 def loss_gradient(
     first: int,
-    x: wp.array3d(dtype=float),
-    y: wp.array3d(dtype=float),
-    blurred: wp.array2d(dtype=vec9),
-    l1_weight: float,
-    grad: wp.array3d(dtype=float),
+    x: wp.array4d(dtype=float),
+    y: wp.array4d(dtype=float),
+    views: wp.array(dtype=LossView),
+    blurred: wp.array3d(dtype=vec9),
+    grad: wp.array4d(dtype=float),
 ):
     """dL/dX = G*(dL/dmx) + 2 X G*(dL/dG*X^2) + Y G*(dL/dG*XY) + l1_weight sign(X - Y)."""
-    tid = first + wp.tid()
-    width = x.shape[1]
-    py = tid / width
-    px = tid - py * width
-    bl = blurred[py, px]
+    view, py, px = view_pixel(first + wp.tid(), x.shape[1], x.shape[2])
+    lv = views[view]
+    if px >= lv.width or py >= lv.height:
+        return
+    bl = blurred[view, py, px]
     for ch in range(3):
-        a = x[py, px, ch]
-        b = y[py, px, ch]
+        a = x[view, py, px, ch]
+        b = y[lv.target, py, px, ch]
         g = bl[ch] + 2.0 * a * bl[3 + ch] + b * bl[6 + ch]
         if a > b:
-            g += l1_weight
+            g += lv.l1_weight
         elif a < b:
-            g -= l1_weight
-        grad[py, px, ch] = g
+            g -= lv.l1_weight
+        grad[view, py, px, ch] = g
 
 
 @wp.kernel

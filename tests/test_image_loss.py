@@ -7,7 +7,7 @@ import pytest
 import reference_refine as ref
 import warp as wp
 
-from nanogs_warp.refinement.image_loss import ImageLoss
+from nanogs_warp.refinement.image_loss import ImageLoss, loss_view
 
 
 @pytest.mark.parametrize("shape", [(16, 13), (23, 12)])
@@ -63,11 +63,12 @@ def test_blur_sums_in_its_documented_order(device, rng, channels):
     source = rng.standard_normal((h, w, channels)).astype(np.float32)
     taps = gaussian_window().astype(np.float32)
     radius = len(taps) // 2
-    src = wp.array(source, dtype=vec, device=device)
+    src = wp.array(source[None], dtype=vec, device=device)
     taps_wp = wp.array(taps, dtype=wp.float32, device=device)
+    views = wp.array([loss_view(0, w, h, 0.2, 1.0)], dtype=kernels.LossView, device=device)
     for vertical in (0, 1):
-        target = wp.full((h, w), vec(float("nan")), dtype=vec, device=device)
-        wp.launch(kernels.blur, h * w, inputs=[0, src, taps_wp, vertical, target], device=device)
+        target = wp.full((1, h, w), vec(float("nan")), dtype=vec, device=device)
+        wp.launch(kernels.blur, h * w, inputs=[0, src, taps_wp, vertical, views, target], device=device)
         moved = source if vertical == 0 else source.transpose(1, 0, 2)  # blur along axis 1
         expected = taps[radius] * moved
         for j in range(len(taps)):
@@ -103,3 +104,34 @@ def test_halved_averages_each_2x2_block(device, rng, shape):
     b64 = b.astype(np.float64)
     mean = (b64[0::2, 0::2] + b64[0::2, 1::2] + b64[1::2, 0::2] + b64[1::2, 1::2]) / 4.0
     assert np.abs(half.numpy() - mean).max() <= 1e-6
+
+
+def test_views_together_give_each_view_its_own_bits(device, rng):
+    """Several views of different sizes in one stack (each in its top-left corner, NaN beyond it),
+    their targets picked from another stack: each view's gradient and per-pixel loss are the bits of
+    that view's loss computed alone, and nothing beyond a view's size is written."""
+    from nanogs_warp.kernels import image_loss as kernels
+
+    sizes = [(23, 12), (16, 13), (11, 17)]  # (height, width), one narrower than the blur window's reach
+    height, width = max(h for h, _ in sizes), max(w for _, w in sizes)
+    images = np.full((len(sizes), height, width, 3), np.nan, np.float32)
+    targets = np.full((4, height, width, 3), np.nan, np.float32)
+    chosen = [2, 0, 3]
+    for v, (h, w) in enumerate(sizes):
+        images[v, :h, :w] = rng.uniform(0.0, 1.0, (h, w, 3))
+        targets[chosen[v], :h, :w] = np.clip(images[v, :h, :w] + rng.normal(0.0, 0.2, (h, w, 3)), 0.0, 1.0)
+    loss = ImageLoss(height, width, device, views=len(sizes))
+    grads = wp.full(images.shape, float("nan"), dtype=wp.float32, device=device)
+    specs = [loss_view(k, w, h, 0.2, 0.25) for k, (h, w) in zip(chosen, sizes)]
+    loss.of_views(wp.array(images, dtype=wp.float32, device=device), wp.array(targets, dtype=wp.float32, device=device), grads,
+                  wp.array(specs, dtype=kernels.LossView, device=device))  # fmt: skip
+    got, shares = grads.numpy(), loss.loss.numpy()
+    for v, (h, w) in enumerate(sizes):
+        alone = ImageLoss(h, w, device)
+        grad = wp.full((h, w, 3), float("nan"), dtype=wp.float32, device=device)
+        alone(wp.array(images[v, :h, :w].copy(), dtype=wp.float32, device=device),
+              wp.array(targets[chosen[v], :h, :w].copy(), dtype=wp.float32, device=device), grad, 0.2, 0.25)  # fmt: skip
+        assert got[v, :h, :w].tobytes() == grad.numpy().tobytes()
+        assert shares[v, :h, :w].tobytes() == alone.loss.numpy()[0].tobytes()
+        assert np.isnan(got[v, h:]).all() and np.isnan(got[v, :, w:]).all()
+        assert not shares[v, h:].any() and not shares[v, :, w:].any()

@@ -31,7 +31,8 @@ from ..parallel import launch_rows_from
 from ..splats import SplatSet
 from .cameras import VALIDATION_STREAM, sampled_means, scene_spread, training_cameras
 from .config import RefineConfig
-from .image_loss import MIN_PIXELS_TO_SPLIT, ImageLoss
+from ..kernels.image_loss import LossView
+from .image_loss import MIN_PIXELS_TO_SPLIT, ImageLoss, loss_view
 from .render_grad import GradRasteriser, SplatGradients
 
 LOSS_VIEWS = 8  # pool views on which the training loss before and after is measured
@@ -126,16 +127,16 @@ def _copy(splats: SplatSet, device) -> SplatSet:
     return splats.clone(device)
 
 
-def _render_views(reference: SplatSet, cameras, device) -> list[wp.array]:
-    """``reference`` rendered from each camera on a black background, one (1, H, W, 3) array each."""
+def _render_views(reference: SplatSet, cameras, device) -> wp.array:
+    """``reference`` rendered from each camera on a black background into one stack (V, H, W, 3), H
+    and W the largest views': view k in the top-left corner of [k] (zeros beyond its size)."""
     rasteriser = _Rasteriser(reference)
     black = wp.vec3(0.0, 0.0, 0.0)
-    targets = []
-    for camera in cameras:
-        image = wp.empty((1, camera.height, camera.width, 3), dtype=wp.float32, device=device)
-        rasteriser.render_into(camera, black, image, 0)
-        targets.append(image)
-    return targets
+    height, width = max(c.height for c in cameras), max(c.width for c in cameras)
+    stack = wp.zeros((len(cameras), height, width, 3), dtype=wp.float32, device=device)
+    for k, camera in enumerate(cameras):
+        rasteriser.render_into(camera, black, stack, k)
+    return stack
 
 
 class ReferenceViews:
@@ -151,10 +152,10 @@ class ReferenceViews:
         self.device = wp.get_device(device if device is not None else reference.device)
         self.cameras: list | None = None  # None until rendered
         self.scale, self.offset, self.reference, self.extent = 1.0, None, reference, 1.0
-        self.targets: list[wp.array] = []
+        self.targets: wp.array | None = None  # the training views' stack (``_render_views``)
         self.held_out: list = []
-        self.held_out_targets: list[wp.array] = []
-        self._halved: tuple[list, list[wp.array]] | None = None
+        self.held_out_targets: wp.array | None = None
+        self._halved: tuple[list, wp.array] | None = None
 
     def serves(self, reference: SplatSet, config: RefineConfig, device) -> bool:
         """Whether these are the views a refinement of ``config`` toward ``reference`` on ``device``
@@ -162,7 +163,7 @@ class ReferenceViews:
         same_views = view_pool(config) == view_pool(self.config) and (config.size, config.seed) == (self.config.size, self.config.seed)
         return reference is self.source and same_views and wp.get_device(device) == self.device
 
-    def halved(self) -> tuple[list, list[wp.array]]:
+    def halved(self) -> tuple[list, wp.array]:
         """The training views at half their size (rendered first where they were not): each camera
         with half the focal lengths, principal point and pixels, and each target its 2x2 pixel blocks
         averaged (pixel i covers [i, i + 1) of the image plane: a block's centre is the half-size
@@ -171,12 +172,12 @@ class ReferenceViews:
         if self._halved is None:
             cameras = [dataclasses.replace(c, fx=0.5 * c.fx, fy=0.5 * c.fy, cx=0.5 * c.cx, cy=0.5 * c.cy,
                                            width=c.width // 2, height=c.height // 2) for c in self.cameras]  # fmt: skip
-            targets = []
-            for c, t in zip(cameras, self.targets):
-                half = wp.empty((1, c.height, c.width, 3), dtype=wp.float32, device=self.device)
-                launch_rows_from(image_kernels.halved, c.height * c.width, [t[0], half[0]], self.device, chunks_per_worker=1,
-                                 min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
-                targets.append(half)
+            _, height, width, _ = self.targets.shape
+            targets = wp.zeros((len(cameras), height // 2, width // 2, 3), dtype=wp.float32, device=self.device)
+            for k, c in enumerate(cameras):
+                launch_rows_from(image_kernels.halved, c.height * c.width,
+                                 [self.targets[k][: 2 * c.height, : 2 * c.width], targets[k][: c.height, : c.width]], self.device,
+                                 chunks_per_worker=1, min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
             self._halved = (cameras, targets)
         return self._halved
 
@@ -219,8 +220,7 @@ class _Refiner:
         self.extent = extent
         self.grads = SplatGradients.zeros_like(self.splats)
         self.rasteriser = GradRasteriser(self.splats)
-        self.images: dict[tuple[int, int, int], tuple[wp.array, wp.array]] = {}
-        self.losses: dict[tuple[int, int], ImageLoss] = {}
+        self.images: dict[tuple[int, int, int], tuple[wp.array, wp.array, ImageLoss]] = {}
         self.groups = self._groups()
         wp.load_module(adam_kernels, device=device)
 
@@ -239,36 +239,32 @@ class _Refiner:
                    self._rates([c.lr_features_dc] * 3 + [c.lr_features_rest] * (features - 3)), features, False),
         ]  # fmt: skip
 
-    def buffers(self, cameras) -> tuple[wp.array, wp.array]:
-        """The image and dL/dimage buffers (V, H, W, 3) for rendering ``cameras`` together."""
+    def buffers(self, cameras) -> tuple[wp.array, wp.array, ImageLoss]:
+        """The image and dL/dimage buffers (V, H, W, 3) and the loss's for rendering ``cameras`` together."""
         key = (len(cameras), max(c.width for c in cameras), max(c.height for c in cameras))
         if key not in self.images:
             views, width, height = key
-            self.images[key] = tuple(wp.empty((views, height, width, 3), dtype=wp.float32, device=self.device) for _ in range(2))
+            d = self.device
+            self.images[key] = (
+                wp.empty((views, height, width, 3), dtype=wp.float32, device=d),
+                wp.empty((views, height, width, 3), dtype=wp.float32, device=d),
+                ImageLoss(height, width, d, views),
+            )
         return self.images[key]
 
-    def loss(self, camera) -> ImageLoss:
-        key = (camera.width, camera.height)
-        if key not in self.losses:
-            self.losses[key] = ImageLoss(camera.height, camera.width, self.device)
-        return self.losses[key]
-
-    def views_loss(self, cameras, targets, weight: float, backward: bool) -> ImageLoss:
-        """Renders ``cameras`` together and compares each with its target (the images of the last
-        camera's size: ``ImageLoss`` keeps the last view's loss); with ``backward``, adds weight
-        dL/dparams of each view, view after view."""
-        image, grad_image = self.buffers(cameras)
+    def views_loss(self, cameras, chosen: list[int], targets: wp.array, weight: float) -> tuple[wp.array, wp.array, ImageLoss]:
+        """Renders ``cameras`` together and compares view v with targets[chosen[v]], each weighted
+        ``weight``; returns the image, dL/dimage and the loss (``backward`` then adds weight
+        dL/dparams of each view, view after view)."""
+        image, grad_image, loss = self.buffers(cameras)
         self.rasteriser.forward(cameras, wp.vec3(0.0, 0.0, 0.0), image)
-        for v, (camera, target) in enumerate(zip(cameras, targets)):
-            h, w = camera.height, camera.width
-            loss = self.loss(camera)
-            loss(image[v][:h, :w], target[0], grad_image[v][:h, :w], self.config.ssim_weight, weight)
-        if backward:
-            self.rasteriser.backward(image, grad_image, self.grads)
-        return loss
+        specs = [loss_view(k, c.width, c.height, self.config.ssim_weight, weight) for k, c in zip(chosen, cameras)]
+        loss.of_views(image, targets, grad_image, wp.array(specs, dtype=LossView, device=self.device))
+        return image, grad_image, loss
 
-    def mean_loss(self, cameras, targets) -> float:
-        return float(np.mean([self.views_loss([c], [t], 1.0, False).value() for c, t in zip(cameras, targets)]))
+    def mean_loss(self, cameras, targets: wp.array) -> float:
+        """The mean loss of ``cameras`` against the first of ``targets`` (a stack), one view at a time."""
+        return float(np.mean([self.views_loss([c], [k], targets, 1.0)[2].value() for k, c in enumerate(cameras)]))
 
     def adam(self, step: int) -> None:
         c = self.config
@@ -357,10 +353,9 @@ def refine_with_report(
         t1 = time.perf_counter()
         # the step's views rendered together, their gradients added view by view: the bytes of
         # rendering and back-propagating them one at a time, in fewer launches
-        refiner.views_loss([step_cameras[k] for k in chosen], [step_targets[k] for k in chosen], weight, False)
+        image, grad_image, _ = refiner.views_loss([step_cameras[k] for k in chosen], chosen, step_targets, weight)
         sync()
         t2 = time.perf_counter()
-        image, grad_image = refiner.buffers([step_cameras[k] for k in chosen])
         refiner.rasteriser.backward(image, grad_image, refiner.grads)
         sync()
         report.seconds_forward += t2 - t1
