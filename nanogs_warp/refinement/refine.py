@@ -33,7 +33,7 @@ from .cameras import VALIDATION_STREAM, sampled_means, scene_spread, training_ca
 from .config import RefineConfig
 from ..kernels.image_loss import LossView
 from .image_loss import MIN_PIXELS_TO_SPLIT, ImageLoss, loss_view
-from .render_grad import GradRasteriser, SplatGradients
+from .render_grad import GradRasteriser, SplatGradients, camera_array
 
 LOSS_VIEWS = 8  # pool views on which the training loss before and after is measured
 VALIDATION_VIEWS = 8  # held-out views (never trained on) that choose which checkpoint to return
@@ -252,14 +252,22 @@ class _Refiner:
             )
         return self.images[key]
 
-    def views_loss(self, cameras, chosen: list[int], targets: wp.array, weight: float) -> tuple[wp.array, wp.array, ImageLoss]:
+    def loss_views(self, cameras, chosen: list[int], weight: float) -> list:
+        """``loss_view`` of view v against targets[chosen[v]], each weighted ``weight``."""
+        return [loss_view(k, c.width, c.height, self.config.ssim_weight, weight) for k, c in zip(chosen, cameras)]
+
+    def views_loss(self, cameras, chosen: list[int], targets: wp.array, weight: float, params: wp.array | None = None,
+                   specs: wp.array | None = None) -> tuple[wp.array, wp.array, ImageLoss]:  # fmt: skip
         """Renders ``cameras`` together and compares view v with targets[chosen[v]], each weighted
         ``weight``; returns the image, dL/dimage and the loss (``backward`` then adds weight
-        dL/dparams of each view, view after view)."""
+        dL/dparams of each view, view after view). ``params`` and ``specs``: the cameras'
+        ``camera_array`` and ``loss_views`` already on the device (else copied there here, each copy
+        a wait for the device)."""
         image, grad_image, loss = self.buffers(cameras)
-        self.rasteriser.forward(cameras, wp.vec3(0.0, 0.0, 0.0), image)
-        specs = [loss_view(k, c.width, c.height, self.config.ssim_weight, weight) for k, c in zip(chosen, cameras)]
-        loss.of_views(image, targets, grad_image, wp.array(specs, dtype=LossView, device=self.device))
+        self.rasteriser.forward(cameras, wp.vec3(0.0, 0.0, 0.0), image, params)
+        if specs is None:
+            specs = wp.array(self.loss_views(cameras, chosen, weight), dtype=LossView, device=self.device)
+        loss.of_views(image, targets, grad_image, specs)
         return image, grad_image, loss
 
     def mean_loss(self, cameras, targets: wp.array) -> float:
@@ -336,24 +344,33 @@ def refine_with_report(
     checkpoints = {max(1, round(f * config.steps)) for f in checkpoints}
 
     coarse_cameras, coarse_targets = views.halved() if config.coarse_steps > 0 else ([], [])
+    weight = 1.0 / config.views_per_step
+    # Every step's views, drawn before the first: their cameras and loss weights go to the device
+    # in one copy each, not one a step (each copy waits for the device)
     rng = np.random.default_rng([config.seed, 0xADA])
     order: list[int] = []
-    weight = 1.0 / config.views_per_step
-    sync = (lambda: wp.synchronize_device(device)) if timing else (lambda: None)
+    schedule = []
     for step in range(config.steps):
-        t0 = time.perf_counter()
-        refiner.grads.zero_()
         chosen = []
         for _ in range(config.views_per_step):
             if not order:
                 order = rng.permutation(pool).tolist()
             chosen.append(order.pop())
-        coarse = step < config.coarse_steps
-        step_cameras, step_targets = (coarse_cameras, coarse_targets) if coarse else (cameras, targets)
+        step_cameras = coarse_cameras if step < config.coarse_steps else cameras
+        schedule.append((chosen, [step_cameras[k] for k in chosen]))
+    step_params = camera_array([c for _, step_cameras in schedule for c in step_cameras], device)
+    step_specs = wp.array([spec for chosen, step_cameras in schedule for spec in refiner.loss_views(step_cameras, chosen, weight)],
+                          dtype=LossView, device=device)  # fmt: skip
+    sync = (lambda: wp.synchronize_device(device)) if timing else (lambda: None)
+    for step, (chosen, step_cameras) in enumerate(schedule):
+        refiner.grads.zero_()
+        step_targets = coarse_targets if step < config.coarse_steps else targets
         t1 = time.perf_counter()
         # the step's views rendered together, their gradients added view by view: the bytes of
         # rendering and back-propagating them one at a time, in fewer launches
-        image, grad_image, _ = refiner.views_loss([step_cameras[k] for k in chosen], chosen, step_targets, weight)
+        first, last = step * config.views_per_step, (step + 1) * config.views_per_step
+        image, grad_image, _ = refiner.views_loss(step_cameras, chosen, step_targets, weight, step_params[first:last],
+                                                  step_specs[first:last])  # fmt: skip
         sync()
         t2 = time.perf_counter()
         refiner.rasteriser.backward(image, grad_image, refiner.grads)

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from ..eval.cameras import Camera
-from ..eval.render import INDEX_LIMIT, ONE_WALK, _Rasteriser, camera_params, entry_memory
+from ..eval.render import INDEX_LIMIT, ONE_WALK, TILE, _Rasteriser, camera_params, entry_memory
 from ..kernels import render as kernels
 from ..kernels import render_grad as grad_kernels
 from ..parallel import launch_rows_from
@@ -67,6 +67,11 @@ LANE_BYTES = 8 + 12 + 4 + 12
 # Bytes the per-pixel backward adds: per entry its area and its slots' end, per (entry, pixel) pair its terms.
 PIXEL_ENTRY_BYTES = 2 * 4
 PIXEL_BYTES = 8 + 12 + 4 + 12
+
+
+def camera_array(cameras: Sequence[Camera], device) -> wp.array:
+    """The cameras' ``camera_params`` in one array on ``device``."""
+    return wp.array([camera_params(c) for c in cameras], dtype=kernels.CameraParams, device=device)
 
 
 LANES = 16  # the backward's threads per tile (each owns every 16th row): a GPU's, and the CPU's too
@@ -133,20 +138,21 @@ class GradRasteriser(_Rasteriser):
         if rows > 0:
             launch_rows_from(kernel, rows, inputs, self.device, min_rows=min_rows)
 
-    def forward(self, cameras: Sequence[Camera], background: wp.vec3, image: wp.array) -> None:
+    def forward(self, cameras: Sequence[Camera], background: wp.vec3, image: wp.array, params: wp.array | None = None) -> None:
         """Renders ``cameras`` together into ``image`` (V, H, W, 3; H, W at least the largest view's),
         view v into the top-left corner of image[v], and keeps the views' entries for ``backward``.
         Each view's pixels are ``render.render``'s of that camera alone, bit for bit (the views'
         splats are projected into rows of their own and their tiles numbered one view after the
-        other: ``kernels/render.py``); outside a view's own size image[v] holds nothing of use."""
-        params = [camera_params(c) for c in cameras]
-        views, n = len(params), self.n
-        tiles_x = max(p.tiles_x for p in params)
-        view_tiles = tiles_x * max(p.tiles_y for p in params)
+        other: ``kernels/render.py``); outside a view's own size image[v] holds nothing of use.
+        ``params``: the cameras' ``camera_params`` already on the device (``camera_array``), else
+        made here (a copy to the device, which waits for it)."""
+        views, n = len(cameras), self.n
+        tiles_x = max(-(-int(c.width) // TILE) for c in cameras)
+        view_tiles = tiles_x * max(-(-int(c.height) // TILE) for c in cameras)
         tiles = views * view_tiles
-        self.cams = wp.array(params, dtype=kernels.CameraParams, device=self.device)
+        self.cams = camera_array(cameras, self.device) if params is None else params
         self._reserve_rows(views * n)
-        named = f"a {params[0].width}x{params[0].height} view" if views == 1 else f"{views} views rendered together"
+        named = f"a {cameras[0].width}x{cameras[0].height} view" if views == 1 else f"{views} views rendered together"
         count = self._project(self.cams, tiles, kernels.project_views, views * n, named)
         if count > 0:
             self._reserve(count)
@@ -215,15 +221,21 @@ class GradRasteriser(_Rasteriser):
         where = [self.keys, self.e_box, self.cams, self.tiles_x, self.view_tiles]
         self._rows(grad_kernels.pixel_areas, count, [*where, self.areas], 16384)
         wp.utils.array_scan(self.areas[:count], self.slot_ends[:count], inclusive=True)
-        pairs = int(self.slot_ends[count - 1 : count].numpy()[0])
-        if pairs > self.pixel_capacity or self.pixel_capacity == 0:  # (none yet: a view whose entries reach no pixel)
-            if pairs * PIXEL_BYTES > entry_memory(d):
-                return False
-            self.pixel_capacity = c = max(pairs, int(self.pixel_capacity * 1.5), 1024)
-            self.p_xy = wp.empty(c, dtype=wp.vec2, device=d)
-            self.p_conic = wp.empty(c, dtype=wp.vec3, device=d)
-            self.p_opacity = wp.empty(c, dtype=wp.float32, device=d)
-            self.p_rgb = wp.empty(c, dtype=wp.vec3, device=d)
+        bound = count * kernels.TILE_PIXELS  # an entry reaches at most its tile's pixels
+        if bound > self.pixel_capacity:  # else the slots fit without reading their count back (a wait for the GPU)
+            pairs = int(self.slot_ends[count - 1 : count].numpy()[0])
+            if pairs > self.pixel_capacity or self.pixel_capacity == 0:  # (none yet: a view whose entries reach no pixel)
+                memory = entry_memory(d)
+                if pairs * PIXEL_BYTES > memory:
+                    return False
+                # room for twice this bound where it takes at most an eighth of that memory: the
+                # next views' slots then fit without a read-back while their entries stay that few
+                room = max(pairs, min(2 * bound, memory // (8 * PIXEL_BYTES), INDEX_LIMIT))
+                self.pixel_capacity = c = max(room, int(self.pixel_capacity * 1.5), 1024)
+                self.p_xy = wp.empty(c, dtype=wp.vec2, device=d)
+                self.p_conic = wp.empty(c, dtype=wp.vec3, device=d)
+                self.p_opacity = wp.empty(c, dtype=wp.float32, device=d)
+                self.p_rgb = wp.empty(c, dtype=wp.vec3, device=d)
         pixels = self.tiles * kernels.TILE_PIXELS
         if self.stops is None or self.stops.shape[0] < pixels:
             self.stops = wp.empty(pixels, dtype=wp.int32, device=d)
