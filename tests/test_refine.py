@@ -281,3 +281,15 @@ def test_a_halved_camera_sees_the_blocks_of_the_full_one(device):
 
     assert full.sum() > 0 and half.sum() > 0
     np.testing.assert_allclose(centroid(half), (centroid(full) - 0.5) / 2.0, atol=0.1)
+
+
+def test_the_memory_check_counts_every_view_a_step_renders(monkeypatch):
+    """A step's renders, gradients and loss maps are made for each of the views it renders together:
+    ``check_memory`` asks for STEP_BYTES_PER_PIXEL a pixel of each."""
+    import nanogs_warp.refinement.refine as refine_module
+
+    needs = []
+    monkeypatch.setattr(refine_module, "memory_short", lambda need, device: needs.append(need))
+    for views in (1, 4):
+        refine_module.check_memory(RefineConfig(size=64, views_per_step=views), 10, wp.get_device("cpu"))
+    assert needs[1] - needs[0] == 3 * 64 * 64 * refine_module.STEP_BYTES_PER_PIXEL

@@ -39,8 +39,8 @@ LOSS_VIEWS = 8  # pool views on which the training loss before and after is meas
 VALIDATION_VIEWS = 8  # held-out views (never trained on) that choose which checkpoint to return
 CHECKPOINTS = (0.25, 0.5, 0.75, 1.0)  # fractions of the run at which the held-out loss is measured
 # Memory a refinement takes on its device, measured on the CPU (the bundled sample, --refine-size 512
-# and 1024): about 930 bytes a pixel of a training view for a step's renders, gradients and SSIM maps,
-# and 12 (RGB float32) a pixel for every reference view kept. 4096-pixel views at the default 128
+# and 1024): about 930 bytes a pixel of a training view for a step's renders, gradients and SSIM maps
+# (times the views a step renders together), and 12 (RGB float32) a pixel for every reference view kept. 4096-pixel views at the default 128
 # reference views need about 44 GB.
 STEP_BYTES_PER_PIXEL = 1000
 VIEW_BYTES_PER_PIXEL = 12
@@ -50,7 +50,7 @@ def check_memory(config: RefineConfig, pool: int, device) -> None:
     """Refuses, before any rendering, a refinement whose views would not fit ``device``'s memory
     (a GPU's free memory, the host's available memory for the CPU)."""
     pixels = config.size * config.size
-    need = pixels * (STEP_BYTES_PER_PIXEL + VIEW_BYTES_PER_PIXEL * (pool + VALIDATION_VIEWS))
+    need = pixels * (STEP_BYTES_PER_PIXEL * config.views_per_step + VIEW_BYTES_PER_PIXEL * (pool + VALIDATION_VIEWS))
     available = memory_short(need, device)
     if available is not None:
         memory = "memory" if device.is_cpu else f"{device}'s memory"
