@@ -91,7 +91,7 @@ def test_the_smallest_outputs_get_the_long_fit_on_the_same_views(device, monkeyp
     monkeypatch.setattr(geometry_fit, "LONG_COARSE", 30)
     short, long = geometry_fit.geometry_config(), geometry_fit.geometry_config(long=True)
     assert (long.steps, long.coarse_steps, long.reference_views, long.size) == (45, 30, short.reference_views, short.size)
-    assert short.coarse_steps == 0 and (short.views_per_step, long.views_per_step) == (1, geometry_fit.LONG_VIEWS)
+    assert short.coarse_steps == 0 and (short.views_per_step, long.views_per_step) == (geometry_fit.STEP_VIEWS, geometry_fit.LONG_VIEWS)
     for name in ("lr_rotations", "lr_log_scales"):
         assert getattr(long, name) == geometry_fit.LONG_RATE * getattr(short, name)
     assert long.lr_means == geometry_fit.LONG_MEANS_RATE * short.lr_means

@@ -1,9 +1,9 @@
 """The geometry fit: a small output's splat centres, rotations and scales fitted to renders of the
 input (``SimplifyConfig.fit_geometry``, on by default), after the size fit.
 
-A short refinement (``refine``: STEPS Adam steps at SIZE pixels, trained on VIEWS views of the
-input from ``training_cameras``, checked on held-out views) with the opacity and colour learning
-rates at 0: a merged splat's place, orientation and extent move to what the input shows, while its
+A short refinement (``refine``: STEPS Adam steps of STEP_VIEWS views each, rendered and
+back-propagated together, at SIZE pixels, trained on VIEWS views of the input from
+``training_cameras``, checked on held-out views) with the opacity and colour learning rates at 0: a merged splat's place, orientation and extent move to what the input shows, while its
 opacity and colour stay the merge's. Refining opacity and colour as well gains more on the orbit
 but loses on close views of semi-transparent strands (docs/quality.md); so does training on fewer
 or smaller views. The result is kept only where it renders the held-out views of the input better
@@ -32,6 +32,7 @@ from .config import RefineConfig
 from .refine import ReferenceViews, refine_with_report
 
 STEPS = 40
+STEP_VIEWS = 2  # views a step trains on together (their gradients averaged)
 VIEWS = 40
 SIZE = 256
 LONG_BELOW = "0.001"  # outputs of at most target_count(N, LONG_BELOW) splats get the long fit (an exact ratio)
@@ -43,12 +44,12 @@ LONG_COARSE = 93  # of the long fit's steps, the first (three quarters) train on
 
 
 def geometry_config(seed: int = 0, long: bool = False) -> RefineConfig:
-    """The refinement the geometry fit runs: STEPS steps of one view (with ``long``, LONG_STEPS of
+    """The refinement the geometry fit runs: STEPS steps of STEP_VIEWS views (with ``long``, LONG_STEPS of
     LONG_VIEWS views, the first LONG_COARSE on the views at half size, the centres' rate
     LONG_MEANS_RATE and the rotations' and scales' LONG_RATE times the short fit's), VIEWS training
     views of SIZE pixels, centres, rotations and scales only."""
-    config = RefineConfig(steps=STEPS, size=SIZE, reference_views=VIEWS, seed=seed, lr_opacities=0.0,
-                          lr_features_dc=0.0, lr_features_rest=0.0)  # fmt: skip
+    config = RefineConfig(steps=STEPS, size=SIZE, views_per_step=STEP_VIEWS, reference_views=VIEWS, seed=seed,
+                          lr_opacities=0.0, lr_features_dc=0.0, lr_features_rest=0.0)  # fmt: skip
     if not long:
         return config
     return dataclasses.replace(config, steps=LONG_STEPS, coarse_steps=LONG_COARSE, views_per_step=LONG_VIEWS,
