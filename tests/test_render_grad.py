@@ -148,8 +148,10 @@ def test_the_backward_buffers_count_in_the_memory_bound(monkeypatch, lanes):
     assert np.isfinite(render(splats, camera).numpy()).all()
     rasteriser = GradRasteriser(splats, lanes=lanes)
     image = wp.zeros((1, 64, 64, 3), dtype=wp.float32, device="cpu")
-    with pytest.raises(InputError, match="covers 3,200"):
+    with pytest.raises(InputError, match="^a 64x64 view of these 200 splats covers 3,200"):
         rasteriser.forward([camera], wp.vec3(0.0, 0.0, 0.0), image)
+    with pytest.raises(InputError, match="^2 views of these 200 splats cover 6,400"):  # two views together
+        rasteriser.forward([camera, camera], wp.vec3(0.0, 0.0, 0.0), wp.zeros((2, 64, 64, 3), dtype=wp.float32, device="cpu"))
 
 
 @pytest.mark.parametrize("size", [(70, 45), (32, 32)])

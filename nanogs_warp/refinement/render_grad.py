@@ -152,7 +152,7 @@ class GradRasteriser(_Rasteriser):
         tiles = views * view_tiles
         self.cams = camera_array(cameras, self.device) if params is None else params
         self._reserve_rows(views * n)
-        named = f"a {cameras[0].width}x{cameras[0].height} view" if views == 1 else f"{views} views rendered together"
+        named = f"a {cameras[0].width}x{cameras[0].height} view" if views == 1 else f"{views} views"
         count = self._project(self.cams, tiles, kernels.project_views, views * n, named)
         if count > 0:
             self._reserve(count)
