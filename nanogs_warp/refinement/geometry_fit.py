@@ -15,9 +15,10 @@ back-propagated together, their gradients averaged) at LONG_RATE times the learn
 (LONG_MEANS_RATE for the centres), on the same views. Their splats must move further than a larger
 output's to where the input shows them; forty steps at 3DGS's rates leave most of that gain, and
 Adam moves a centre by about its rate a step: at 24 times 3DGS's rate (decaying tenfold) a centre
-can travel about a fifth of the scene's extent in 125 steps. Four views a step average out more of
-a single view's noise than the 400 one-view steps of an earlier default, at the same travel, and
-take a third of the launches (docs/quality.md, docs/performance.md). The first LONG_COARSE of
+can travel about a fifth of the scene's extent in 125 steps. Eight views a step average out more of
+a single view's noise than the 400 one-view steps of an earlier default, at the same travel, in a
+tenth of the launches (docs/quality.md, docs/performance.md); they cost the CPU twice the pixels of
+four, for the budget whose margin over the other tools is thinnest. The first LONG_COARSE of
 those steps train on the same views at half their size (``ReferenceViews.halved``): the same
 quality for a quarter of the pixels (on the CPU, where a step's cost is its pixels').
 """
@@ -37,7 +38,7 @@ VIEWS = 40
 SIZE = 256
 LONG_BELOW = "0.001"  # outputs of at most target_count(N, LONG_BELOW) splats get the long fit (an exact ratio)
 LONG_STEPS = 125
-LONG_VIEWS = 4  # views a long-fit step trains on together
+LONG_VIEWS = 8  # views a long-fit step trains on together
 LONG_RATE = 6.0  # the long fit's learning rates of rotations and scales, times the short fit's
 LONG_MEANS_RATE = 24.0  # the long fit's learning rate of the centres, times the short fit's
 LONG_COARSE = 93  # of the long fit's steps, the first (three quarters) train on the views at half their size
