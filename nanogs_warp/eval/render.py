@@ -52,6 +52,11 @@ def entry_memory(device) -> int:
     return available // 2
 
 
+def tile_count(pixels: int) -> int:
+    """The 16-pixel tiles that cover ``pixels`` pixels of a row or column."""
+    return (int(pixels) + TILE - 1) // TILE
+
+
 def camera_params(camera: Camera) -> kernels.CameraParams:
     """The kernels' view of ``camera``."""
     rotation = np.asarray(camera.rotation, np.float64).reshape(3, 3)
@@ -65,8 +70,7 @@ def camera_params(camera: Camera) -> kernels.CameraParams:
     p.lim_x = 1.3 * 0.5 * camera.width / float(camera.fx)
     p.lim_y = 1.3 * 0.5 * camera.height / float(camera.fy)
     p.width, p.height = int(camera.width), int(camera.height)
-    p.tiles_x = (p.width + TILE - 1) // TILE
-    p.tiles_y = (p.height + TILE - 1) // TILE
+    p.tiles_x, p.tiles_y = tile_count(p.width), tile_count(p.height)
     p.near = float(camera.near)
     return p
 

@@ -40,8 +40,8 @@ VALIDATION_VIEWS = 8  # held-out views (never trained on) that choose which chec
 CHECKPOINTS = (0.25, 0.5, 0.75, 1.0)  # fractions of the run at which the held-out loss is measured
 # Memory a refinement takes on its device, measured on the CPU (the bundled sample, --refine-size 512
 # and 1024): about 930 bytes a pixel of a training view for a step's renders, gradients and SSIM maps
-# (times the views a step renders together), and 12 (RGB float32) a pixel for every reference view kept. 4096-pixel views at the default 128
-# reference views need about 44 GB.
+# (times the views a step renders together), and 12 (RGB float32) a pixel for every reference view
+# kept. 4096-pixel views at the default 128 reference views need about 44 GB.
 STEP_BYTES_PER_PIXEL = 1000
 VIEW_BYTES_PER_PIXEL = 12
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import warp as wp
 
 from ..eval.cameras import Camera
-from ..eval.render import INDEX_LIMIT, ONE_WALK, TILE, _Rasteriser, camera_params, entry_memory
+from ..eval.render import INDEX_LIMIT, ONE_WALK, _Rasteriser, camera_params, entry_memory, tile_count
 from ..kernels import render as kernels
 from ..kernels import render_grad as grad_kernels
 from ..parallel import launch_rows_from
@@ -147,8 +147,8 @@ class GradRasteriser(_Rasteriser):
         ``params``: the cameras' ``camera_params`` already on the device (``camera_array``), else
         made here (a copy to the device, which waits for it)."""
         views, n = len(cameras), self.n
-        tiles_x = max(-(-int(c.width) // TILE) for c in cameras)
-        view_tiles = tiles_x * max(-(-int(c.height) // TILE) for c in cameras)
+        tiles_x = max(tile_count(c.width) for c in cameras)
+        view_tiles = tiles_x * max(tile_count(c.height) for c in cameras)
         tiles = views * view_tiles
         self.cams = camera_array(cameras, self.device) if params is None else params
         self._reserve_rows(views * n)
