@@ -15,13 +15,15 @@ def drop_rows(rows: wp.array(dtype=wp.int32), keep: wp.array(dtype=wp.int32)):
 
 @wp.kernel
 def gather_rows(
+    first: int,
     keep: wp.array(dtype=wp.int32),
     destination: wp.array(dtype=wp.int32),
     src: Splats,
     out: Splats,
 ):
-    """Row i moves to destination[i] (an exclusive scan of keep), order preserved."""
-    i = wp.tid()
+    """Row i (thread t handles row first + t) moves to destination[i] (an exclusive scan of keep),
+    order preserved."""
+    i = first + wp.tid()
     if keep[i] == 0:
         return
     d = destination[i]

@@ -244,24 +244,56 @@ def _box_distance(p: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> float:
 
 
 @wp.kernel
-def bounding_box(points: wp.array(dtype=wp.vec3), threads: int, box: wp.array(dtype=wp.vec3)):
-    # axis-aligned bounding box (box[0], box[1]) and, in box[2][0], the count of non-finite points:
-    # each thread reduces a strided share, then one atomic each
-    t = wp.tid()
-    lo = wp.vec3(wp.inf)
-    hi = wp.vec3(-wp.inf)
-    bad = float(0.0)
-    for i in range(t, points.shape[0], threads):
+def partial_boxes(
+    first: int,
+    points: wp.array(dtype=wp.vec3),
+    parts: int,
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+    bad: wp.array(dtype=int),
+):
+    # part t (thread first + t): the axis-aligned bounding box of points t, t + parts, t + 2 parts, ...
+    # (neighbouring threads read neighbouring points) and how many of them are not finite
+    t = first + wp.tid()
+    part_lo = wp.vec3(wp.inf)
+    part_hi = wp.vec3(-wp.inf)
+    count = int(0)
+    for i in range(t, points.shape[0], parts):
         p = points[i]
         if wp.isfinite(p):
-            lo = wp.min(lo, p)
-            hi = wp.max(hi, p)
+            part_lo = wp.min(part_lo, p)
+            part_hi = wp.max(part_hi, p)
         else:
-            bad += 1.0
-    wp.atomic_min(box, 0, lo)
-    wp.atomic_max(box, 1, hi)
-    if bad > 0.0:
-        wp.atomic_add(box, 2, wp.vec3(bad, 0.0, 0.0))
+            count += 1
+    lo[t] = part_lo
+    hi[t] = part_hi
+    bad[t] = count
+
+
+@wp.kernel
+def merged_box(
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+    bad: wp.array(dtype=int),
+    threads: int,
+    box: wp.array(dtype=wp.vec3),
+    bad_total: wp.array(dtype=int),
+):
+    # the parts' boxes merged into box[0], box[1] (set to +inf, -inf before) and their non-finite
+    # points counted in bad_total[0] (0 before): thread t merges parts t, t + threads, ..., then one
+    # atomic each (a minimum, a maximum and an integer sum: the same result in any order). One launch,
+    # never split over CPU threads.
+    t = wp.tid()
+    part_lo = wp.vec3(wp.inf)
+    part_hi = wp.vec3(-wp.inf)
+    count = int(0)
+    for p in range(t, lo.shape[0], threads):
+        part_lo = wp.min(part_lo, lo[p])
+        part_hi = wp.max(part_hi, hi[p])
+        count += bad[p]
+    wp.atomic_min(box, 0, part_lo)
+    wp.atomic_max(box, 1, part_hi)
+    wp.atomic_add(bad_total, 0, count)
 
 
 FLOAT32_MAX = wp.constant(wp.float64(3.4028234663852886e38))
@@ -295,6 +327,7 @@ def _sample_axis(points: wp.array(dtype=wp.vec3), stride: int, axis: int, out: w
 
 @wp.kernel
 def morton_codes(
+    first: int,
     points: wp.array(dtype=wp.vec3),
     given: wp.array(dtype=wp.int32),
     lo: wp.vec3,
@@ -303,8 +336,9 @@ def morton_codes(
     order: wp.array(dtype=wp.int32),
 ):
     # Morton code of each point's level-0 cell, paired with the point's index for sorting; the
-    # points taken in the order ``given`` (empty: their own), which a stable sort keeps within a cell
-    t = wp.tid()
+    # points taken in the order ``given`` (empty: their own), which a stable sort keeps within a cell;
+    # thread t handles row first + t
+    t = first + wp.tid()
     i = t
     if given.shape[0] > 0:
         i = given[t]
@@ -334,9 +368,9 @@ def float_morton_codes(points: wp.array(dtype=wp.vec3), codes: wp.array(dtype=wp
 
 
 @wp.kernel
-def _gather_points(points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.vec3)):
-    # points in Morton order
-    i = wp.tid()
+def _gather_points(first: int, points: wp.array(dtype=wp.vec3), order: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.vec3)):
+    # points in Morton order (thread t handles row first + t)
+    i = first + wp.tid()
     out[i] = points[order[i]]
 
 

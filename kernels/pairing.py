@@ -4,8 +4,9 @@ An edge's rank orders it by cost, then by edge index (the canonical order of ``E
 same matching:
 
 - Sequentially: scan the edges by rank, take an edge when both ends are free. The edges are split
-  stably into a lower and an upper bucket at a cost near the median, each bucket sorted on its own
-  CPU core (a stable radix sort of (cost, ends)); the matching thread scans one, then the other.
+  stably into buckets of consecutive cost ranges (splitters from a sample of the costs), each bucket
+  sorted on its own (a stable radix sort of (cost, ends); the buckets on every CPU core at once, each
+  small enough to stay in a core's cache); the matching thread scans them in turn.
 - In parallel: an edge whose priority (cost, edge index), packed in one uint64, is the smallest
   among the free edges at both of its ends (locally dominant) is in the greedy matching; accept all
   of them, drop the edges with a matched end, repeat until no free edge is left. No sort of the
@@ -58,53 +59,83 @@ def both_free(partner: wp.array(dtype=wp.int32), i: int, j: int) -> bool:
     return partner[i] < 0 and partner[j] < 0
 
 
-# -- sequential: two buckets split by cost, each sorted, scanned one after the other -------------
+# -- sequential: buckets split by cost, each sorted, scanned one after the other ----------------
 
 
 @wp.kernel
 def bucket_of_edges(
     first: int,
     costs: wp.array(dtype=float),
-    threshold: wp.uint32,
+    splitters: wp.array(dtype=wp.uint32),
     keys: wp.array(dtype=wp.uint32),
-    upper: wp.array(dtype=wp.int32),
+    bucket: wp.array(dtype=wp.int32),
 ):
-    """Each edge's cost order, and whether it goes to the upper bucket (cost order >= threshold)."""
+    """Each edge's cost order and its bucket: how many of the ascending ``splitters`` are at or below
+    it (edges of equal cost share a bucket)."""
     e = first + wp.tid()
     key = cost_order(costs[e])
     keys[e] = key
-    upper[e] = wp.where(key >= threshold, 1, 0)
+    lo = int(0)
+    hi = splitters.shape[0]
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if splitters[mid] <= key:
+            lo = mid + 1
+        else:
+            hi = mid
+    bucket[e] = lo
+
+
+@wp.func
+def chunk_rows(c: int, rows_per_chunk: int, rows: int):
+    start = c * rows_per_chunk
+    return start, wp.min(start + rows_per_chunk, rows)
+
+
+@wp.kernel
+def bucket_counts(
+    first: int, bucket: wp.array(dtype=wp.int32), rows_per_chunk: int, counts: wp.array2d(dtype=wp.int32)
+):
+    """counts[c, b]: how many edges of chunk c (edges [c R, (c + 1) R)) fall in bucket b."""
+    c = first + wp.tid()
+    for b in range(counts.shape[1]):
+        counts[c, b] = 0
+    start, stop = chunk_rows(c, rows_per_chunk, bucket.shape[0])
+    for e in range(start, stop):
+        counts[c, bucket[e]] += 1
 
 
 @wp.kernel
 def buckets_to_sort(
     first: int,
     keys: wp.array(dtype=wp.uint32),
-    upper: wp.array(dtype=wp.int32),
-    upper_before: wp.array(dtype=wp.int32),
-    lower_count: int,
+    bucket: wp.array(dtype=wp.int32),
+    rows_per_chunk: int,
+    slots: wp.array2d(dtype=wp.int32),
     edge_i: wp.array(dtype=wp.int32),
     edge_j: wp.array(dtype=wp.int32),
     bucket_keys: wp.array(dtype=wp.uint32),
     bucket_ends: wp.array(dtype=wp.vec2i),
 ):
-    """Sort input, (cost order, ends), split stably: the lower bucket at [0, 2 L), the upper one right
-    after it (each with room for the radix sort's second buffer); ``upper_before`` is the exclusive
-    scan of ``upper``."""
-    e = first + wp.tid()
-    slot = e - upper_before[e]
-    if upper[e] == 1:
-        slot = 2 * lower_count + upper_before[e]
-    bucket_keys[slot] = keys[e]
-    bucket_ends[slot] = wp.vec2i(edge_i[e], edge_j[e])
+    """Sort input, (cost order, ends), split stably into the buckets: chunk c's edges in order, each
+    to slots[c, b], the next free slot of its bucket b for chunk c (advanced as it is used). Bucket
+    b's room starts at twice the edges of the buckets before it (the radix sort's second buffer)."""
+    c = first + wp.tid()
+    start, stop = chunk_rows(c, rows_per_chunk, bucket.shape[0])
+    for e in range(start, stop):
+        b = bucket[e]
+        slot = slots[c, b]
+        slots[c, b] = slot + 1
+        bucket_keys[slot] = keys[e]
+        bucket_ends[slot] = wp.vec2i(edge_i[e], edge_j[e])
 
 
 @wp.kernel
 def greedy_pairs_in_rank_order(
     ends: wp.array(dtype=wp.vec2i),
     keys: wp.array(dtype=wp.uint32),
-    lower_count: int,
-    upper_count: int,
+    bucket_start: wp.array(dtype=wp.int32),
+    bucket_count: wp.array(dtype=wp.int32),
     cap: int,
     partner: wp.array(dtype=wp.int32),
     pair_i: wp.array(dtype=wp.int32),
@@ -112,25 +143,26 @@ def greedy_pairs_in_rank_order(
     pair_cost: wp.array(dtype=float),
     pair_count: wp.array(dtype=wp.int32),
 ):
-    """Sequential greedy matching, one thread: the sorted lower bucket [0, L), then the sorted upper
-    bucket [2 L, 2 L + U) (``keys``: their cost orders); takes every edge whose ends are both free."""
+    """Sequential greedy matching, one thread: the sorted buckets in turn, bucket b at
+    [start_b, start_b + count_b) (``keys``: their cost orders); takes every edge whose ends are both
+    free, until ``cap`` pairs."""
     taken = int(0)
-    for t in range(lower_count + upper_count):
-        r = t
-        if t >= lower_count:
-            r = t + lower_count
-        ij = ends[r]
-        i = ij[0]
-        j = ij[1]
-        if both_free(partner, i, j):
-            partner[i] = j
-            partner[j] = i
-            pair_i[taken] = i
-            pair_j[taken] = j
-            pair_cost[taken] = cost_of_order(keys[r])
-            taken += 1
-            if taken >= cap:
-                break
+    for b in range(bucket_start.shape[0]):
+        if taken >= cap:
+            break
+        for r in range(bucket_start[b], bucket_start[b] + bucket_count[b]):
+            ij = ends[r]
+            i = ij[0]
+            j = ij[1]
+            if both_free(partner, i, j):
+                partner[i] = j
+                partner[j] = i
+                pair_i[taken] = i
+                pair_j[taken] = j
+                pair_cost[taken] = cost_of_order(keys[r])
+                taken += 1
+                if taken >= cap:
+                    break
     pair_count[0] = taken
 
 

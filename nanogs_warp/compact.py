@@ -5,6 +5,7 @@ from __future__ import annotations
 import warp as wp
 
 from .kernels import compact as kernels
+from .parallel import launch_rows_from
 from .splats import SplatSet
 
 
@@ -16,10 +17,7 @@ def select_rows(splats: SplatSet, keep: wp.array, kept_count: int) -> tuple[Spla
     wp.utils.array_scan(keep, destination, inclusive=False)
     out = SplatSet.empty(kept_count, splats.features.shape[1], splats.extras.shape[1], device, splats.layout,
                          splats.integer_extras.shape[1])  # fmt: skip
-    wp.launch(
-        kernels.gather_rows, splats.count,
-        inputs=[keep, destination, splats.kernel_view(), out.kernel_view()], device=device,
-    )  # fmt: skip
+    launch_rows_from(kernels.gather_rows, splats.count, [keep, destination, splats.kernel_view(), out.kernel_view()], device)
     return out, destination
 
 

@@ -11,7 +11,7 @@ import warp as wp
 
 from .errors import InputError
 from .kernels import pairing as kernels
-from .parallel import MIN_ROWS_TO_SPLIT, cpu_workers, launch_rows_from, worker_pool
+from .parallel import MIN_ROWS_TO_SPLIT, cpu_workers, in_turn, launch_rows_from
 
 if TYPE_CHECKING:
     from .topology import Edges
@@ -25,6 +25,12 @@ INDEX_LIMIT = 2**31
 # the most any pass of the twelve scenes of docs/quality.md takes (32). A module constant so that
 # tests can lower it.
 MAX_ROUNDS = 64
+# The sequential pairing's buckets (``_bucket_count``): about this many edges each (12 bytes an edge
+# and as much again for the sort's second buffer: a few MB, a core's share of cache), at most
+# MAX_BUCKETS, with BUCKET_SAMPLES sampled costs a bucket for the splitters.
+BUCKET_EDGES = 1 << 18
+MAX_BUCKETS = 64
+BUCKET_SAMPLES = 64
 
 
 def check_sequential_fits(edge_count: int, vertex_count: int, limit: int | None = None) -> None:
@@ -92,56 +98,73 @@ def cheap_pairs(pairs: Pairs, factor: float) -> Pairs:
 
 
 def _greedy_in_rank_order(edges: Edges, costs, vertex_count, cap, pair_i, pair_j, pair_cost) -> int:
-    """Splits the edges stably at a cost near the median into a lower and an upper bucket, sorts
-    each (stable radix sorts of (cost, ends); on two CPU cores at once where there are two), then
-    one thread scans the lower bucket and then the upper one and takes every edge whose ends are
-    both free. Edges of equal cost share a bucket and keep their order: this is rank order."""
+    """Splits the edges stably into buckets of consecutive cost ranges, sorts each (stable radix
+    sorts of (cost, ends), on every CPU core at once), then one thread scans the buckets in turn and
+    takes every edge whose ends are both free. Edges of equal cost share a bucket and keep their
+    order: this is rank order."""
     device = costs.device
     e = edges.count
-    two_buckets = device.is_cpu and cpu_workers() >= 2 and e >= 2 * MIN_ROWS_TO_SPLIT
+    workers = cpu_workers() if device.is_cpu else 1
+    splitters = _cost_splitters(costs, _bucket_count(e, workers))
     keys = wp.empty(e, dtype=wp.uint32, device=device)
-    upper = wp.empty(e, dtype=wp.int32, device=device)
-    threshold = _median_cost_order(costs) if two_buckets else 0  # 0: everything in the upper bucket
-    launch_rows_from(kernels.bucket_of_edges, e, [costs, threshold, keys, upper], device)
-    upper_before = wp.empty(e, dtype=wp.int32, device=device)
-    wp.utils.array_scan(upper, upper_before, inclusive=False)
-    upper_count = int(upper_before[e - 1 : e].numpy()[0] + upper[e - 1 : e].numpy()[0])
-    lower_count = e - upper_count
+    bucket = wp.empty(e, dtype=wp.int32, device=device)
+    splitters_on_device = wp.array(splitters, dtype=wp.uint32, device=device)
+    launch_rows_from(kernels.bucket_of_edges, e, [costs, splitters_on_device, keys, bucket], device)
+    # the stable split: how many edges of each chunk go to each bucket, then each chunk's slots
+    chunks = min(e, 4 * workers)
+    rows_per_chunk = -(-e // chunks)
+    counts = wp.empty((chunks, len(splitters) + 1), dtype=wp.int32, device=device)
+    launch_rows_from(kernels.bucket_counts, chunks, [bucket, rows_per_chunk, counts], device, chunks_per_worker=1, min_rows=1)
+    per_chunk = counts.numpy().astype(np.int64)
+    sizes = per_chunk.sum(axis=0)
+    starts = 2 * (np.cumsum(sizes) - sizes)  # each bucket with room for the sort's second buffer
+    slots = wp.array(starts[None, :] + np.cumsum(per_chunk, axis=0) - per_chunk, dtype=wp.int32, device=device)
     bucket_keys = wp.empty(2 * e, dtype=wp.uint32, device=device)
     bucket_ends = wp.empty(2 * e, dtype=wp.vec2i, device=device)
     launch_rows_from(
-        kernels.buckets_to_sort, e,
-        [keys, upper, upper_before, lower_count, edges.i, edges.j, bucket_keys, bucket_ends], device,
+        kernels.buckets_to_sort, chunks,
+        [keys, bucket, rows_per_chunk, slots, edges.i, edges.j, bucket_keys, bucket_ends],
+        device, chunks_per_worker=1, min_rows=1,
     )  # fmt: skip
-    del keys, upper, upper_before
+    del keys, bucket
 
-    def sort(bucket: tuple[int, int]) -> None:
-        begin, count = bucket
-        room = slice(begin, begin + 2 * count)
-        wp.utils.radix_sort_pairs(bucket_keys[room], bucket_ends[room], count)
+    def sort(b: int) -> None:
+        room = slice(int(starts[b]), int(starts[b] + 2 * sizes[b]))
+        wp.utils.radix_sort_pairs(bucket_keys[room], bucket_ends[room], int(sizes[b]))
 
-    buckets = [(0, lower_count), (2 * lower_count, upper_count)]
-    if two_buckets and lower_count > 0:
-        list(worker_pool(2).map(sort, buckets))  # the host sort releases the GIL
-    else:
-        sort(buckets[1])
+    largest_first = sorted(np.flatnonzero(sizes > 1).tolist(), key=lambda b: -sizes[b])
+    in_turn(workers, largest_first, sort)  # the host sort releases the GIL
     partner = wp.full(vertex_count, -1, dtype=wp.int32, device=device)
     pair_count = wp.zeros(1, dtype=wp.int32, device=device)
     wp.launch(
         kernels.greedy_pairs_in_rank_order, 1,
-        inputs=[bucket_ends, bucket_keys, lower_count, upper_count, cap], outputs=[partner, pair_i, pair_j, pair_cost, pair_count],
-        device=device,
+        inputs=[bucket_ends, bucket_keys, wp.array(starts, dtype=wp.int32, device=device),
+                wp.array(sizes, dtype=wp.int32, device=device), cap],
+        outputs=[partner, pair_i, pair_j, pair_cost, pair_count], device=device,
     )  # fmt: skip
     return int(pair_count.numpy()[0])
 
 
-def _median_cost_order(costs: wp.array) -> int:
-    """Median cost order of a sample of the costs (the CPU's own memory: no copy); the same mapping
-    as ``kernels.pairing.cost_order``, for the threshold only."""
-    sample = costs.numpy()[:: max(1, costs.shape[0] // 4096)]
+def _bucket_count(edge_count: int, workers: int) -> int:
+    """Buckets for ``edge_count`` edges: one below 2 x MIN_ROWS_TO_SPLIT edges; otherwise at least
+    one a worker, and enough that each holds about BUCKET_EDGES (a bucket that stays in a core's
+    cache sorts faster: one core sorted 4.6M edges in 120 ms as one bucket, in 66-73 ms as 8 to 64),
+    at most MAX_BUCKETS."""
+    if edge_count < 2 * MIN_ROWS_TO_SPLIT:
+        return 1
+    return min(MAX_BUCKETS, max(workers, -(-edge_count // BUCKET_EDGES)))
+
+
+def _cost_splitters(costs: wp.array, buckets: int) -> np.ndarray:
+    """``buckets - 1`` ascending cost orders (as ``kernels.pairing.cost_order`` maps costs) at even
+    quantiles of a sample of the costs (the CPU's own memory: no copy). They only balance the
+    buckets: any splitters give the same matching."""
+    if buckets <= 1:
+        return np.zeros(0, dtype=np.uint32)
+    sample = costs.numpy()[:: max(1, costs.shape[0] // (BUCKET_SAMPLES * buckets))]
     bits = sample.view(np.uint32)
-    order = np.where(bits >> 31 == 0, bits | np.uint32(0x80000000), ~bits)
-    return int(np.partition(order, len(order) // 2)[len(order) // 2])
+    order = np.sort(np.where(bits >> 31 == 0, bits | np.uint32(0x80000000), ~bits))
+    return order[[len(order) * b // buckets for b in range(1, buckets)]].astype(np.uint32)
 
 
 def _locally_dominant_pairs(edges: Edges, costs, vertex_count, cap, pair_i, pair_j, pair_cost) -> int:

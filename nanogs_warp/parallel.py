@@ -49,12 +49,15 @@ def row_chunks(
     rows: int, device, chunks_per_worker: int = 1, min_rows: int = MIN_ROWS_TO_SPLIT
 ) -> tuple[int, list[tuple[int, int]]]:
     """(workers, [(first, stop), ...]): the contiguous row chunks a launch over ``rows`` rows is cut
-    into on ``device``, at least ``min_rows`` rows per worker. One chunk off the CPU."""
+    into on ``device``: ``chunks_per_worker`` a worker, at least ``min_rows`` rows a chunk (each
+    chunk's launch holds the GIL for some microseconds: with dozens of cores, many small chunks
+    would queue for it), at least one a worker. One chunk off the CPU."""
     device = wp.get_device(device)
-    workers = max(1, min(cpu_workers(), rows // max(1, min_rows))) if device.is_cpu else 1
+    min_rows = max(1, min_rows)
+    workers = max(1, min(cpu_workers(), rows // min_rows)) if device.is_cpu else 1
     if workers == 1:
         return 1, [(0, rows)]
-    chunks = workers * max(1, chunks_per_worker)
+    chunks = max(workers, min(workers * max(1, chunks_per_worker), rows // min_rows))
     bounds = [rows * c // chunks for c in range(chunks + 1)]
     return workers, [(a, b) for a, b in zip(bounds, bounds[1:]) if b > a]
 

@@ -17,7 +17,7 @@ import warp as wp
 
 from nanogs_warp.kernels import edges as edge_kernels
 from nanogs_warp.kernels import knn as knn_kernels
-from nanogs_warp.parallel import cpu_workers, launch_rows_from, worker_pool
+from nanogs_warp.parallel import cpu_workers, in_turn, launch_rows_from
 
 KMAX = knn_kernels.KMAX
 INEXACT = knn_kernels.INEXACT  # a reach entry whose query stopped at its work limit
@@ -25,6 +25,7 @@ _LEVELS = knn_kernels.LEVELS
 _GRID_CELLS = 1 << knn_kernels.GRID_BITS
 _NODE_LEVELS = knn_kernels.NODE_LEVELS
 _QUANTILE_SAMPLES = 16384  # points sampled per axis for the quantisation cube
+_BOX_PARTS = 4096  # the bounding box is reduced from this many parts' boxes
 _QUANTILE_TAIL = 0.001  # fraction of the sample left out at each end
 _QUARTILE_REACH = 1000.0  # interquartile ranges (a normal distribution's 99.8% spans 4.6)
 _LARGEST_SIDE = 2.0**120  # of the quantisation cube (float32 holds up to 2^128)
@@ -87,7 +88,7 @@ def knn_graph(
     if crowded:  # k + 1 points share a level-0 cell: order each cell's points by their float bits
         order = _morton_order(means, lo, quantum, given=_float_bit_order(means))[1]
     points = wp.empty(n, dtype=wp.vec3, device=device)
-    wp.launch(knn_kernels._gather_points, n, inputs=[means, order], outputs=[points], device=device)
+    launch_rows_from(knn_kernels._gather_points, n, [means, order, points], device)
     nodes = _tree_nodes(points, order)
 
     neighbours = wp.full((n, k), -1, dtype=wp.int32, device=device)
@@ -169,15 +170,11 @@ class KnnTopology:
             return candidate_edges(neighbours, points, reach)
 
 
-def _level_groups(used: np.ndarray, work: np.ndarray, workers: int) -> list[tuple[int, int]]:
-    """The searched levels cut into one or two contiguous ranges (first, last) of about equal
-    ``work`` (per level)."""
-    if workers < 2 or len(used) < 2:
-        return [(int(used[0]), int(used[-1]))]
-    weight = np.cumsum(work[used])
-    cut = int(np.searchsorted(weight, weight[-1] / 2))
-    cut = min(max(cut, 0), len(used) - 2)
-    return [(int(used[0]), int(used[cut])), (int(used[cut + 1]), int(used[-1]))]
+def _level_groups(used: np.ndarray, workers: int) -> list[tuple[int, int]]:
+    """The searched levels cut into up to ``workers`` contiguous ranges (first, last) of about as
+    many levels each (a level's insert work is about the same at every level: each point checks
+    whether it starts a cell)."""
+    return [(int(part[0]), int(part[-1])) for part in np.array_split(used, max(1, min(workers, len(used))))]
 
 
 def measured_points(means: wp.array) -> tuple[wp.array, tuple[wp.vec3, float, float]]:
@@ -208,6 +205,24 @@ def measured_points(means: wp.array) -> tuple[wp.array, tuple[wp.vec3, float, fl
     return points, (corner, quantum * scale, margin * scale)
 
 
+def bounding_box(means: wp.array) -> tuple[np.ndarray, np.ndarray, int]:
+    """The axis-aligned bounding box of the finite points (float64 corners; +inf and -inf where none
+    is) and how many points are not finite: the boxes of up to _BOX_PARTS contiguous parts (on
+    every CPU core), then merged."""
+    n, device = means.shape[0], means.device
+    parts = max(1, min(n, _BOX_PARTS))
+    part_lo = wp.empty(parts, dtype=wp.vec3, device=device)
+    part_hi = wp.empty(parts, dtype=wp.vec3, device=device)
+    part_bad = wp.empty(parts, dtype=int, device=device)
+    launch_rows_from(knn_kernels.partial_boxes, parts, [means, parts, part_lo, part_hi, part_bad], device, min_rows=256)
+    box = wp.array([[np.inf] * 3, [-np.inf] * 3], dtype=wp.vec3, device=device)
+    bad = wp.zeros(1, dtype=int, device=device)
+    threads = min(parts, 64)
+    wp.launch(knn_kernels.merged_box, threads, inputs=[part_lo, part_hi, part_bad, threads], outputs=[box, bad], device=device)
+    lo, hi = box.numpy().astype(np.float64)
+    return lo, hi, int(bad.numpy()[0])
+
+
 def _quantisation_cube(means: wp.array) -> tuple[tuple[wp.vec3, float, float], float]:
     """Corner and level-0 cell side (quantum) of the cube that quantises the points to 21 bits per
     axis, and the margin by which cell-distance lower bounds are lowered for float32 rounding; and
@@ -221,12 +236,9 @@ def _quantisation_cube(means: wp.array) -> tuple[tuple[wp.vec3, float, float], f
     """
     device = means.device
     n = means.shape[0]
-    box = wp.array([[np.inf] * 3, [-np.inf] * 3, [0.0] * 3], dtype=wp.vec3, device=device)
-    threads = min(n, 4096)
-    wp.launch(knn_kernels.bounding_box, threads, inputs=[means, threads], outputs=[box], device=device)
-    box_lo, box_hi, bad = box.numpy().astype(np.float64)
-    if bad[0] > 0:
-        raise ValueError(f"means contain {int(bad[0])} non-finite points")
+    box_lo, box_hi, bad = bounding_box(means)
+    if bad > 0:
+        raise ValueError(f"means contain {bad} non-finite points")
 
     lo, hi = box_lo.copy(), box_hi.copy()
     stride = max(1, n // _QUANTILE_SAMPLES)
@@ -272,7 +284,7 @@ def _morton_order(means: wp.array, lo: wp.vec3, quantum: float, given: wp.array 
     codes = wp.empty(2 * n, dtype=wp.int64, device=device)
     order = wp.empty(2 * n, dtype=wp.int32, device=device)
     given = wp.empty(0, dtype=wp.int32, device=device) if given is None else given
-    wp.launch(knn_kernels.morton_codes, n, inputs=[means, given, lo, 1.0 / quantum], outputs=[codes, order], device=device)
+    launch_rows_from(knn_kernels.morton_codes, n, [means, given, lo, 1.0 / quantum, codes, order], device)
     wp.utils.radix_sort_pairs(codes, order, n, end_bit=3 * knn_kernels.GRID_BITS)
     return codes[:n], order[:n]
 
@@ -346,12 +358,10 @@ def _cell_tables(codes: wp.array, k: int) -> tuple[wp.array, list, bool]:
     def insert(levels: tuple[int, int]) -> None:
         wp.launch(knn_kernels._insert_cells, n, inputs=[codes, *levels, *tables], outputs=[keys, starts], device=device)
 
-    groups = _level_groups(used, n + cells, cpu_workers() if device.is_cpu else 1)
+    groups = _level_groups(used, cpu_workers() if device.is_cpu else 1)
     if len(groups) > 1:
         wp.load_module(knn_kernels._insert_cells.module, device=device)
-        list(worker_pool(len(groups)).map(insert, groups))
-    else:
-        insert(groups[0])
+    in_turn(len(groups), groups, insert)
     levels = [codes, int(used[0]), int(used[-1]), *tables]
     launch_rows_from(knn_kernels._close_cells, n, [*levels, keys, ends], device)
     return search_level, [level_base, level_mask, keys, starts, ends], bool(used[0] == 0)

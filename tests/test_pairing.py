@@ -5,6 +5,7 @@ import pytest
 import reference
 import warp as wp
 
+from nanogs_warp import pairing
 from nanogs_warp.pairing import cheap_pairs, select_pairs
 from nanogs_warp.topology import Edges
 
@@ -39,14 +40,32 @@ def test_pairs_equal_sequential_greedy(device, rng, method, tie_levels, cap):
 
 
 @pytest.mark.parametrize("method", ["sequential", "parallel"])
-def test_large_graph_equals_sequential_greedy(device, rng, method):
-    """Enough edges for the CPU to sort them in two runs, merged by the matching; ties across the runs."""
+@pytest.mark.parametrize("tie_levels", [None, 4])
+@pytest.mark.parametrize("bucket_edges", [None, 1000])
+def test_large_graph_equals_sequential_greedy(device, rng, monkeypatch, method, tie_levels, bucket_edges):
+    """Enough edges for the CPU to sort them in buckets, scanned in turn by the matching: as many
+    buckets as the cores (and the size) give, or the most (``bucket_edges`` 1000); ties across the
+    buckets' bounds."""
+    if bucket_edges is not None:
+        monkeypatch.setattr(pairing, "BUCKET_EDGES", bucket_edges)
+        assert pairing._bucket_count(80_000, 1) == pairing.MAX_BUCKETS
     n = 30_000
-    ei, ej, costs = random_graph(rng, n, 80_000, tie_levels=4)
+    ei, ej, costs = random_graph(rng, n, 80_000, tie_levels)
     edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), len(ei))
     pairs = select_pairs(edges, wp.array(costs, device=device), n, 12_000, method=method)
     got = list(zip(pairs.i.numpy().tolist(), pairs.j.numpy().tolist()))
     assert got == reference.greedy_pairs(ei, ej, costs, n, 12_000)
+
+
+def test_cost_splitters_cut_even_quantiles(rng):
+    """Splitters ascend in cost order and cut a sample into buckets of about equal size."""
+    costs = rng.normal(size=100_000).astype(np.float32)
+    splitters = pairing._cost_splitters(wp.array(costs, device="cpu"), 8)
+    assert len(splitters) == 7 and np.all(np.diff(splitters.astype(np.int64)) > 0)
+    bits = costs.view(np.uint32)
+    order = np.where(bits >> 31 == 0, bits | np.uint32(0x80000000), ~bits)
+    sizes = np.bincount(np.searchsorted(splitters, order, side="right"), minlength=8)
+    assert sizes.min() > 0.8 * len(costs) / 8 and sizes.max() < 1.2 * len(costs) / 8
 
 
 @pytest.mark.parametrize("method", ["sequential", "parallel"])
@@ -59,6 +78,27 @@ def test_sorted_path_needs_many_rounds(device, method):
     edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), n - 1)
     pairs = select_pairs(edges, wp.array(costs, device=device), n, 100, method=method)
     assert list(zip(pairs.i.numpy(), pairs.j.numpy())) == [(k, k + 1) for k in range(0, n - 1, 2)]
+
+
+def test_random_costs_need_few_rounds(device, rng, monkeypatch):
+    """Random costs: each round matches every locally smallest edge, so a few rounds match them all,
+    without the sequential rest (a round that claims the wrong ends would match almost nothing
+    and leave the rest to it)."""
+    rounds = []
+    launch = pairing.wp.launch
+
+    def counting_launch(kernel, *args, **kwargs):
+        rounds.append(kernel is pairing.kernels.claim_endpoints)
+        assert kernel is not pairing.kernels.greedy_rest_in_rank_order
+        return launch(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(pairing.wp, "launch", counting_launch)
+    n = 2000
+    ei, ej, costs = random_graph(rng, n, 8000)
+    edges = Edges(wp.array(ei, device=device), wp.array(ej, device=device), len(ei))
+    pairs = select_pairs(edges, wp.array(costs, device=device), n, n, method="parallel")
+    assert list(zip(pairs.i.numpy().tolist(), pairs.j.numpy().tolist())) == reference.greedy_pairs(ei, ej, costs, n, n // 2)
+    assert 0 < sum(rounds) <= 16, sum(rounds)
 
 
 def test_rounds_are_bounded_and_the_rest_matched_in_rank_order(device, monkeypatch):

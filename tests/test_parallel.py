@@ -4,6 +4,7 @@ import threading
 
 import pytest
 
+from nanogs_warp import parallel
 from nanogs_warp.parallel import in_turn
 
 
@@ -58,3 +59,23 @@ def test_a_call_from_a_pool_thread_runs_there_instead_of_waiting_behind_itself()
 
     name = worker_pool(1).submit(outer, None).result(timeout=10)
     assert name.startswith("nanogs-warp") and inner == list(range(5))
+
+
+@pytest.mark.parametrize(
+    ("cores", "rows", "per_worker", "min_rows", "expected"),
+    [
+        (32, 100_000, 4, 4096, 24),  # cheap rows: as many chunks as min_rows allows, above one a worker
+        (32, 1_000_000, 4, 4096, 128),  # enough rows: chunks_per_worker a worker
+        (32, 40_000, 4, 4096, 9),  # fewer rows than workers x min_rows: fewer workers, one chunk each
+        (2, 100_000, 4, 4096, 8),
+        (2, 5_000, 4, 4096, 1),
+    ],
+)
+def test_row_chunks_cover_the_rows_in_chunks_of_at_least_min_rows(monkeypatch, cores, rows, per_worker, min_rows, expected):
+    monkeypatch.setattr(parallel, "cpu_workers", lambda: cores)
+    workers, chunks = parallel.row_chunks(rows, "cpu", per_worker, min_rows)
+    assert len(chunks) == expected
+    assert workers == max(1, min(cores, rows // min_rows))
+    assert chunks[0][0] == 0 and chunks[-1][1] == rows
+    assert all(a[1] == b[0] for a, b in zip(chunks, chunks[1:]))
+    assert len(chunks) == 1 or min(b - a for a, b in chunks) >= min_rows

@@ -17,8 +17,11 @@ from reference_topology import edges_reference, knn_reference
 
 from nanogs_warp.kernels import edges as edge_kernels
 from nanogs_warp.kernels import knn as knn_kernels
+from nanogs_warp import parallel
 from nanogs_warp.parallel import launch_rows_from
-from nanogs_warp.topology import KMAX, MEASURED_SIDE, Edges, KnnTopology, candidate_edges, knn_graph, measured_points
+from nanogs_warp.topology import (
+    KMAX, MEASURED_SIDE, Edges, KnnTopology, bounding_box, candidate_edges, knn_graph, measured_points,
+)
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "tools"))
 from adversarial_scenes import bit_centres  # noqa: E402 - the same scenes as the tool's
@@ -678,3 +681,22 @@ def test_launch_rows_from_covers_every_row_once(device):
         marks = wp.zeros(rows, dtype=wp.int32, device=device)
         launch_rows_from(_mark_rows, rows, [marks], device)
         np.testing.assert_array_equal(marks.numpy(), np.arange(rows) + 1)
+
+
+@pytest.mark.parametrize("n", [1, 5, 4096, 10_007])
+@pytest.mark.parametrize("cores", [1, 3])
+def test_bounding_box_matches_numpy(device, rng, monkeypatch, n, cores):
+    """The finite points' box and the count of the others, with the parts on one or several CPU
+    threads (``cores``); no finite point: an empty (inf, -inf) box."""
+    monkeypatch.setattr(parallel, "cpu_workers", lambda: cores)
+    points = (rng.normal(size=(n, 3)) * 10.0**rng.integers(-3, 4, size=(n, 1))).astype(np.float32)
+    bad = rng.random(n) < 0.1
+    points[bad, rng.integers(0, 3, size=int(bad.sum()))] = rng.choice([np.nan, np.inf, -np.inf], size=int(bad.sum()))
+    lo, hi, count = bounding_box(wp.array(points, dtype=wp.vec3, device=device))
+    finite = points[np.isfinite(points).all(axis=1)].astype(np.float64)
+    assert count == n - len(finite)
+    if len(finite):
+        np.testing.assert_array_equal(lo, finite.min(axis=0))
+        np.testing.assert_array_equal(hi, finite.max(axis=0))
+    else:
+        assert np.all(lo == np.inf) and np.all(hi == -np.inf)
