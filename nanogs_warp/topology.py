@@ -207,7 +207,7 @@ def measured_points(means: wp.array) -> tuple[wp.array, tuple[wp.vec3, float, fl
 
 def bounding_box(means: wp.array) -> tuple[np.ndarray, np.ndarray, int]:
     """The axis-aligned bounding box of the finite points (float64 corners; +inf and -inf where none
-    is) and how many points are not finite: the boxes of up to _BOX_PARTS contiguous parts (on
+    is) and how many points are not finite: the boxes of up to _BOX_PARTS interleaved parts (on
     every CPU core), then merged."""
     n, device = means.shape[0], means.device
     parts = max(1, min(n, _BOX_PARTS))
