@@ -161,10 +161,17 @@ def test_batched_views_equal_single_views_and_repeat_bit_identically(device, rng
     np.testing.assert_array_equal(render_views(splats, cameras, (0.0, 0.5, 0.0)), batch)
 
 
+def chunk_every_launch(monkeypatch):
+    """Lowers the work a CPU chunk of the renderer's launches must hold to one row."""
+    for name in ("PAIRS_PER_CHUNK", "PROJECT_ROWS", "EMIT_ROWS", "GATHER_ROWS"):
+        monkeypatch.setattr(render_module, name, 1)
+
+
 @pytest.mark.parametrize("workers", [1, 3])
-def test_tile_and_pixel_composites_are_identical(device, rng, workers):
+def test_tile_and_pixel_composites_are_identical(device, rng, monkeypatch, workers):
     """The CPU's tile-major composite and the GPU's pixel-parallel one agree bit for bit on every
     device, however the launches are chunked (no fused multiply-adds, the portable exp32)."""
+    chunk_every_launch(monkeypatch)
     camera = random_camera(rng, 70, 45)
     splats = SplatSet.from_numpy(**random_scene(rng, 300, 3, camera.centre, opacity=(2.0, 2.0)), device=device)
     images = []
@@ -175,6 +182,27 @@ def test_tile_and_pixel_composites_are_identical(device, rng, workers):
         images.append(image.numpy())
     np.testing.assert_array_equal(images[0], images[1])
     assert not np.isnan(images[0]).any()
+
+
+def test_a_small_view_is_not_cut_into_chunks_of_almost_no_work(rng, monkeypatch):
+    """On many cores a view of a few hundred splats goes out in one launch a kernel (each chunk's
+    launch would cost more than its work); with the work a chunk must hold lowered, in chunks, and
+    the image is the same."""
+    assert render_module.rows_per_chunk(256, 300_000) == 1 and render_module.rows_per_chunk(2048, 728) == 721
+    camera = random_camera(rng, 64, 48)
+    splats = SplatSet.from_numpy(**random_scene(rng, 300, 3, camera.centre), device="cpu")
+    chunked = []
+    in_turn = render_module.in_turn
+    monkeypatch.setattr(render_module, "in_turn", lambda workers, items, work: (chunked.append(len(items)), in_turn(workers, items, work)))
+    images = []
+    for lowered in (False, True):
+        if lowered:
+            chunk_every_launch(monkeypatch)
+        image = wp.full((1, 48, 64, 3), float("nan"), dtype=wp.float32, device="cpu")
+        _Rasteriser(splats, workers=16).render_into(camera, wp.vec3(0.0, 0.0, 0.0), image, 0)
+        images.append(image.numpy())
+        assert (len(chunked) > 0) == lowered
+    np.testing.assert_array_equal(images[0], images[1])
 
 
 @pytest.mark.parametrize("chunk", [1, 7, 2048])

@@ -42,6 +42,14 @@ ONE_WALK = 2**31 - 1  # a chunk no tile exceeds: every tile composited in one wa
 # guitar's and playbot's eight size-fit views 0.46-0.54 -> 0.40 s and 0.87-1.09 -> 0.84-0.85 s on two
 # cores against one chunk per worker, the same images.
 CHUNKS_PER_WORKER = 4
+# ... and each chunk holds at least this many (entry, pixel) pairs of a composite (each a few ns on
+# a core), or PROJECT_ROWS splats, EMIT_ROWS splats' entries or GATHER_ROWS entries: a chunk's
+# launch holds the GIL for some microseconds, so on many cores the small views of a fit's small
+# outputs went out in dozens of chunks of almost no work each, queueing for it.
+PAIRS_PER_CHUNK = 1 << 16
+PROJECT_ROWS = 1024
+EMIT_ROWS = 4096
+GATHER_ROWS = 16384
 
 
 def entry_memory(device) -> int:
@@ -50,6 +58,13 @@ def entry_memory(device) -> int:
     if available is None:  # not on this system: no memory bound but int32's
         return INDEX_LIMIT * ENTRY_BYTES
     return available // 2
+
+
+def rows_per_chunk(rows: int, entries: int) -> int:
+    """The fewest rows (tiles, lanes or pixels) a CPU chunk of a composite over ``rows`` rows takes,
+    so that it holds about PAIRS_PER_CHUNK (entry, pixel) pairs when ``entries`` (tile, splat)
+    entries are composited over their tiles' pixels."""
+    return max(1, -(-PAIRS_PER_CHUNK * rows // max(1, entries * kernels.TILE_PIXELS)))
 
 
 def tile_count(pixels: int) -> int:
@@ -141,14 +156,15 @@ class _Rasteriser:
         self.e_box = wp.empty(c, dtype=wp.vec4, device=d)
         self.e_faint = wp.empty(c, dtype=wp.float32, device=d)
 
-    def _launch(self, kernel, dim: int, inputs_before: list, inputs_after: list) -> None:
+    def _launch(self, kernel, dim: int, inputs_before: list, inputs_after: list, min_rows: int = 1) -> None:
         """Launches ``kernel`` over ``dim`` threads whose first argument after ``inputs_before`` is the
-        first thread's index; on the CPU in CHUNKS_PER_WORKER chunks per worker thread, taken as the
-        workers free up (a view's busy tiles lie together, so one chunk each left a worker idle)."""
-        if self.workers <= 1 or dim < 64:
+        first thread's index; on the CPU in up to CHUNKS_PER_WORKER chunks per worker thread of at
+        least ``min_rows`` threads each, taken as the workers free up (a view's busy tiles lie
+        together, so one chunk each left a worker idle)."""
+        chunks = min(self.workers * CHUNKS_PER_WORKER, dim // max(1, min_rows))
+        if self.workers <= 1 or dim < 64 or chunks <= 1:
             wp.launch(kernel, dim, inputs=[*inputs_before, 0, *inputs_after], device=self.device)
             return
-        chunks = self.workers * CHUNKS_PER_WORKER
         bounds = np.linspace(0, dim, chunks + 1).astype(int)
 
         def run(k):
@@ -156,7 +172,7 @@ class _Rasteriser:
             if hi > lo:
                 wp.launch(kernel, hi - lo, inputs=[*inputs_before, lo, *inputs_after], device=self.device)
 
-        in_turn(self.workers, range(chunks), run)
+        in_turn(min(self.workers, chunks), range(chunks), run)
 
     def _project(self, p, tiles: int, kernel=kernels.project, rows: int | None = None, views: str | None = None) -> int:
         """Clears (or makes) the per-tile entry ranges for ``tiles`` tiles and projects every splat
@@ -185,6 +201,7 @@ class _Rasteriser:
             rows,
             [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p],
             [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.faint, self.rect, self.touched],
+            PROJECT_ROWS,
         )
         wp.utils.array_scan(self.touched[:rows], self.ends[:rows], inclusive=True)
         if rows * tiles <= INDEX_LIMIT:
@@ -215,6 +232,7 @@ class _Rasteriser:
                 self.n,
                 [self.depth, self.rect, self.touched, self.ends, p.tiles_x, self.n, tiles],
                 [self.keys, self.values],
+                EMIT_ROWS,
             )
             wp.utils.radix_sort_pairs(self.keys, self.values, count, 0, 32 + max(1, int(tiles - 1).bit_length()))
             self._launch(
@@ -222,6 +240,7 @@ class _Rasteriser:
                 count,
                 [self.keys, self.values, count, self.xy, self.conic_opacity, self.rgb, self.box, self.faint],
                 [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint, self.tile_start, self.tile_end],
+                GATHER_ROWS,
             )
             entries = [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint]
         else:  # no entries: every tile range is empty; any arrays of the right type will do
@@ -229,15 +248,15 @@ class _Rasteriser:
         inputs = [*entries, self.tile_start, self.tile_end]
         inputs += [p.width, p.height, p.tiles_x, background, view, tiles]
         if self.method == "tiles":
-            self._composite_tiles(tiles, inputs, self.chunk, image)
+            self._composite_tiles(tiles, count, inputs, self.chunk, image)
         else:
             self._composite_in_chunks(p, tiles, count, inputs, image)
 
-    def _composite_tiles(self, tiles: int, inputs: list, chunk: int, image: wp.array) -> None:
-        """``composite_tiles`` (the CPU's composite, one thread per tile), each tile of more than
-        ``chunk`` entries composited in chunks with the GPU's arithmetic."""
+    def _composite_tiles(self, tiles: int, count: int, inputs: list, chunk: int, image: wp.array) -> None:
+        """``composite_tiles`` (the CPU's composite, one thread per tile) of ``count`` entries, each
+        tile of more than ``chunk`` entries composited in chunks with the GPU's arithmetic."""
         scratch = [self.transmittance, self.colour, self.done, self.chunk_state, self.total, image]
-        self._launch(kernels.composite_tiles, tiles, [*inputs, chunk], scratch)
+        self._launch(kernels.composite_tiles, tiles, [*inputs, chunk], scratch, rows_per_chunk(tiles, count))
 
     def _composite_in_chunks(self, p, tiles: int, count: int, inputs: list, image: wp.array) -> None:
         """``composite``'s image, each tile's entries split into chunks of at most ``self.chunk``
@@ -252,7 +271,7 @@ class _Rasteriser:
         self.longest.zero_()
         self._launch(kernels.chunk_counts, tiles, [self.tile_start, self.tile_end, self.chunk], [self.counts, self.longest])
         if int(self.longest.numpy()[0]) <= self.chunk:  # every tile is one chunk: the one walk, the same bits
-            self._launch(kernels.composite, tiles * pixels, inputs, [image])
+            self._launch(kernels.composite, tiles * pixels, inputs, [image], rows_per_chunk(tiles * pixels, count))
             return
         e_xy, e_co, e_rgb, e_box, e_faint = inputs[:5]
         background, view = inputs[-3:-1]

@@ -22,7 +22,9 @@ from dataclasses import dataclass
 import warp as wp
 
 from ..eval.cameras import Camera
-from ..eval.render import INDEX_LIMIT, ONE_WALK, _Rasteriser, camera_params, entry_memory, tile_count
+from ..eval.render import (
+    EMIT_ROWS, GATHER_ROWS, INDEX_LIMIT, ONE_WALK, _Rasteriser, camera_params, entry_memory, rows_per_chunk, tile_count,
+)
 from ..kernels import render as kernels
 from ..kernels import render_grad as grad_kernels
 from ..parallel import launch_rows_from
@@ -162,6 +164,7 @@ class GradRasteriser(_Rasteriser):
                 views * n,
                 [self.depth, self.rect, self.touched, self.ends, tiles_x, n, view_tiles],
                 [self.keys, self.values],
+                EMIT_ROWS,
             )
             self._rows(grad_kernels.number_slots, count, [self.values, self.slot_splat], 16384)
             wp.utils.radix_sort_pairs(self.keys, self.values, count, 0, 32 + max(1, int(tiles - 1).bit_length()))
@@ -173,6 +176,7 @@ class GradRasteriser(_Rasteriser):
                 count,
                 [self.keys, self.entry_splat, count, self.xy, self.conic_opacity, self.rgb, self.box, self.faint],
                 [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint, self.tile_start, self.tile_end],
+                GATHER_ROWS,
             )
             entries = [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint]
         else:
@@ -180,9 +184,10 @@ class GradRasteriser(_Rasteriser):
         inputs = [*entries, self.tile_start, self.tile_end]
         inputs += [image.shape[2], image.shape[1], tiles_x, background, 0, view_tiles]
         if self.method == "tiles":
-            self._composite_tiles(tiles, inputs, ONE_WALK, image)  # the backward replays one walk
+            self._composite_tiles(tiles, count, inputs, ONE_WALK, image)  # the backward replays one walk
         else:
-            self._launch(kernels.composite, tiles * kernels.TILE_PIXELS, inputs, [image])
+            pixels = tiles * kernels.TILE_PIXELS
+            self._launch(kernels.composite, pixels, inputs, [image], rows_per_chunk(pixels, count))
         self.count, self.tiles, self.tiles_x, self.view_tiles = count, tiles, tiles_x, view_tiles
 
     def backward(self, image: wp.array, grad_image: wp.array, grads: SplatGradients) -> None:
@@ -204,9 +209,11 @@ class GradRasteriser(_Rasteriser):
                   self.bw_done]  # fmt: skip
         if not (self.per_pixel and self._pixel_terms(image, grad_image, per_entry)):
             if self.lanes_in_turn:
-                self._rows(grad_kernels.composite_backward_lanes_in_turn, self.tiles, [*inputs, *per_entry], 1)
+                tiles = self.tiles
+                self._rows(grad_kernels.composite_backward_lanes_in_turn, tiles, [*inputs, *per_entry], rows_per_chunk(tiles, self.count))
             else:
-                self._rows(grad_kernels.composite_backward, self.tiles * self.lanes, [*inputs, *per_lane], 8)
+                lanes = self.tiles * self.lanes
+                self._rows(grad_kernels.composite_backward, lanes, [*inputs, *per_lane], max(8, rows_per_chunk(lanes, self.count)))
             if self.lane_buffers:
                 self._rows(grad_kernels.sum_lanes, self.count, [self.lanes, *per_lane, *per_entry], 16384)
         self._splat_backward(grads)
@@ -245,7 +252,7 @@ class GradRasteriser(_Rasteriser):
             pixels,
             [self.e_xy, self.e_conic_opacity, self.e_rgb, self.e_box, self.e_faint, self.tile_start, self.tile_end,
              self.cams, self.tiles_x, self.view_tiles, image, grad_image, self.slot_ends, *terms, self.stops],
-            2048,
+            max(2048, rows_per_chunk(pixels, count)),
         )  # fmt: skip
         self._rows(grad_kernels.sum_pixels, count, [*where, self.slot_ends, *terms, self.stops, *per_entry], 16384)
         return True
