@@ -193,7 +193,12 @@ def test_a_small_view_is_not_cut_into_chunks_of_almost_no_work(rng, monkeypatch)
     splats = SplatSet.from_numpy(**random_scene(rng, 300, 3, camera.centre), device="cpu")
     chunked = []
     in_turn = render_module.in_turn
-    monkeypatch.setattr(render_module, "in_turn", lambda workers, items, work: (chunked.append(len(items)), in_turn(workers, items, work)))
+
+    def counting_in_turn(workers, items, work):
+        chunked.append(len(items))
+        in_turn(workers, items, work)
+
+    monkeypatch.setattr(render_module, "in_turn", counting_in_turn)
     images = []
     for lowered in (False, True):
         if lowered:

@@ -31,7 +31,6 @@ from ..parallel import launch_rows_from
 from ..splats import SplatSet
 from .cameras import VALIDATION_STREAM, sampled_means, scene_spread, training_cameras
 from .config import RefineConfig
-from ..kernels.image_loss import LossView
 from .image_loss import MIN_PIXELS_TO_SPLIT, ImageLoss, loss_view
 from .render_grad import GradRasteriser, SplatGradients, camera_array
 
@@ -266,7 +265,7 @@ class _Refiner:
         image, grad_image, loss = self.buffers(cameras)
         self.rasteriser.forward(cameras, wp.vec3(0.0, 0.0, 0.0), image, params)
         if specs is None:
-            specs = wp.array(self.loss_views(cameras, chosen, weight), dtype=LossView, device=self.device)
+            specs = wp.array(self.loss_views(cameras, chosen, weight), dtype=image_kernels.LossView, device=self.device)
         loss.of_views(image, targets, grad_image, specs)
         return image, grad_image, loss
 
@@ -360,7 +359,7 @@ def refine_with_report(
         schedule.append((chosen, [step_cameras[k] for k in chosen]))
     step_params = camera_array([c for _, step_cameras in schedule for c in step_cameras], device)
     step_specs = wp.array([spec for chosen, step_cameras in schedule for spec in refiner.loss_views(step_cameras, chosen, weight)],
-                          dtype=LossView, device=device)  # fmt: skip
+                          dtype=image_kernels.LossView, device=device)  # fmt: skip
     sync = (lambda: wp.synchronize_device(device)) if timing else (lambda: None)
     for step, (chosen, step_cameras) in enumerate(schedule):
         refiner.grads.zero_()

@@ -210,10 +210,12 @@ class GradRasteriser(_Rasteriser):
         if not (self.per_pixel and self._pixel_terms(image, grad_image, per_entry)):
             if self.lanes_in_turn:
                 tiles = self.tiles
-                self._rows(grad_kernels.composite_backward_lanes_in_turn, tiles, [*inputs, *per_entry], rows_per_chunk(tiles, self.count))
+                per_chunk = rows_per_chunk(tiles, self.count)
+                self._rows(grad_kernels.composite_backward_lanes_in_turn, tiles, [*inputs, *per_entry], per_chunk)
             else:
                 lanes = self.tiles * self.lanes
-                self._rows(grad_kernels.composite_backward, lanes, [*inputs, *per_lane], max(8, rows_per_chunk(lanes, self.count)))
+                per_chunk = max(8, rows_per_chunk(lanes, self.count))
+                self._rows(grad_kernels.composite_backward, lanes, [*inputs, *per_lane], per_chunk)
             if self.lane_buffers:
                 self._rows(grad_kernels.sum_lanes, self.count, [self.lanes, *per_lane, *per_entry], 16384)
         self._splat_backward(grads)
