@@ -2,10 +2,12 @@
 
 import threading
 
+import numpy as np
 import pytest
+import warp as wp
 
 from nanogs_warp import parallel
-from nanogs_warp.parallel import in_turn
+from nanogs_warp.parallel import chunk_launches, in_turn, launch_chunks_in_turn
 
 
 @pytest.mark.parametrize("workers", [1, 2, 3])
@@ -79,3 +81,26 @@ def test_row_chunks_cover_the_rows_in_chunks_of_at_least_min_rows(monkeypatch, c
     assert chunks[0][0] == 0 and chunks[-1][1] == rows
     assert all(a[1] == b[0] for a, b in zip(chunks, chunks[1:]))
     assert len(chunks) == 1 or min(b - a for a, b in chunks) >= min_rows
+
+
+@wp.kernel
+def _scaled_rows(scale: float, first: int, values: wp.array(dtype=float), out: wp.array(dtype=float), firsts: wp.array(dtype=int)):
+    r = first + wp.tid()
+    out[r] = scale * values[r]
+    firsts[r] = first
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_chunk_launches_run_each_chunk_with_its_own_first_row_and_size(rng, workers):
+    """Chunks of two sizes (copies of a packed command, the first row set alone) and of a third
+    size (packed again), the first row in the middle of the arguments: every row written once, by
+    its own chunk, as one launch would write it."""
+    chunks = [(0, 3), (3, 7), (7, 10), (10, 14), (14, 19), (19, 22)]
+    values = wp.array(rng.normal(size=22).astype(np.float32), dtype=float, device="cpu")
+    out = wp.full(22, float("nan"), dtype=float, device="cpu")
+    firsts = wp.full(22, -1, dtype=int, device="cpu")
+    commands = chunk_launches(_scaled_rows, chunks, [2.5, 0, values, out, firsts], 1, "cpu")
+    assert len(commands) == len(chunks)
+    launch_chunks_in_turn(workers, commands)
+    np.testing.assert_array_equal(out.numpy(), np.float32(2.5) * values.numpy())
+    np.testing.assert_array_equal(firsts.numpy(), np.repeat([a for a, _ in chunks], [b - a for a, b in chunks]))

@@ -192,13 +192,13 @@ def test_a_small_view_is_not_cut_into_chunks_of_almost_no_work(rng, monkeypatch)
     camera = random_camera(rng, 64, 48)
     splats = SplatSet.from_numpy(**random_scene(rng, 300, 3, camera.centre), device="cpu")
     chunked = []
-    in_turn = render_module.in_turn
+    launch_in_turn = render_module.launch_chunks_in_turn
 
-    def counting_in_turn(workers, items, work):
-        chunked.append(len(items))
-        in_turn(workers, items, work)
+    def counting_launches(workers, commands):
+        chunked.append(len(commands))
+        launch_in_turn(workers, commands)
 
-    monkeypatch.setattr(render_module, "in_turn", counting_in_turn)
+    monkeypatch.setattr(render_module, "launch_chunks_in_turn", counting_launches)
     images = []
     for lowered in (False, True):
         if lowered:

@@ -23,7 +23,7 @@ import warp as wp
 from ..device import device_memory
 from ..errors import InputError
 from ..kernels import render as kernels
-from ..parallel import cpu_workers, in_turn
+from ..parallel import chunk_launches, cpu_workers, launch_chunks_in_turn
 from ..splats import SplatSet
 from .cameras import Camera
 
@@ -166,13 +166,9 @@ class _Rasteriser:
             wp.launch(kernel, dim, inputs=[*inputs_before, 0, *inputs_after], device=self.device)
             return
         bounds = np.linspace(0, dim, chunks + 1).astype(int)
-
-        def run(k):
-            lo, hi = int(bounds[k]), int(bounds[k + 1])
-            if hi > lo:
-                wp.launch(kernel, hi - lo, inputs=[*inputs_before, lo, *inputs_after], device=self.device)
-
-        in_turn(min(self.workers, chunks), range(chunks), run)
+        ranges = [(int(lo), int(hi)) for lo, hi in zip(bounds, bounds[1:]) if hi > lo]
+        inputs = [*inputs_before, 0, *inputs_after]
+        launch_chunks_in_turn(min(self.workers, chunks), chunk_launches(kernel, ranges, inputs, len(inputs_before), self.device))
 
     def _project(self, p, tiles: int, kernel=kernels.project, rows: int | None = None, views: str | None = None) -> int:
         """Clears (or makes) the per-tile entry ranges for ``tiles`` tiles and projects every splat
