@@ -119,7 +119,10 @@ def chunk_launches(kernel, chunks: Sequence[tuple[int, int]], inputs: list, firs
     sizes) and each chunk's command copies them, its first index packed alone. Packing is most of
     ``wp.launch``'s time on a CPU (about 30 us for a few arrays, against 3 us for a recorded
     command's launch) and it holds the GIL: with 16 cores the chunks of one launch queued for it,
-    and launches split 16 ways ran slower than split 8 ways."""
+    and launches split 16 ways ran slower than split 8 ways. CPU launches only: a CUDA command also
+    holds its parameters' addresses, which a copy would not update (a GPU launch is never split)."""
+    if not wp.get_device(device).is_cpu:
+        raise ValueError(f"chunk_launches splits CPU launches, not {device}'s")
     packed: dict[int, wp.Launch] = {}
     commands = []
     for first, stop in chunks:

@@ -92,9 +92,9 @@ def _scaled_rows(scale: float, first: int, values: wp.array(dtype=float), out: w
 
 @pytest.mark.parametrize("workers", [1, 3])
 def test_chunk_launches_run_each_chunk_with_its_own_first_row_and_size(rng, workers):
-    """Chunks of two sizes (copies of a packed command, the first row set alone) and of a third
-    size (packed again), the first row in the middle of the arguments: every row written once, by
-    its own chunk, as one launch would write it."""
+    """Chunks of three sizes (the first of each size packed, the others copies of it with their
+    own first row), the first row in the middle of the arguments: every row written once, by its
+    own chunk, as one launch would write it."""
     chunks = [(0, 3), (3, 7), (7, 10), (10, 14), (14, 19), (19, 22)]
     values = wp.array(rng.normal(size=22).astype(np.float32), dtype=float, device="cpu")
     out = wp.full(22, float("nan"), dtype=float, device="cpu")
