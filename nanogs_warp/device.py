@@ -11,9 +11,10 @@ import time
 
 from .errors import InputError, debugging
 
-# Warp's native library prints this when a machine has no NVIDIA driver; on such a machine "no GPU"
-# is the expected state, and --device cuda reports it as an error of its own.
-_NO_DRIVER_NOTICE = "Could not find or load the NVIDIA CUDA driver"
+# Warp's native library prints these when a machine has no NVIDIA driver, or a driver and no GPU it
+# may use (a container without one, CUDA_VISIBLE_DEVICES empty: "CUDA error 100"); there "no GPU" is
+# the expected state, and --device cuda reports it as an error of its own.
+_NO_GPU_NOTICES = ("Could not find or load the NVIDIA CUDA driver", "no CUDA-capable device is detected")
 
 
 def available_host_memory() -> int | None:
@@ -63,7 +64,8 @@ def quiet_warp() -> None:
 
 def init_warp() -> None:
     """Initialises Warp once, quietly (NANOGS_DEBUG=1: with Warp's own messages): the expected
-    no-driver notice is dropped, anything else Warp's native code prints is passed on to stderr.
+    notices that no GPU is there are dropped, anything else Warp's native code prints is passed on
+    to stderr (``start_up_messages``).
     The kernel cache is $NANOGS_WARP_CACHE when set and no directory was chosen before."""
     import warp as wp
 
@@ -84,9 +86,15 @@ def init_warp() -> None:
             os.dup2(saved, 2)
             os.close(saved)
         captured.seek(0)
-        for line in captured.read().decode(errors="replace").splitlines():
-            if _NO_DRIVER_NOTICE not in line and line.strip() and sys.stderr is not None:
+        for line in start_up_messages(captured.read().decode(errors="replace")):
+            if sys.stderr is not None:
                 print(line, file=sys.stderr)
+
+
+def start_up_messages(output: str) -> list[str]:
+    """The lines of what Warp's native code printed while starting that a user should see: all but
+    the blank ones and the notices that no GPU is there (``_NO_GPU_NOTICES``)."""
+    return [line for line in output.splitlines() if line.strip() and not any(notice in line for notice in _NO_GPU_NOTICES)]
 
 
 def keep_freed_host_memory() -> bool:

@@ -356,6 +356,18 @@ def test_what_the_machine_lacks_is_said_in_words(scene, tmp_path):
     assert done.stderr == "nanogs-warp: error: the working folder no longer exists: run the command from one that does\n"
 
 
+def test_only_the_notices_that_no_gpu_is_there_are_dropped_from_warps_start():
+    from nanogs_warp.device import start_up_messages
+
+    output = (
+        "Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU execution will not be available.\n\n"
+        "Warp CUDA error 100: no CUDA-capable device is detected (in function init_cuda_driver, cuda_util.cpp:333)\n"
+        "Warp CUDA error 2: out of memory (in function alloc_device, warp.cu:1)\n  \n"
+        "Warp: something else\n"
+    )
+    assert start_up_messages(output) == ["Warp CUDA error 2: out of memory (in function alloc_device, warp.cu:1)", "Warp: something else"]
+
+
 def test_warp_starts_where_no_temporary_file_can_be_made(monkeypatch):
     import tempfile
 
