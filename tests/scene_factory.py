@@ -129,3 +129,13 @@ def write_splats_ply(
     out["extras"] = np.stack(floats, axis=1) if floats else np.zeros((n, 0), np.float32)
     out["integer_extras"] = np.stack(integers, axis=1) if integers else np.zeros((n, 0), np.int64)
     return out
+
+
+def write_2dgs_copy(src, dst, byte_order: str = "<", text: bool = False) -> None:
+    """``src`` (a 3DGS PLY) written again without scale_2, as 2D Gaussian splatting stores its surfels."""
+    data = plyfile.PlyData.read(str(src))["vertex"].data
+    names = [n for n in data.dtype.names if n != "scale_2"]
+    rows = np.empty(len(data), [(n, data.dtype[n]) for n in names])
+    for n in names:
+        rows[n] = data[n]
+    plyfile.PlyData([plyfile.PlyElement.describe(rows, "vertex")], text=text, byte_order=byte_order).write(str(dst))

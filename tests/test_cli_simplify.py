@@ -6,7 +6,12 @@ import re
 from pathlib import Path
 
 import pytest
-from scene_factory import random_splats_ply
+from scene_factory import (
+    random_splat_arrays,
+    random_splats_ply,
+    write_2dgs_copy,
+    write_splats_ply,
+)
 from typer.testing import CliRunner
 
 from nanogs_warp.cli.app import app
@@ -194,3 +199,21 @@ def test_several_budgets_to_a_name_without_an_extension_take_the_formats(tmp_pat
     result = run("simplify", scene, "-o", tmp_path / "x", "--format", "sog", "--ratio", "0.5,0.1", "--device", "cpu")
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.ply", "x_0.1.sog", "x_0.5.sog"]
+
+
+def test_a_2dgs_input_simplifies_as_its_flat_3dgs_twin(tmp_path):
+    """A PLY of 2DGS surfels (no scale_2) gives the outputs, byte for byte, of the same splats with
+    scale_2 at the flat log-scale: 3DGS files; the command says once how it read them."""
+    arrays = random_splat_arrays(600, sh_degree=1, seed=11)
+    arrays["log_scales"][:, 2] = -30.0  # ply_header.FLAT_LOG_SCALE
+    write_splats_ply(tmp_path / "flat.ply", arrays)
+    write_2dgs_copy(tmp_path / "flat.ply", tmp_path / "surfels.ply")
+    budgets = ("--ratio", "0.1,0.01", "--device", "cpu")
+    flat = run("simplify", tmp_path / "flat.ply", "-o", f"{tmp_path}/a/", *budgets)
+    surfels = run("simplify", tmp_path / "surfels.ply", "-o", f"{tmp_path}/b/", *budgets)
+    assert flat.exit_code == 0 and surfels.exit_code == 0, surfels.output
+    note = ("surfels.ply: 2DGS surfels (scale_0 and scale_1, no scale_2) read as flat 3DGS splats (log-scale -30 on "
+            "the third axis), and written as 3DGS")  # fmt: skip
+    assert surfels.stderr.count(note) == 1 and "2DGS" not in flat.stderr
+    for budget in ("0.1", "0.01"):
+        assert (tmp_path / "b" / f"surfels_{budget}.ply").read_bytes() == (tmp_path / "a" / f"flat_{budget}.ply").read_bytes()

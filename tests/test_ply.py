@@ -11,7 +11,12 @@ from importlib import resources
 import numpy as np
 import plyfile
 import pytest
-from scene_factory import random_splat_arrays, random_splats_ply, write_splats_ply
+from scene_factory import (
+    random_splat_arrays,
+    random_splats_ply,
+    write_2dgs_copy,
+    write_splats_ply,
+)
 
 from nanogs_warp.cli.info import format_info
 from nanogs_warp.errors import InputError
@@ -108,6 +113,51 @@ def test_layout_describes_file(tmp_path):
     assert layout.extra_names == ["nx", "ny", "nz", "red", "foo"]
     features = [n for n, _ in layout.properties if n.startswith("f_")]
     assert features == ["f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(9)]
+
+
+@pytest.mark.parametrize(
+    "options", [dict(), dict(byte_order=">"), dict(text=True), dict(dtype="f8")], ids=["le", "be", "ascii", "float64"]
+)
+def test_a_2dgs_file_reads_as_flat_splats_and_writes_as_3dgs(tmp_path, options):
+    full, surfels, out = tmp_path / "3dgs.ply", tmp_path / "2dgs.ply", tmp_path / "out.ply"
+    want = random_splats_ply(full, 40, sh_degree=1, seed=8, **options)
+    write_2dgs_copy(full, surfels, options.get("byte_order", "<"), options.get("text", False))
+    notes = []
+    splats = load_ply(surfels, on_drop=notes.append)
+    want["log_scales"][:, 2] = -30.0  # ply_header.FLAT_LOG_SCALE
+    assert_bitwise_equal(splats.to_numpy(), want)
+    assert splats.layout.surfels and "scale_2" not in dict(splats.layout.properties)
+    assert notes == ["2dgs.ply: 2DGS surfels (scale_0 and scale_1, no scale_2) read as flat 3DGS splats "
+                     "(log-scale -30 on the third axis), and written as 3DGS"]  # fmt: skip
+    save_ply(splats, out)
+    assert vertex_names(out) == vertex_names(full)  # scale_2 after scale_1, of scale_1's type
+    assert dict(load_ply(out).layout.properties) == dict(load_ply(full).layout.properties)
+    again = load_ply(out)
+    assert not again.layout.surfels
+    assert_bitwise_equal(again.to_numpy(), want)
+
+
+def test_a_2dgs_file_in_info(tmp_path):
+    full, surfels = tmp_path / "3dgs.ply", tmp_path / "2dgs.ply"
+    want = random_splats_ply(full, 30, seed=9)
+    write_2dgs_copy(full, surfels)
+    assert scene_info(full)["model"] == "3DGS" and "model" not in format_info(scene_info(full))
+    info = scene_info(surfels)
+    assert info["model"] == "2DGS"
+    assert [p["name"] for p in info["properties"]] == vertex_names(surfels)
+    two_axes = np.exp(want["log_scales"][:, :2].astype(np.float64))  # the file's axes, not the load's third
+    assert info["scale"]["min"] == two_axes.min() and info["scale"]["max"] == two_axes.max()
+    assert "model       2DGS (no scale_2): read as flat 3DGS splats, written as 3DGS" in format_info(info)
+
+
+@pytest.mark.parametrize(("removed", "missing"), [(("scale_1", "scale_2"), "scale_1, scale_2"), (("scale_0",), "scale_0")])
+def test_scales_missing_otherwise_than_a_2dgs_file(tmp_path, removed, missing):
+    path = tmp_path / "s.ply"
+    random_splats_ply(path, 5, seed=10)
+    for name in removed:
+        edit_header(path, f"property float {name}\n".encode(), b"")
+    with pytest.raises(InputError, match=f"^s.ply: not a 3DGS splat file: missing vertex properties {missing}$"):
+        load_ply(path)
 
 
 def test_extras_other_elements_and_comments_survive(tmp_path):

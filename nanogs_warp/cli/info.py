@@ -41,6 +41,8 @@ def format_info(info: dict) -> str:
     lines.append(f"properties  {len(props)}: " + " ".join(_compress_names(props)))
     if info["extra_properties"]:
         lines.append(f"extras      {', '.join(info['extra_properties'])}")
+    if info["model"] == "2DGS":
+        lines.append("model       2DGS (no scale_2): read as flat 3DGS splats, written as 3DGS")
     box = info["bbox"]
     if box["min"] is not None:
         lines.append(f"bbox min    {_vec(box['min'])}")

@@ -29,6 +29,7 @@ from ..errors import InputError
 from .open_file import open_regular
 from .ply_header import (
     DC_NAMES,
+    FLAT_LOG_SCALE,
     MAX_HEADER_BYTES,
     MEAN_NAMES,
     OPACITY_NAMES,
@@ -41,6 +42,7 @@ from .ply_header import (
     check_agreement,
     check_sizes,
     check_structure,
+    has_surfels,
     natural,
     one_line,
     parse_header,
@@ -94,6 +96,9 @@ def read_splats(path, drop_invalid: bool = False, digest=None, on_drop=None, fil
     if data.trailing_bytes and on_drop is not None:
         on_drop(f"{name}: {data.trailing_bytes:,} bytes after the data its header declares were ignored (is its vertex "
                 "count smaller than the data's?)")  # fmt: skip
+    if data.layout.surfels and on_drop is not None:
+        on_drop(f"{name}: 2DGS surfels (scale_0 and scale_1, no scale_2) read as flat 3DGS splats (log-scale "
+                f"{FLAT_LOG_SCALE:g} on the third axis), and written as 3DGS")  # fmt: skip
     if check is not None and not check.suspect:  # every value checked block by block: valid
         if check.infinite_opacity:
             a["opacities"] = saturate_opacity_logits(a["opacities"])
@@ -364,10 +369,11 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
         direct = (offset is not None and data.flags.c_contiguous
                   and os.pread(f.fileno(), itemsize, offset) == data[:1].view(np.uint8).tobytes())  # fmt: skip
     quats = ("quats_xyzw", ROT_NAMES[1:] + ROT_NAMES[:1]) if direct and prepare else ("rotations", ROT_NAMES)
+    surfels = has_surfels(names)
     groups = {
         "means": MEAN_NAMES,
         quats[0]: quats[1],
-        "log_scales": SCALE_NAMES,
+        "log_scales": SCALE_NAMES[:2] if surfels else SCALE_NAMES,
         "opacities": OPACITY_NAMES,
         "features": DC_NAMES + tuple(f"f_rest_{i}" for i in range(n_rest)),
         "extras": tuple(p for p in extra_names if p not in integer_set),
@@ -375,6 +381,8 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
     }
     arrays = {key: np.empty((n, len(group)), np.int64 if key == "integer_extras" else np.float32)
               for key, group in groups.items()}  # fmt: skip
+    if surfels:  # a 2DGS file: its splats flat, the third axis's column filled before the rows are read
+        arrays["log_scales"] = np.full((n, 3), FLAT_LOG_SCALE, np.float32)
     columns = {key: Columns(arrays[key], _runs(fields, group)) for key, group in groups.items()}
     threads = read_threads(file_bytes, threads)
     check = None
@@ -409,6 +417,7 @@ def _extract(header: Header, vertex_h: Element, ply: plyfile.PlyData, path: Path
         other_elements=others,
         comments=list(ply.comments),
         obj_info=list(ply.obj_info),
+        surfels=surfels,
     )
     return PlyArrays(arrays, layout, header.format, file_bytes, check, trailing_bytes(header, file_bytes))
 

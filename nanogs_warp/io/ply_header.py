@@ -22,6 +22,11 @@ OPACITY_NAMES = ("opacity",)
 SCALE_NAMES = ("scale_0", "scale_1", "scale_2")
 ROT_NAMES = ("rot_0", "rot_1", "rot_2", "rot_3")  # w, x, y, z
 REQUIRED_NAMES = MEAN_NAMES + DC_NAMES + OPACITY_NAMES + SCALE_NAMES + ROT_NAMES
+# 2D Gaussian splatting (2DGS) stores flat splats, surfels, with scale_0 and scale_1 only. Such a file
+# is read with this log-scale on the third axis: e^-30 (about 1e-13) of a scene unit, flat in any
+# unit a scene is stored in, inside the numeric domain (``nanogs_warp.domain``), and its square
+# (about 1e-26) still a normal float32 in a covariance.
+FLAT_LOG_SCALE = -30.0
 REST_COUNTS = {0: 0, 9: 1, 24: 2, 45: 3}  # f_rest_* count -> SH degree
 NORMAL_NAMES = ("nx", "ny", "nz")
 
@@ -148,6 +153,11 @@ def parse_header(head: bytes, name: str) -> Header:
     return Header(fmt, elements, m.end())
 
 
+def has_surfels(names) -> bool:
+    """Whether vertex properties ``names`` are a 2DGS file's: scale_0 and scale_1 without scale_2."""
+    return "scale_0" in names and "scale_1" in names and "scale_2" not in names
+
+
 def check_structure(header: Header, name: str) -> Element:
     vertex = header.element("vertex")
     if vertex is None:
@@ -159,7 +169,7 @@ def check_structure(header: Header, name: str) -> Element:
     if lists:
         raise InputError(f"{name}: vertex list properties are not supported ({', '.join(lists)})")
     props = {p.name: p for p in vertex.props}
-    missing = [n for n in REQUIRED_NAMES if n not in props]
+    missing = [n for n in REQUIRED_NAMES if n not in props and not (n == "scale_2" and has_surfels(props))]
     if missing:
         raise InputError(f"{name}: not a 3DGS splat file: missing vertex properties {', '.join(missing)}")
     rest = [p.name for p in vertex.props if p.name.startswith("f_rest_")]
@@ -176,7 +186,7 @@ def check_structure(header: Header, name: str) -> Element:
             f"(missing {', '.join(gone)}; unexpected {', '.join(odd)})"
         )
     not_float = [f"{n} ({props[n].type_name})" for n in REQUIRED_NAMES + tuple(sorted(expected, key=natural))
-                 if props[n].dtype.kind != "f"]
+                 if n in props and props[n].dtype.kind != "f"]
     if not_float:
         raise InputError(f"{name}: 3DGS properties must be float or double: {', '.join(not_float)}")
     return vertex

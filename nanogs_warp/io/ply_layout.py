@@ -22,7 +22,9 @@ class PlyLayout:
     through a simplification in this order: the floating-point ones (:attr:`float_extra_names`) as
     ``SplatSet.extras`` columns, the integer ones (:attr:`integer_extra_names`) exactly as
     ``SplatSet.integer_extras`` columns. ``other_elements``, ``comments`` and ``obj_info`` are
-    kept verbatim from the input file.
+    kept verbatim from the input file. ``surfels``: the file is a 2DGS one, without ``scale_2``
+    (read as ``FLAT_LOG_SCALE``, :mod:`.ply_header`); an output of it is a 3DGS file, with ``scale_2``
+    after ``scale_1``.
     """
 
     properties: list[tuple[str, str]]
@@ -30,6 +32,7 @@ class PlyLayout:
     other_elements: list = field(default_factory=list)
     comments: list[str] = field(default_factory=list)
     obj_info: list[str] = field(default_factory=list)
+    surfels: bool = False
 
     def extra_dtype(self, name: str) -> np.dtype:
         return np.dtype(dict(self.properties).get(name, "f4"))

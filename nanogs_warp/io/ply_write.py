@@ -64,6 +64,10 @@ def output_properties(
         props = [p for i, p in enumerate(props) if i not in set(old_rest)]
         props[at:at] = [(n, dtype) for n in rest]
     names = {n for n, _ in props}
+    if layout.surfels and "scale_2" not in names:  # a 2DGS file's layout: written as 3DGS
+        at = next(i for i, (n, _) in enumerate(props) if n == "scale_1")
+        props.insert(at + 1, ("scale_2", props[at][1]))
+        names.add("scale_2")
     missing = [n for n in REQUIRED_NAMES + tuple(layout.extra_names) if n not in names]
     if missing:
         raise ValueError(f"layout lacks properties {missing}")

@@ -16,9 +16,11 @@ def scene_info(path) -> dict:
 
     Keys: ``file``, ``file_bytes``, ``trailing_bytes`` (of a binary PLY after the data its header
     declares, which a load ignores), ``format``, ``count``, ``sh_degree``, ``properties`` (list of
-    ``{"name", "dtype"}`` in file order), ``extra_properties``, ``bbox`` (``min``/``max`` xyz over
-    rows with finite means), ``opacity`` (sigmoid of the logits: min, median, mean, max),
-    ``scale`` (exp of the log scales over all three axes: min, median, max), ``nonfinite``
+    ``{"name", "dtype"}`` in file order), ``extra_properties``, ``model`` (``3DGS``, or ``2DGS`` for
+    a PLY of surfels without ``scale_2``, which a load reads as flat 3DGS splats), ``bbox``
+    (``min``/``max`` xyz over rows with finite means), ``opacity`` (sigmoid of the logits: min,
+    median, mean, max), ``scale`` (exp of the log scales over the file's axes, three or a 2DGS
+    file's two: min, median, max), ``nonfinite``
     (property -> rows with NaN/Inf, extras included, only non-zero counts), ``nonfinite_rows``
     (rows with NaN/Inf in any property, which a load rejects), ``infinite_opacity``
     (``{"+inf": rows, "-inf": rows}``: opacity logits of alpha 1 and 0, valid), ``zero_norm_quaternions``,
@@ -39,7 +41,8 @@ def scene_info(path) -> dict:
         logits = a["opacities"].reshape(-1).astype(np.float64)
         logits = logits[~np.isnan(logits)]  # +-Inf count: alpha 1 and 0
         opacity = np.exp(-np.logaddexp(0.0, -logits))  # sigmoid without overflow
-        scales = np.exp(_finite(a["log_scales"]).astype(np.float64))
+        axes = 2 if layout.surfels else 3  # a 2DGS file's third axis is the load's, not the file's
+        scales = np.exp(_finite(a["log_scales"][:, :axes]).astype(np.float64))
     return {
         "file": Path(path).name,
         "file_bytes": data.file_bytes,
@@ -49,6 +52,7 @@ def scene_info(path) -> dict:
         "sh_degree": sh_degree_for_rest_count(a["features"].shape[1] - 3),
         "properties": [{"name": n, "dtype": t} for n, t in layout.properties],
         "extra_properties": list(layout.extra_names),
+        "model": "2DGS" if layout.surfels else "3DGS",
         "bbox": {
             "min": _floats(finite_means.min(axis=0)) if len(finite_means) else None,
             "max": _floats(finite_means.max(axis=0)) if len(finite_means) else None,
