@@ -701,6 +701,24 @@ def test_bytes_after_the_declared_data_are_said(tmp_path):
     assert scene_info(path)["trailing_bytes"] == 100 and "100 bytes after the declared data" in format_info(scene_info(path))
 
 
+def test_a_refused_file_gets_its_error_and_no_note(tmp_path):
+    """What a load says about a file it reads (bytes after the declared data, 2DGS surfels) is said
+    only once its values have passed: a refused file gets its one error line, nothing before it."""
+    full, surfels = tmp_path / "3dgs.ply", tmp_path / "2dgs.ply"
+    arrays = random_splat_arrays(40, seed=13)
+    arrays["means"][3, 1] = np.nan
+    write_splats_ply(full, arrays)
+    write_2dgs_copy(full, surfels)
+    with open(surfels, "ab") as f:
+        f.write(b"\0" * 64)
+    notes = []
+    with pytest.raises(InputError, match=r"^2dgs.ply: 1 of 40 splats are invalid \(1 with NaN/Inf values in y\)"):
+        load_ply(surfels, on_drop=notes.append)
+    assert notes == []
+    assert load_ply(surfels, drop_invalid=True, on_drop=notes.append).count == 39
+    assert [n.split(": ", 1)[1][:12] for n in notes] == ["dropped 1 of", "64 bytes aft", "2DGS surfels"]
+
+
 def test_a_control_character_in_the_header_is_one_line(tmp_path):
     """A NUL (or another control character) in a property name is refused, not carried into the
     output's header; tabs between words are fine."""

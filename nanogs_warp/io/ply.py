@@ -93,21 +93,26 @@ def read_splats(path, drop_invalid: bool = False, digest=None, on_drop=None, fil
     name = Path(path).name
     data = _read(path, digest, file_hash, threads, prepare=True, upload=upload)
     a, check = data.arrays, data.check
+    notes = []  # said once the values have passed: a file refused gets its one error line alone
     if data.trailing_bytes and on_drop is not None:
-        on_drop(f"{name}: {data.trailing_bytes:,} bytes after the data its header declares were ignored (is its vertex "
-                "count smaller than the data's?)")  # fmt: skip
+        notes.append(f"{name}: {data.trailing_bytes:,} bytes after the data its header declares were ignored (is its "
+                     "vertex count smaller than the data's?)")  # fmt: skip
     if data.layout.surfels and on_drop is not None:
-        on_drop(f"{name}: 2DGS surfels (scale_0 and scale_1, no scale_2) read as flat 3DGS splats (log-scale "
-                f"{FLAT_LOG_SCALE:g} on the third axis), and written as 3DGS")  # fmt: skip
+        notes.append(f"{name}: 2DGS surfels (scale_0 and scale_1, no scale_2) read as flat 3DGS splats (log-scale "
+                     f"{FLAT_LOG_SCALE:g} on the third axis), and written as 3DGS")  # fmt: skip
     if check is not None and not check.suspect:  # every value checked block by block: valid
         if check.infinite_opacity:
             a["opacities"] = saturate_opacity_logits(a["opacities"])
+        for line in notes:
+            on_drop(line)
         return a, data.layout
     if "quats_xyzw" in a:  # a value to look at row by row: the exact checks, as for any file
         a["rotations"] = a.pop("quats_xyzw")[:, [3, 0, 1, 2]]
     count = a["means"].shape[0]
     wide = [n for n, t in data.layout.properties if np.dtype(t) == np.float64]
     a = checked_rows(a, name, drop_invalid, on_drop, data.layout.float_extra_names, wide)
+    for line in notes:
+        on_drop(line)
     a["rotations"] = normalize_quaternions(a["rotations"])
     layout = data.layout
     if a["means"].shape[0] != count:  # rows dropped: what indexes them by row goes too
