@@ -52,6 +52,8 @@ def main() -> None:
     parser.add_argument("output")
     args = parser.parse_args()
     ply = plyfile.PlyData.read(args.input)
+    if "scale_2" not in ply["vertex"].data.dtype.names:
+        raise SystemExit(f"{args.input}: no scale_2 (a 2DGS file already?)")
     vertex = plyfile.PlyElement.describe(surfel_rows(ply["vertex"].data), "vertex")
     others = [e for e in ply.elements if e.name != "vertex"]
     plyfile.PlyData([vertex, *others], comments=list(ply.comments)).write(args.output)
