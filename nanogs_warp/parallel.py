@@ -164,5 +164,5 @@ def launch_rows_from(
     if len(chunks) == 1:
         wp.launch(kernel, rows, inputs=[0, *inputs], device=device)
         return
-    wp.load_module(kernel.module, device=device)  # compile once, before the threads race to it
+    # the commands are packed on this thread, which loads (compiles) the module before any pool thread runs
     launch_chunks_in_turn(workers, chunk_launches(kernel, chunks, [0, *inputs], 0, device))

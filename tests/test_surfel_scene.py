@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from reference import covariances
 from scene_factory import random_splat_arrays, write_splats_ply
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "tools"))
@@ -15,17 +16,6 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "tools"))
 from surfel_scene import main as surfel_scene  # noqa: E402
 
 from nanogs_warp.io.ply import load_ply  # noqa: E402
-
-
-def covariances(rotations: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
-    """R diag(s^2) R^T per splat, in float64, from w-first (unit) quaternions."""
-    q = rotations.astype(np.float64)
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    r = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                  np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)  # fmt: skip
-    return np.einsum("nij,nj,nkj->nik", r, np.exp(2 * log_scales.astype(np.float64)), r)
 
 
 def test_the_copy_is_the_scene_without_its_smallest_axes(tmp_path, monkeypatch):
