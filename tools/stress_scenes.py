@@ -3,15 +3,21 @@ of, made deterministically (seeded) so that anyone can rebuild them; nothing is 
 
     python tools/stress_scenes.py OUT_DIR [--scale 1.0]
 
-Writes four INRIA 3DGS PLY files (SH degree 1, sizes and opacities in the ranges of trained scenes:
-log-scales about -7 to -2, opacities from faint to opaque):
+Writes five INRIA 3DGS PLY files (SH degree 1, sizes and opacities in the ranges of trained scenes:
+log-scales about -7 to -2, opacities from faint to opaque; the unbounded scene's distant splats up
+to about one unit, as trainers make a capture's far background):
 
 - ``stress_fur.ply``: thin, overlapping, semi-transparent strands standing on a sphere (fur, hair).
 - ``stress_grass.ply``: a field of thin blades with flowers on a ground of flat splats.
 - ``stress_panels.ply``: flat-coloured opaque panels meeting at sharp edges (signs, walls, boxes).
 - ``stress_backdrop.ply``: a small opaque object in front of a few large, faint background splats.
+- ``stress_unbounded.ply``: an outdoor capture's layout: a textured ground out to the horizon (its
+  splats fewer and larger with distance), a far shell of large opaque splats (sky and a tree line)
+  and a detailed centre (a striped ball and a semi-transparent bush). Up is -y, as ``eval``'s
+  default; ``eval``'s orbit lies between the ground's edge and the shell.
 
-``--scale`` multiplies every splat count (1.0: 60k to 120k splats a scene).
+``--scale`` multiplies every splat count (1.0: 60k to 120k splats a scene). The first four scenes
+are those of the measurements in docs/quality.md before the fifth was added.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ import numpy as np
 
 SH_DEGREE = 1
 SH_C0 = 0.28209479177387814
+R_GROUND = 3.0  # the unbounded scene's ground radius; its far shell lies at 12 to 18
 
 
 def _quat_from_axes(x: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -169,7 +176,47 @@ def backdrop(rng, scale: float) -> dict[str, np.ndarray]:
     return _concat([obj, back])
 
 
-SCENES = {"stress_fur": fur, "stress_grass": grass, "stress_panels": panels, "stress_backdrop": backdrop}
+def unbounded(rng, scale: float) -> dict[str, np.ndarray]:
+    """An outdoor capture's layout, up -y: a ground whose splats grow and thin out with distance (the
+    density of centres falls as 1/r out to R_GROUND), textured at every distance; a far shell of
+    large opaque splats (sky, a tree line at the horizon, ground colour below it); at the centre a
+    striped ball resting on the ground and a semi-transparent bush."""
+    ball = _sphere_shell(rng, int(20000 * scale), 0.3, np.array([0.7, 0.3, 0.2]))
+    ball["means"][:, 1] -= 0.3  # resting on the ground (y = 0, up -y)
+    stripes = (np.floor(ball["means"][:, 1] * 25) % 2).astype(bool)
+    ball["features"][stripes, :3] = (np.array([0.9, 0.85, 0.7]) - 0.5) / SH_C0
+    n_bush = int(15000 * scale)
+    clumps = rng.normal(scale=0.15, size=(40, 3)) + np.array([0.7, -0.3, 0.2])
+    leaves = clumps[rng.integers(0, 40, n_bush)] + rng.normal(scale=0.05, size=(n_bush, 3))
+    green = rng.uniform(0.15, 0.45, (n_bush, 1)) * np.array([0.45, 1.0, 0.35])
+    bush = _splats(leaves, rng.normal(size=(n_bush, 3)), np.log(rng.uniform(0.004, 0.012, (n_bush, 3)) * [1, 1, 0.2]),
+                   rng.uniform(0.3, 0.9, n_bush), np.clip(green, 0, 1), rng)
+    n_ground = int(50000 * scale)
+    r = np.exp(rng.uniform(np.log(0.05), np.log(R_GROUND), n_ground))
+    angle = rng.uniform(0, 2 * np.pi, n_ground)
+    xz = np.stack([r * np.cos(angle), r * np.sin(angle)], 1)
+    size = 0.02 * r + 0.004
+    cell = np.floor(xz / (0.15 * np.maximum(r, 0.3))[:, None]).astype(np.int64)  # patches that grow with r
+    patch = ((cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663)) % 997 / 997.0
+    soil = np.where((patch > 0.6)[:, None], [0.3, 0.45, 0.15], [0.45, 0.35, 0.22]) + rng.normal(scale=0.04, size=(n_ground, 3))
+    ground = _splats(np.stack([xz[:, 0], np.zeros(n_ground), xz[:, 1]], 1), np.tile([0, 1.0, 0], (n_ground, 1)),
+                     np.log(np.stack([size, size, size * 0.1], 1)), rng.uniform(0.8, 0.99, n_ground), np.clip(soil, 0, 1), rng)
+    n_far = int(6000 * scale)
+    d = rng.normal(size=(n_far, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    elevation = -d[:, 1]
+    distance = rng.uniform(12.0, 18.0, n_far)
+    size = distance * np.sqrt(4 * np.pi / n_far) * 0.9
+    sky = np.array([0.45, 0.6, 0.9]) + np.clip(elevation, 0, 1)[:, None] * np.array([0.1, 0.09, 0.02])
+    treeline = (elevation > -0.05) & (elevation < 0.12 + 0.06 * np.sin(7 * np.arctan2(d[:, 2], d[:, 0])))
+    colour = np.where(treeline[:, None], np.array([0.12, 0.22, 0.1]) + rng.normal(scale=0.05, size=(n_far, 3)), sky)
+    colour = np.where((elevation <= -0.05)[:, None], [0.4, 0.33, 0.22], colour)
+    far = _splats(d * distance[:, None], d, np.log(np.stack([size, size, size * 0.3], 1)), rng.uniform(0.85, 0.99, n_far),
+                  np.clip(colour, 0, 1), rng)
+    return _concat([ball, bush, ground, far])
+
+
+SCENES = {"stress_fur": fur, "stress_grass": grass, "stress_panels": panels, "stress_backdrop": backdrop, "stress_unbounded": unbounded}
 
 
 def write_scene(arrays: dict[str, np.ndarray], path: Path) -> None:
