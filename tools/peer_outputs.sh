@@ -15,12 +15,15 @@ python=${PYTHON:-python3}
 mkdir -p "$out"
 for scene in "$scenes"/*.ply; do
   name=$(basename "$scene" .ply)
-  for ratio in ${ratios//,/ }; do
-    # the count nanogs-warp keeps for this ratio (an exact ceil of ratio x N)
-    count=$($python -c "import sys
+  # the counts nanogs-warp keeps for these ratios (exact ceils of ratio x N), the scene read once
+  counts=($($python -c "import sys
 from nanogs_warp.config import target_count
 from nanogs_warp.io import read_splat_arrays
-print(target_count(read_splat_arrays(sys.argv[1]).count, sys.argv[2]))" "$scene" "$ratio")
+n = read_splat_arrays(sys.argv[1]).count
+print(*(target_count(n, r) for r in sys.argv[2].split(',')))" "$scene" "$ratios"))
+  k=0
+  for ratio in ${ratios//,/ }; do
+    count=${counts[$k]}; k=$((k + 1))
     run() {  # config, command, decimation option
       local file="$out/${name}_$1_$ratio.ply"
       [ -f "$file" ] && return

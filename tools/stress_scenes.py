@@ -195,23 +195,23 @@ def unbounded(rng, scale: float) -> dict[str, np.ndarray]:
     r = np.exp(rng.uniform(np.log(0.05), np.log(R_GROUND), n_ground))
     angle = rng.uniform(0, 2 * np.pi, n_ground)
     xz = np.stack([r * np.cos(angle), r * np.sin(angle)], 1)
-    size = 0.02 * r + 0.004
+    ground_size = 0.02 * r + 0.004
     cell = np.floor(xz / (0.15 * np.maximum(r, 0.3))[:, None]).astype(np.int64)  # patches that grow with r
     patch = ((cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663)) % 997 / 997.0
     soil = np.where((patch > 0.6)[:, None], [0.3, 0.45, 0.15], [0.45, 0.35, 0.22]) + rng.normal(scale=0.04, size=(n_ground, 3))
     ground = _splats(np.stack([xz[:, 0], np.zeros(n_ground), xz[:, 1]], 1), np.tile([0, 1.0, 0], (n_ground, 1)),
-                     np.log(np.stack([size, size, size * 0.1], 1)), rng.uniform(0.8, 0.99, n_ground), np.clip(soil, 0, 1), rng)
+                     np.log(np.stack([ground_size, ground_size, ground_size * 0.1], 1)), rng.uniform(0.8, 0.99, n_ground), np.clip(soil, 0, 1), rng)
     n_far = int(6000 * scale)
     d = rng.normal(size=(n_far, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     elevation = -d[:, 1]
     distance = rng.uniform(12.0, 18.0, n_far)
-    size = distance * np.sqrt(4 * np.pi / n_far) * 0.9
+    far_size = distance * np.sqrt(4 * np.pi / n_far) * 0.9
     sky = np.array([0.45, 0.6, 0.9]) + np.clip(elevation, 0, 1)[:, None] * np.array([0.1, 0.09, 0.02])
     treeline = (elevation > -0.05) & (elevation < 0.12 + 0.06 * np.sin(7 * np.arctan2(d[:, 2], d[:, 0])))
     colour = np.where(treeline[:, None], np.array([0.12, 0.22, 0.1]) + rng.normal(scale=0.05, size=(n_far, 3)), sky)
     colour = np.where((elevation <= -0.05)[:, None], [0.4, 0.33, 0.22], colour)
-    far = _splats(d * distance[:, None], d, np.log(np.stack([size, size, size * 0.3], 1)), rng.uniform(0.85, 0.99, n_far),
+    far = _splats(d * distance[:, None], d, np.log(np.stack([far_size, far_size, far_size * 0.3], 1)), rng.uniform(0.85, 0.99, n_far),
                   np.clip(colour, 0, 1), rng)
     return _concat([ball, bush, ground, far])
 
