@@ -13,6 +13,11 @@ st27=${ST27:-npx -y @playcanvas/splat-transform@2.7.1}
 st37=${ST37:-npx -y @playcanvas/splat-transform@3.7.0}
 python=${PYTHON:-python3}
 mkdir -p "$out"
+run() {  # config, command, decimation option; the scene, its name, the ratio and the count from the loops below
+  local file="$out/${name}_$1_$ratio.ply"
+  [ -f "$file" ] && return
+  $2 -g cpu -q "$scene" "$file.part.ply" $3 "$count" && mv "$file.part.ply" "$file" || echo "$1 failed on $name at $ratio" >&2
+}
 for scene in "$scenes"/*.ply; do
   name=$(basename "$scene" .ply)
   # the counts nanogs-warp keeps for these ratios (exact ceils of ratio x N), the scene read once
@@ -24,11 +29,6 @@ print(*(target_count(n, r) for r in sys.argv[2].split(',')))" "$scene" "$ratios"
   k=0
   for ratio in ${ratios//,/ }; do
     count=${counts[$k]}; k=$((k + 1))
-    run() {  # config, command, decimation option
-      local file="$out/${name}_$1_$ratio.ply"
-      [ -f "$file" ] && return
-      $2 -g cpu -q "$scene" "$file.part.ply" $3 "$count" && mv "$file.part.ply" "$file" || echo "$1 failed on $name at $ratio" >&2
-    }
     run st27 "$st27" -F
     run st37d "$st37" -d
     run st37a "$st37" --decimate-adaptive
