@@ -15,7 +15,9 @@ PLY files, on three other camera sets, against the unsimplified scene:
 
 Prints, per camera set, each scene's PSNR gap (first configuration minus second) at every ratio, with
 the SSIM and foreground-PSNR gaps beside it, and the mean and the worst cell; writes one JSON line per
-(scene, ratio, camera set) to ``-o``.
+(scene, ratio, camera set) to ``-o``, with each configuration's per-view PSNRs (``view_psnr``, in the
+set's camera order): a cell's mean is the mean of its views' PSNRs in dB, so one view that is nearly
+perfect in both can move it by a decibel or more (docs/quality.md).
 """
 
 from __future__ import annotations
@@ -93,7 +95,8 @@ def main(argv=None) -> int:
                     report = evaluate(reference, tests, cameras, device)
                     row = {"scene": scene, "ratio": ratio, "cameras": name}
                     for config, test in zip(configs, report["tests"]):
-                        row[config] = {"psnr": test["psnr"]["mean"], "ssim": test["ssim"]["mean"], "fg_psnr": test["fg_psnr"]["mean"]}
+                        row[config] = {"psnr": test["psnr"]["mean"], "ssim": test["ssim"]["mean"], "fg_psnr": test["fg_psnr"]["mean"],
+                                       "view_psnr": [v["psnr"] for v in test["views"]]}  # fmt: skip
                     out.write(json.dumps(row) + "\n")
                     a, b = row[configs[0]], row[configs[1]]
                     gap = (a["psnr"] - b["psnr"], a["ssim"] - b["ssim"], a["fg_psnr"] - b["fg_psnr"])
