@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import warp as wp
 
 from .kernels import compact as kernels
@@ -21,8 +23,33 @@ def select_rows(splats: SplatSet, keep: wp.array, kept_count: int) -> tuple[Spla
     return out, destination
 
 
-def remove_rows(splats: SplatSet, rows: wp.array, count: int) -> tuple[SplatSet, wp.array]:
-    """The splat set without the ``count`` distinct rows listed in ``rows``, and the old -> new row map."""
+def remove_rows(splats: SplatSet, rows: wp.array, count: int) -> tuple[SplatSet, wp.array, wp.array]:
+    """The splat set without the ``count`` distinct rows listed in ``rows``, the old -> new row map,
+    and the rows' keep flags (int32, 0 for the removed rows)."""
     keep = wp.ones(splats.count, dtype=wp.int32, device=splats.device)
     wp.launch(kernels.drop_rows, count, inputs=[rows], outputs=[keep], device=splats.device)
-    return select_rows(splats, keep, splats.count - count)
+    out, destination = select_rows(splats, keep, splats.count - count)
+    return out, destination, keep
+
+
+def merged_rows_after(merged: wp.array | None, keep: wp.array, destination: wp.array, first: wp.array, pair_count: int,
+                      count: int) -> wp.array:  # fmt: skip
+    """The marks (int32, 1: a merge made the row) of the ``count`` rows after a pass that kept the rows
+    flagged in ``keep`` (moved to ``destination``) and merged each pair into the row of its first
+    splat (``first``, ``pair_count`` of them). ``merged``: the marks before the pass (None: no row
+    merged yet)."""
+    device = keep.device
+    out = wp.zeros(count, dtype=wp.int32, device=device)
+    if merged is not None:
+        wp.launch(kernels.carry_merged_rows, keep.shape[0], inputs=[keep, destination, merged], outputs=[out], device=device)
+    wp.launch(kernels.mark_merged_rows, pair_count, inputs=[first, destination], outputs=[out], device=device)
+    return out
+
+
+def with_merged_features(splats: SplatSet, fitted: SplatSet, merged: wp.array) -> SplatSet:
+    """``splats`` with the features (colours) of ``fitted`` (the same rows after a fit changed them)
+    in every row that a merge made (``merged``: ``merged_rows_after``'s marks); every other value is
+    ``splats``' own."""
+    features = wp.clone(splats.features)
+    wp.launch(kernels.copy_merged_rows, splats.count, inputs=[merged, fitted.features], outputs=[features], device=splats.device)
+    return replace(splats, features=features)

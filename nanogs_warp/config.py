@@ -38,7 +38,8 @@ class SimplifyConfig:
     generated stress scenes (docs/quality.md): the coverage merge operator, the field cost, at most
     45 % of the splats merged a pass and no pair above 3 times the pass's median pair cost, no
     opacity pruning, k = None: 24 neighbours below 65,536 splats, 16 from there on, and the size
-    fit of every output and the geometry fit of those at or below 1 % of the input.
+    fit of every output, the geometry fit of those at or below 1 % of the input and the colour fit
+    of the others.
     ``SimplifyConfig.paper()`` is the NanoGS paper's configuration (``--preset paper``).
 
     ``pass_fraction``: at most this fraction of the current splats merge in one pass, the cheapest
@@ -57,6 +58,11 @@ class SimplifyConfig:
     (not their opacity or colour) fitted to renders of the input from cameras around it, a short
     refinement (a longer one for outputs of at most 0.1 %) kept only where it renders held-out views
     of the input better (``refinement.geometry_fit``).
+
+    ``fit_colour``: each output above 1 % (those the geometry fit leaves) has the colours of its
+    merged splats fitted to the same renders, every splat that no merge made keeping its own, kept
+    only where the output then renders the size fit's coarse and fine views better
+    (``refinement.colour_fit``).
     """
 
     k: int | None = None
@@ -71,6 +77,7 @@ class SimplifyConfig:
     median_cost_factor: float = 3.0
     fit_size: bool = True
     fit_geometry: bool = True
+    fit_colour: bool = True
 
     def __post_init__(self):
         self.validate()  # a bad configuration fails where it is built, not where it runs
@@ -132,7 +139,8 @@ MAX_SEED = 2**31 - 1  # the kernels take the seed as a 32-bit integer
 # What each field of SimplifyConfig holds: "int" and "number" exclude bool.
 _FIELD_KINDS = {"k": "int|None", "prune_opacity": "number", "samples": "int", "seed": "int", "lambda_geo": "number",
                 "lambda_app": "number", "cost": "str", "operator": "str", "pass_fraction": "number",
-                "median_cost_factor": "number", "fit_size": "bool", "fit_geometry": "bool"}  # fmt: skip
+                "median_cost_factor": "number", "fit_size": "bool", "fit_geometry": "bool",
+                "fit_colour": "bool"}  # fmt: skip
 
 
 def check_types(settings, kinds: dict[str, str]) -> None:
@@ -170,9 +178,10 @@ MIN_PASS_FRACTION = 0.05
 # budgets, worse on meshes and flat opaque content; docs/quality.md) and the NanoGS paper's own.
 PRESETS: dict[str, dict] = {
     "default": {},
-    "fast": {"cost": "runnalls", "pass_fraction": 0.5, "median_cost_factor": 0.0, "fit_size": False, "fit_geometry": False},
+    "fast": {"cost": "runnalls", "pass_fraction": 0.5, "median_cost_factor": 0.0, "fit_size": False, "fit_geometry": False,
+             "fit_colour": False},
     "paper": {"k": 16, "prune_opacity": 0.1, "cost": "idiv", "operator": "mpmm", "pass_fraction": 0.5, "median_cost_factor": 0.0,
-              "fit_size": False, "fit_geometry": False},
+              "fit_size": False, "fit_geometry": False, "fit_colour": False},
 }
 
 

@@ -31,15 +31,15 @@ ALL_MODULES = SIMPLIFY_MODULES + EVAL_MODULES + REFINE_MODULES[1:]
 
 def simplify_modules(config=None) -> tuple[str, ...]:
     """The kernel modules a simplification with ``config`` (a SimplifyConfig) launches: its cost's
-    module, pruning only when it prunes, the size fit (with the renderer) only when it fits and
-    refinement's modules when it fits the geometry (None: every one of SIMPLIFY_MODULES). A module
+    module, pruning only when it prunes, the size fit (with the renderer) only when it fits for size
+    or colour and refinement's modules when it fits the geometry or the colours (None: every one of SIMPLIFY_MODULES). A module
     left out would still load when first launched."""
     if config is None:
         return SIMPLIFY_MODULES
     cost = "field_cost" if config.cost == "field" else "cost"
     prune = ("prune",) if config.prune_opacity > 0 else ()
-    fit = ("splat_size", "render") if config.fit_size else ()
-    if config.fit_geometry:
+    fit = ("splat_size", "render") if config.fit_size or config.fit_colour else ()
+    if config.fit_geometry or config.fit_colour:
         fit += tuple(m for m in REFINE_MODULES if m not in fit)
     optional = ("cost", "field_cost", "prune", "splat_size")
     return tuple(m for m in SIMPLIFY_MODULES if m not in optional) + (cost,) + prune + fit

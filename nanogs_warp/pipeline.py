@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .compact import remove_rows
+from .compact import merged_rows_after, remove_rows
 from .config import K_LARGE_SCENE, K_SMALL_SCENE, PRESETS, SMALL_SCENE_SPLATS, SimplifyConfig, exact_ratio, finite, target_count  # noqa: F401
 from .cost import COSTS, FieldCost
 from .errors import InputError, NanogsWarning
@@ -25,6 +25,8 @@ from .timing import StageClock, no_clock
 from .topology import KnnTopology
 
 if TYPE_CHECKING:
+    import warp as wp
+
     from .io.ply_layout import PlyLayout
 
 
@@ -84,14 +86,16 @@ def simplify_progressively(
     config: SimplifyConfig = SimplifyConfig(),
     on_pass: Callable[[PassReport], None] | None = None,
     clock: StageClock | None = None,
-    finish: Callable[[SplatSet], SplatSet] | None = None,
+    finish: Callable[[SplatSet, wp.array | None], SplatSet] | None = None,
 ) -> Iterator[tuple[int, SplatSet]]:
     """Yields (target, splats) for each target count, largest first, continuing one progressive merge.
 
     Every yielded splat set has exactly ``target`` splats and stays on ``splats.device``; none of
     them, nor the input, is changed afterwards. ``clock`` (benchmarks) records per-stage times.
-    ``finish`` (the size fit of ``nanogs_warp.simplify_progressively``) makes each yielded set from
-    the merged one; the merging goes on from the merged one.
+    ``finish`` (the fits of ``nanogs_warp.simplify_progressively``) makes each yielded set from
+    the merged one, called as ``finish(merged, marks)``: ``marks`` an int32 array on the device, 1
+    in each row that a merge made and 0 in each that is one of the input's splats as it was (None
+    when no row was merged); the merging goes on from the merged one.
     """
     check_arguments(splats, config)
     if isinstance(targets, (str, bytes)):  # its characters would read as digits
@@ -112,6 +116,7 @@ def simplify_progressively(
     topology = KnnTopology(config.neighbours(current.count))
     check_index_limits(current.count, min(topology.k, max(current.count - 1, 0)))
     pass_index = 0
+    marks = None  # with ``finish``: which rows merges made (``merged_rows_after``)
     # Termination: every pass removes at least one splat (or the run stops with an error), so the
     # loops end after at most count - targets[-1] passes; pass_limit stops a run long before that.
     # (the median cost limit keeps at least half of a pass's pairs: at worst half the pace; a pass
@@ -141,20 +146,22 @@ def simplify_progressively(
             if pairs.count == 0:  # cannot happen with n >= 2 (a kNN graph has edges); guards the loop
                 raise RuntimeError(f"simplification stopped: pass {pass_index + 1} merged nothing at {n} splats (target {target})")
             with stage("compaction"):
-                merged, destination = remove_rows(current, pairs.j, pairs.count)
+                merged, destination, keep = remove_rows(current, pairs.j, pairs.count)
+                if finish is not None:
+                    marks = merged_rows_after(marks, keep, destination, pairs.i, pairs.count, merged.count)
             with stage("merge"):
                 merge(current, pairs, merged, destination)
             if on_pass is not None:
                 on_pass(PassReport(pass_index, n, merged.count, edge_count))
             current = merged
-            del pairs, destination, merged  # free this pass's scratch before the next kNN
+            del pairs, destination, keep, merged  # free this pass's scratch before the next kNN
             pass_index += 1
         if current is not splats:  # pruned or merged: rows renumbered
             if renumbered_layout is None:
                 renumbered_layout = without_vertex_indexed(splats.layout)
             if renumbered_layout is not current.layout:
                 current = replace(current, layout=renumbered_layout)
-        yield target, (current if finish is None else finish(current))
+        yield target, (current if finish is None else finish(current, marks))
 
 
 def whole_count(c) -> int:
@@ -183,7 +190,7 @@ def simplify(
     *,
     ratios: Sequence[float | str] | None = None,
     counts: Sequence[int] | None = None,
-    finish: Callable[[SplatSet], SplatSet] | None = None,
+    finish: Callable[[SplatSet, wp.array | None], SplatSet] | None = None,
 ) -> SplatSet | list[SplatSet]:
     """Simplifies ``splats`` to ``count`` splats, or to max(1, ceil(ratio * N)) (exactly: the ratio
     as written, a float through its shortest repr).

@@ -163,10 +163,11 @@ def test_huge_splats_are_not_fitted(device, monkeypatch):
 
 def test_simplify_fits_by_default_and_only_there(device):
     """``nanogs_warp.simplify`` is the merge, then the size fit of every output (here the size fit
-    alone; the geometry fit of those at or below 1 % after it: tests/test_geometry_fit.py); the
-    paper and fast presets and fit_size=False are the merge alone."""
+    alone; the geometry fit of those at or below 1 % after it: tests/test_geometry_fit.py; the
+    colour fit of the others: tests/test_colour_fit.py); the paper and fast presets and
+    fit_size=False are the merge alone."""
     splats = blob(3000, 15, device, log_scale=(-4.0, -2.5))
-    fitted = simplify(splats, ratio=[0.2, 0.1, 0.01], config=SimplifyConfig(fit_geometry=False))
+    fitted = simplify(splats, ratio=[0.2, 0.1, 0.01], config=SimplifyConfig(fit_geometry=False, fit_colour=False))
     merged = simplify_merged(splats, ratio=[0.2, 0.1, 0.01])
     for f, m in zip(fitted, merged):
         ratio = np.exp(f.log_scales.numpy().astype(np.float64) - m.log_scales.numpy())
@@ -174,10 +175,10 @@ def test_simplify_fits_by_default_and_only_there(device):
         assert any(size_fit.STEP**k == pytest.approx(ratio.flat[0], rel=1e-5) for k in range(-size_fit.MOST_STEPS, size_fit.MOST_STEPS + 1))
         for name in ("means", "rotations", "opacities", "features"):
             np.testing.assert_array_equal(getattr(f, name).numpy(), getattr(m, name).numpy())
-    unfitted = simplify(splats, ratio=0.01, config=SimplifyConfig(fit_size=False, fit_geometry=False))
+    unfitted = simplify(splats, ratio=0.01, config=SimplifyConfig(fit_size=False, fit_geometry=False, fit_colour=False))
     np.testing.assert_array_equal(unfitted.log_scales.numpy(), simplify_merged(splats, ratio=0.01).log_scales.numpy())
     for preset in (SimplifyConfig.paper(), SimplifyConfig.preset("fast")):
-        assert not preset.fit_size and not preset.fit_geometry
+        assert not preset.fit_size and not preset.fit_geometry and not preset.fit_colour
 
 
 def test_cli_reports_the_factor(tmp_path):
@@ -191,7 +192,7 @@ def test_cli_reports_the_factor(tmp_path):
     assert all(output["size_factor"] > 0 for output in outputs)
     assert "geometry_fit" not in outputs[0] and "geometry_fit" not in outputs[1] and isinstance(outputs[2]["geometry_fit"], bool)
     settings = json.loads(result.stdout)["settings"]
-    assert settings["fit_size"] is True and settings["fit_geometry"] is True
+    assert settings["fit_size"] is True and settings["fit_geometry"] is True and settings["fit_colour"] is True
     for flags, keys in ((["--no-fit-size"], {"geometry_fit"}), (["--no-fit-geometry"], {"size_factor"}),
                         (["--no-fit-size", "--no-fit-geometry"], set())):  # fmt: skip
         result = runner.invoke(app, ["simplify", str(source), "-o", str(tmp_path / "n.ply"), "--ratio", "0.01", "--device", "cpu",

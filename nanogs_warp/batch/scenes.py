@@ -25,7 +25,7 @@ _GLOB_CHARS = set("*?[")
 # method's settings, a preset to start them from, and what else a scene's outputs depend on.
 _CONFIG_KEYS = {"k": int, "prune_opacity": float, "samples": int, "seed": int, "lambda_geo": float, "lambda_app": float,
                 "cost": str, "operator": str, "pass_fraction": float, "median_cost_factor": float, "fit_size": bool,
-                "fit_geometry": bool}  # fmt: skip
+                "fit_geometry": bool, "fit_colour": bool}  # fmt: skip
 _OUTPUT_KEYS = {"sh_degree", "refine_steps", "refine_size"}
 _SCENE_KEYS = {"path", "ratio", "count", "drop_invalid", "preset", *_CONFIG_KEYS, *_OUTPUT_KEYS}
 SCENE_SUFFIXES = (".ply", ".spz", ".sog", ".splat")  # files a directory or glob contributes

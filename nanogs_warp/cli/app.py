@@ -105,6 +105,7 @@ def simplify(
     median_cost_factor: opts.MedianCostFactor = None,
     fit_size: opts.FitSize = None,
     fit_geometry: opts.FitGeometry = None,
+    fit_colour: opts.FitColour = None,
     drop_invalid: opts.DropInvalid = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
@@ -127,6 +128,7 @@ def simplify(
         preset, k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo,
         lambda_app=lambda_app, cost=cost, operator=operator, pass_fraction=pass_fraction,
         median_cost_factor=median_cost_factor, fit_size=fit_size, fit_geometry=fit_geometry,
+        fit_colour=fit_colour,
     )
     config.validate()  # before anything is started or read
     opts.check_sh_degree(sh_degree)
@@ -369,6 +371,8 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
                     written[-1]["size_factor"] = round(size_fit.factors[result.count], 6)
                 if size_fit.applies_geometry(result.count):
                     written[-1]["geometry_fit"] = size_fit.geometry_kept.get(result.count, False)
+                if size_fit.applies_colour(result.count):
+                    written[-1]["colour_fit"] = size_fit.colour_kept.get(result.count, False)
             if report is not None:
                 written[-1]["refine"] = report.to_json()
         smaller = [t for t in budgets_for_target if t < target]

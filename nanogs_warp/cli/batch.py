@@ -60,6 +60,7 @@ def batch_command(
     median_cost_factor: opts.MedianCostFactor = None,
     fit_size: opts.FitSize = None,
     fit_geometry: opts.FitGeometry = None,
+    fit_colour: opts.FitColour = None,
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values, zero quaternions or log-scales beyond +-100 instead of failing the scene.")] = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
@@ -81,7 +82,7 @@ def batch_command(
     method_options = dict(
         k=k, prune_opacity=prune_opacity, samples=samples, seed=seed, lambda_geo=lambda_geo, lambda_app=lambda_app,
         cost=cost, operator=operator, pass_fraction=pass_fraction, median_cost_factor=median_cost_factor, fit_size=fit_size,
-        fit_geometry=fit_geometry,
+        fit_geometry=fit_geometry, fit_colour=fit_colour,
     )  # fmt: skip
     config = opts.method_config(preset, **method_options)
     config.validate()

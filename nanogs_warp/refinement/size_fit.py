@@ -91,12 +91,14 @@ def _psnr(reference: wp.array, test: wp.array) -> float:
 
 class SizeFit:
     """Fits the outputs of one run against ``reference`` (the run's input, on the device it runs on):
-    for size (``size``, ``fitted``), then, with ``geometry``, their geometry (``GeometryFit``)."""
+    for size (``size``, ``fitted``), then, with ``geometry``, their geometry (``GeometryFit``), or,
+    with ``colour``, where the geometry fit does not apply, their merged splats' colours
+    (``colour_fit``)."""
 
-    def __init__(self, reference: SplatSet, seed: int = 0, size: bool = True, geometry: bool = False):
+    def __init__(self, reference: SplatSet, seed: int = 0, size: bool = True, geometry: bool = False, colour: bool = False):
         self.reference = reference
         self.seed = int(seed)
-        self.size, self.geometry = size, geometry
+        self.size, self.geometry, self.colour = size, geometry, colour
         self.largest_geometry = target_count(reference.count, GEOMETRY_FIT_BELOW)
         self._means: np.ndarray | None = None  # the centres that place the cameras (``sampled_means``)
         self._cameras: list | None = None
@@ -105,6 +107,7 @@ class SizeFit:
         self._geometry_fit = None
         self.factors: dict[int, float] = {}  # count -> factor of each output fitted so far
         self.geometry_kept: dict[int, bool] = {}  # count -> whether its geometry fit was kept
+        self.colour_kept: dict[int, bool] = {}  # count -> whether its colour fit was kept
 
     def applies(self, count: int) -> bool:
         """Whether an output of ``count`` splats is fitted for size: every output of the input is."""
@@ -113,6 +116,11 @@ class SizeFit:
     def applies_geometry(self, count: int) -> bool:
         """Whether it is fitted for geometry too, with ``geometry`` (at most GEOMETRY_FIT_BELOW)."""
         return self.geometry and count <= self.largest_geometry
+
+    def applies_colour(self, count: int) -> bool:
+        """Whether it is fitted for colour, with ``colour``: every output above GEOMETRY_FIT_BELOW (those
+        the geometry fit, when on, leaves alone; it keeps the colours of the ones it fits)."""
+        return self.colour and self.largest_geometry < count <= self.reference.count
 
     def _in_frame(self) -> bool:
         """The centres that place the cameras, once; False where the scene is not fitted (one that
@@ -166,11 +174,13 @@ class SizeFit:
         base = self._scores(splats)
         return [(0.0, 0.0) if f == 1.0 else self._scores(resized(splats, f), base) for f in factors]
 
-    def __call__(self, splats: SplatSet) -> SplatSet:
+    def __call__(self, splats: SplatSet, merged: wp.array | None = None) -> SplatSet:
         """The fitted splat set (``splats`` itself when nothing gains); its factor goes to ``factors``
-        and, with ``geometry``, whether its geometry fit was kept to ``geometry_kept``. The input itself
-        (a budget of all its splats: nothing pruned or merged) is its own best fit: it is returned
-        without rendering anything."""
+        and, with ``geometry``, whether its geometry fit was kept to ``geometry_kept``, with ``colour``
+        whether its colour fit was to ``colour_kept``. ``merged``: int32 marks, 1 in each row a merge
+        made (the pipeline's ``finish`` argument; None: no row was merged, and no colour is fitted).
+        The input itself (a budget of all its splats: nothing pruned or merged) is its own best fit:
+        it is returned without rendering anything."""
         if splats is self.reference:
             self.factors[splats.count] = 1.0
             return splats
@@ -178,17 +188,40 @@ class SizeFit:
         self.factors[splats.count] = factor
         if self.applies_geometry(splats.count) and self._in_frame():
             fitted = self._fit_geometry(fitted)
+        if self.applies_colour(splats.count):
+            fitted = self._fit_colour(fitted, merged)
         return fitted
 
-    def _fit_geometry(self, splats: SplatSet) -> SplatSet:
-        """``GeometryFit`` of ``splats`` (its input views made for the first output); ``splats`` itself
-        where the input's views would not fit the device's memory."""
+    def _geometry(self):
+        """The run's ``GeometryFit``, made once: its renders of the input serve the colour fit too."""
         from .geometry_fit import GeometryFit
 
         if self._geometry_fit is None:
             self._geometry_fit = GeometryFit(self.reference, self.seed)
+        return self._geometry_fit
+
+    def _fit_colour(self, splats: SplatSet, merged: wp.array | None) -> SplatSet:
+        """``colour_fit.fitted_colours`` of ``splats``, kept where it gains in the fit's coarse and fine
+        views alike (both PSNR gains positive, the size fit's rule); ``splats`` itself otherwise."""
+        from .colour_fit import fitted_colours
+
+        self.colour_kept[splats.count] = False
+        if merged is None or not self._prepare():
+            return splats
         try:
-            fitted, self.geometry_kept[splats.count] = self._geometry_fit(splats)
+            candidate = fitted_colours(splats, merged, self.reference, self._geometry().views, self.seed)
+            if candidate is None or not min(self._scores(candidate, self._scores(splats))) > 0.0:
+                return splats
+        except InputError:  # the input's views would not fit the device's memory: not fitted
+            return splats
+        self.colour_kept[splats.count] = True
+        return candidate
+
+    def _fit_geometry(self, splats: SplatSet) -> SplatSet:
+        """``GeometryFit`` of ``splats`` (its input views made for the first output); ``splats`` itself
+        where the input's views would not fit the device's memory."""
+        try:
+            fitted, self.geometry_kept[splats.count] = self._geometry()(splats)
         except InputError:  # the views would not fit the device's memory: not fitted
             self.geometry_kept[splats.count] = False
             return splats
@@ -236,8 +269,8 @@ def best_step(gain) -> int:
 
 
 def size_fit_for(splats: SplatSet, config) -> SizeFit | None:
-    """The size and geometry fits of a run on ``splats`` with ``config`` (a SimplifyConfig), or None
-    without either."""
-    if not (config.fit_size or config.fit_geometry):
+    """The size, geometry and colour fits of a run on ``splats`` with ``config`` (a SimplifyConfig), or
+    None without any."""
+    if not (config.fit_size or config.fit_geometry or config.fit_colour):
         return None
-    return SizeFit(splats, config.seed, size=config.fit_size, geometry=config.fit_geometry)
+    return SizeFit(splats, config.seed, size=config.fit_size, geometry=config.fit_geometry, colour=config.fit_colour)

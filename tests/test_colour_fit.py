@@ -1,0 +1,161 @@
+"""The colour fit (``refinement/colour_fit.py``): the pipeline's marks of the rows merges made, what
+the fit may change (the merged rows' colours, nothing else), when it is kept (the size fit's coarse
+and fine views both render better), and which outputs it applies to. Its rasteriser, loss and
+optimiser have their own float64 references (tests/test_render_grad.py, tests/test_image_loss.py,
+tests/test_refine.py)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import warp as wp
+from scene_factory import random_splat_arrays
+from test_size_fit import blob
+from typer.testing import CliRunner
+
+from nanogs_warp import SimplifyConfig, SplatSet, simplify
+from nanogs_warp.cli.app import app
+from nanogs_warp.io.ply import save_ply
+from nanogs_warp.pipeline import simplify_progressively
+from nanogs_warp.refinement import colour_fit, size_fit
+
+UNCHANGED = ("means", "rotations", "log_scales", "opacities", "extras", "integer_extras")
+
+
+def rows_of(splats: SplatSet) -> np.ndarray:
+    """Each row's every value as bytes (one void per row), to find rows among another set's."""
+    arrays = splats.to_numpy()
+    parts = [np.ascontiguousarray(arrays[k].reshape(splats.count, -1)).view(np.uint8) for k in sorted(arrays)]
+    return np.ascontiguousarray(np.concatenate(parts, axis=1)).view(np.dtype((np.void, sum(p.shape[1] for p in parts)))).ravel()
+
+
+def test_the_marks_are_the_rows_merges_made(device):
+    """Every budget's marks: 0 exactly on the rows that are one of the input's rows, bit for bit,
+    and 1 on the others (a merge's splat, which random inputs never repeat)."""
+    arrays = random_splat_arrays(3000, sh_degree=1, seed=31)
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    seen = {}
+
+    def finish(merged, marks):
+        seen[merged.count] = None if marks is None else marks.numpy().copy()
+        return merged
+
+    outputs = dict(simplify_progressively(splats, [3000, 1500, 300, 20], SimplifyConfig(), finish=finish))
+    assert seen[3000] is None  # nothing merged
+    inputs = rows_of(splats)
+    for count in (1500, 300, 20):
+        marks = seen[count]
+        assert marks.shape == (count,) and set(np.unique(marks)) <= {0, 1}
+        np.testing.assert_array_equal(marks, (~np.isin(rows_of(outputs[count]), inputs)).astype(np.int32))
+        assert marks.sum() > 0
+    assert seen[1500].sum() < 1500 and seen[20].sum() == 20
+
+
+def recoloured(splats: SplatSet, marks: np.ndarray, shift: float) -> SplatSet:
+    """``splats`` with every marked row's DC coefficients moved by ``shift`` (a wrong merged colour)."""
+    arrays = splats.to_numpy()
+    arrays["features"][marks == 1, :3] += np.float32(shift)
+    return SplatSet.from_numpy(**arrays, device=splats.device)
+
+
+def test_wrong_merged_colours_are_fitted_back_and_kept(device):
+    """An output whose merged splats' colours are too dark: the fit brightens them, gains in the size
+    fit's coarse and fine views, and is kept; the rows no merge made keep their colours, and
+    nothing but colours changes."""
+    reference = blob(2000, 32, device, log_scale=(-3.5, -2.5))
+    merged, marks = {}, {}
+
+    def finish(out, m):
+        merged[out.count], marks[out.count] = out, m
+        return out
+
+    list(simplify_progressively(reference, [1000], SimplifyConfig(fit_size=False), finish=finish))
+    host_marks = marks[1000].numpy()
+    assert 0 < host_marks.sum() < 1000
+    dark = recoloured(merged[1000], host_marks, -0.6)
+    fit = size_fit.SizeFit(reference, size=False, colour=True)
+    out = fit(dark, marks[1000])
+    assert fit.colour_kept[1000]
+    for name in UNCHANGED:
+        np.testing.assert_array_equal(getattr(out, name).numpy(), getattr(dark, name).numpy(), err_msg=name)
+    before, after = dark.features.numpy(), out.features.numpy()
+    np.testing.assert_array_equal(after[host_marks == 0], before[host_marks == 0])
+    assert (after[host_marks == 1, :3] - before[host_marks == 1, :3]).mean() > 0.05  # brighter
+    coarse, fine = fit._scores(out, fit._scores(dark))
+    assert coarse > 0 and fine > 0
+
+
+def test_a_fit_that_loses_in_either_view_set_is_not_kept(device, monkeypatch):
+    """The size fit's rule: a fitted output that renders one of the two view sets worse (here the
+    scores say so) is set aside, and the output comes back as it was."""
+    reference = blob(1200, 33, device, log_scale=(-3.5, -2.5))
+    merged, marks = {}, {}
+
+    def finish(out, m):
+        merged[out.count], marks[out.count] = out, m
+        return out
+
+    list(simplify_progressively(reference, [600], SimplifyConfig(fit_size=False), finish=finish))
+    dark = recoloured(merged[600], marks[600].numpy(), -0.6)
+    scores = size_fit.SizeFit._scores
+
+    def fine_views_worse(self, splats, base=None, floor=-np.inf):
+        got = scores(self, splats, base, floor)
+        return got if base is None else (got[0], -0.01)
+
+    monkeypatch.setattr(size_fit.SizeFit, "_scores", fine_views_worse)
+    fit = size_fit.SizeFit(reference, size=False, colour=True)
+    assert fit(dark, marks[600]) is dark and fit.colour_kept[600] is False
+
+
+def test_which_outputs_get_the_colour_fit(device, monkeypatch):
+    """Outputs above 1 % of the input (those the geometry fit leaves) when the configuration asks for
+    it, none without marks (nothing merged); the presets that fit nothing fit no colour."""
+    reference = blob(1000, 34, device)
+    fit = size_fit.SizeFit(reference, colour=True, geometry=True)
+    assert fit.applies_colour(1000) and fit.applies_colour(11) and not fit.applies_colour(10)
+    assert not size_fit.SizeFit(reference).applies_colour(500)
+    for preset in ("fast", "paper"):
+        assert not SimplifyConfig.preset(preset).fit_colour
+    assert SimplifyConfig().fit_colour
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("fitted")
+
+    monkeypatch.setattr(colour_fit, "refine_with_report", no_fit)
+    unmerged = reference.clone()
+    assert fit(unmerged, None) is unmerged and fit.colour_kept[1000] is False
+
+
+def test_the_default_fits_colours_at_10_percent_only(device):
+    """Against the default without the colour fit: the 1 % and 0.5 % outputs are the same bytes, the
+    10 % one differs in colours alone (here the fit is kept), the same bytes every run."""
+    splats = blob(3000, 15, device, log_scale=(-4.0, -2.5))
+    ratios = [0.1, 0.01, 0.005]
+    fitted = simplify(splats, ratio=ratios)
+    plain = simplify(splats, ratio=ratios, config=SimplifyConfig(fit_colour=False))
+    for f, p in zip(fitted[1:], plain[1:]):
+        for name in UNCHANGED + ("features",):
+            np.testing.assert_array_equal(getattr(f, name).numpy(), getattr(p, name).numpy(), err_msg=name)
+    for name in UNCHANGED:
+        np.testing.assert_array_equal(getattr(fitted[0], name).numpy(), getattr(plain[0], name).numpy(), err_msg=name)
+    assert not np.array_equal(fitted[0].features.numpy(), plain[0].features.numpy())
+    again = simplify(splats, ratio=ratios)
+    assert again[0].features.numpy().tobytes() == fitted[0].features.numpy().tobytes()
+
+
+def test_the_command_reports_the_colour_fit(tmp_path):
+    """``simplify --json`` says for each output above 1 % whether its colour fit was kept, and
+    ``--no-fit-colour`` leaves the key out."""
+    scene = tmp_path / "scene.ply"
+    save_ply(blob(3000, 15, wp.get_device("cpu"), log_scale=(-4.0, -2.5)), scene)
+    runner = CliRunner()
+    result = runner.invoke(app, ["simplify", str(scene), "-o", str(tmp_path / "out.ply"), "--ratio", "0.1,0.01", "--device", "cpu", "--json"])
+    assert result.exit_code == 0, result.output
+    outputs = json.loads(result.stdout)["outputs"]
+    assert isinstance(outputs[0]["colour_fit"], bool) and "colour_fit" not in outputs[1]
+    result = runner.invoke(app, ["simplify", str(scene), "-o", str(tmp_path / "off.ply"), "--ratio", "0.1", "--device", "cpu", "--json",
+                                 "--no-fit-colour"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "colour_fit" not in json.loads(result.stdout)["outputs"][0]
