@@ -126,6 +126,14 @@ def test_which_outputs_get_the_colour_fit(device, monkeypatch):
     monkeypatch.setattr(colour_fit, "refine_with_report", no_fit)
     unmerged = reference.clone()
     assert fit(unmerged, None) is unmerged and fit.colour_kept[1000] is False
+    # a scene far from the origin for its size is rendered recentred by eval: not fitted
+    arrays = random_splat_arrays(1000, seed=35)
+    arrays["means"] = (arrays["means"].astype(np.float64) + 1e9).astype(np.float32)
+    far = SplatSet.from_numpy(**arrays, device=device)
+    small = far.clone()
+    marks = wp.ones(1000, dtype=wp.int32, device=device)
+    far_fit = size_fit.SizeFit(far, size=False, colour=True)
+    assert far_fit(small, marks) is small and far_fit.colour_kept[1000] is False
 
 
 def test_the_default_fits_colours_at_10_percent_only(device):
