@@ -202,7 +202,7 @@ def test_installed_command_on_the_shipped_sample(tmp_path):
 
 def test_preset_paper_is_the_papers_flags_and_flags_override_it(scene, tmp_path):
     flags = ["--operator", "mpmm", "--cost", "idiv", "--prune-opacity", "0.1", "--pass-fraction", "0.5", "--median-cost-factor", "0",
-             "--no-fit-size", "--no-fit-geometry", "--k", "16"]  # fmt: skip
+             "--no-fit-size", "--no-fit-geometry", "--no-fit-colour", "--k", "16"]  # fmt: skip
     common = ["--ratio", "0.1", "--device", "cpu", "-q"]
     assert run("simplify", scene, "-o", tmp_path / "flags.ply", *common, *flags).exit_code == 0
     assert run("simplify", scene, "-o", tmp_path / "preset.ply", *common, "--preset", "paper").exit_code == 0
