@@ -52,6 +52,18 @@ def test_the_marks_are_the_rows_merges_made(device):
     assert seen[1500].sum() < 1500 and seen[20].sum() == 20
 
 
+def merged_with_marks(reference: SplatSet, count: int) -> tuple[SplatSet, wp.array]:
+    """The merge of ``reference`` down to ``count`` splats (no fit) and the pipeline's marks of it."""
+    got = {}
+
+    def finish(out, marks):
+        got["out"], got["marks"] = out, marks
+        return out
+
+    list(simplify_progressively(reference, [count], SimplifyConfig(fit_size=False), finish=finish))
+    return got["out"], got["marks"]
+
+
 def recoloured(splats: SplatSet, marks: np.ndarray, shift: float) -> SplatSet:
     """``splats`` with every marked row's DC coefficients moved by ``shift`` (a wrong merged colour)."""
     arrays = splats.to_numpy()
@@ -64,18 +76,12 @@ def test_wrong_merged_colours_are_fitted_back_and_kept(device):
     fit's coarse and fine views, and is kept; the rows no merge made keep their colours, and
     nothing but colours changes."""
     reference = blob(2000, 32, device, log_scale=(-3.5, -2.5))
-    merged, marks = {}, {}
-
-    def finish(out, m):
-        merged[out.count], marks[out.count] = out, m
-        return out
-
-    list(simplify_progressively(reference, [1000], SimplifyConfig(fit_size=False), finish=finish))
-    host_marks = marks[1000].numpy()
+    merged, marks = merged_with_marks(reference, 1000)
+    host_marks = marks.numpy()
     assert 0 < host_marks.sum() < 1000
-    dark = recoloured(merged[1000], host_marks, -0.6)
+    dark = recoloured(merged, host_marks, -0.6)
     fit = size_fit.SizeFit(reference, size=False, colour=True)
-    out = fit(dark, marks[1000])
+    out = fit(dark, marks)
     assert fit.colour_kept[1000]
     for name in UNCHANGED:
         np.testing.assert_array_equal(getattr(out, name).numpy(), getattr(dark, name).numpy(), err_msg=name)
@@ -90,14 +96,8 @@ def test_a_fit_that_loses_in_either_view_set_is_not_kept(device, monkeypatch):
     """The size fit's rule: a fitted output that renders one of the two view sets worse (here the
     scores say so) is set aside, and the output comes back as it was."""
     reference = blob(1200, 33, device, log_scale=(-3.5, -2.5))
-    merged, marks = {}, {}
-
-    def finish(out, m):
-        merged[out.count], marks[out.count] = out, m
-        return out
-
-    list(simplify_progressively(reference, [600], SimplifyConfig(fit_size=False), finish=finish))
-    dark = recoloured(merged[600], marks[600].numpy(), -0.6)
+    merged, marks = merged_with_marks(reference, 600)
+    dark = recoloured(merged, marks.numpy(), -0.6)
     scores = size_fit.SizeFit._scores
 
     def fine_views_worse(self, splats, base=None, floor=-np.inf):
@@ -106,7 +106,7 @@ def test_a_fit_that_loses_in_either_view_set_is_not_kept(device, monkeypatch):
 
     monkeypatch.setattr(size_fit.SizeFit, "_scores", fine_views_worse)
     fit = size_fit.SizeFit(reference, size=False, colour=True)
-    assert fit(dark, marks[600]) is dark and fit.colour_kept[600] is False
+    assert fit(dark, marks) is dark and fit.colour_kept[600] is False
 
 
 def test_which_outputs_get_the_colour_fit(device, monkeypatch):
