@@ -32,8 +32,8 @@ ALL_MODULES = SIMPLIFY_MODULES + EVAL_MODULES + REFINE_MODULES[1:]
 def simplify_modules(config=None) -> tuple[str, ...]:
     """The kernel modules a simplification with ``config`` (a SimplifyConfig) launches: its cost's
     module, pruning only when it prunes, the size fit (with the renderer) only when it fits for size
-    or colour and refinement's modules when it fits the geometry or the colours (None: every one of SIMPLIFY_MODULES). A module
-    left out would still load when first launched."""
+    or colour and refinement's modules when it fits the geometry or the colours (None: every one of
+    SIMPLIFY_MODULES). A module left out would still load when first launched."""
     if config is None:
         return SIMPLIFY_MODULES
     cost = "field_cost" if config.cost == "field" else "cost"

@@ -6,13 +6,13 @@ A merge averages its pair's colours with weights, and the merged splat's colour 
 of what the pair showed; an input splat that no merge touched has the colour the input was trained
 to. So the fit is the geometry fit's short refinement (``geometry_fit.STEPS`` steps of
 ``geometry_fit.STEP_VIEWS`` views on the same views of the input, kept only where its held-out
-views render better) with every rate at 0 but the colours' (3DGS's: ``LR_DC`` for the DC
-coefficients, a twentieth of it for the other bands); of its result only the merged rows' colours
+views render better) with every rate at 0 but the colours' (3DGS's, ``RefineConfig``'s
+defaults); of its result only the merged rows' colours
 are taken: every row that no merge made keeps its own colour, and no other value changes. A fitted
 colour must not buy the coarse views' likeness with the fine ones', as the renderers' blur would
 let it (docs/quality.md): ``SizeFit`` keeps the result only where it gains in the size fit's
-coarse and fine views alike, the size fit's own rule. On a GPU the fit of a 6M-splat scene's
-600,000-splat output takes about a second (docs/performance.md); ``--no-fit-colour`` saves it.
+coarse and fine views alike, the size fit's own rule. On an H200 the fit of a 6M-splat scene's
+600,000-splat output adds 1.3-1.7 s (docs/performance.md); ``--no-fit-colour`` saves it.
 """
 
 from __future__ import annotations
@@ -27,14 +27,11 @@ from .config import RefineConfig
 from .geometry_fit import geometry_config
 from .refine import ReferenceViews, refine_with_report
 
-LR_DC = 2.5e-3  # 3DGS's rate of the DC coefficients
-LR_REST = LR_DC / 20.0  # and of the other bands
-
-
 def colour_config(seed: int = 0) -> RefineConfig:
-    """The refinement the colour fit runs: the geometry fit's (its steps, views and cameras), colours only."""
+    """The refinement the colour fit runs: the geometry fit's (its steps, views and cameras), colours only,
+    at refinement's default colour rates (3DGS's)."""
     return dataclasses.replace(geometry_config(seed), lr_means=0.0, lr_log_scales=0.0, lr_rotations=0.0, lr_opacities=0.0,
-                               lr_features_dc=LR_DC, lr_features_rest=LR_REST)  # fmt: skip
+                               lr_features_dc=RefineConfig.lr_features_dc, lr_features_rest=RefineConfig.lr_features_rest)  # fmt: skip
 
 
 def fitted_colours(splats: SplatSet, merged: wp.array, reference: SplatSet, views: ReferenceViews, seed: int = 0) -> SplatSet | None:

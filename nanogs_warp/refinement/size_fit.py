@@ -210,7 +210,8 @@ class SizeFit:
             return splats
         try:
             candidate = fitted_colours(splats, merged, self.reference, self._geometry().views, self.seed)
-            if candidate is None or not min(self._scores(candidate, self._scores(splats))) > 0.0:
+            # floor 0: once one view set's gain is not positive, the other is not rendered
+            if candidate is None or not min(self._scores(candidate, self._scores(splats), floor=0.0)) > 0.0:
                 return splats
         except InputError:  # the input's views would not fit the device's memory: not fitted
             return splats
