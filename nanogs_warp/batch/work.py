@@ -125,11 +125,9 @@ def simplify_scene(scene: LoadedScene, device, on_pass: Callable | None = None) 
         views = None  # the input's renders that refinement trains on: made once, shared by every budget
         if job.refine_steps > 0:
             from ..refinement.config import RefineConfig
-            from ..refinement.refine import ReferenceViews, check_memory, view_pool
+            from ..refinement.refine import ReferenceViews
 
-            refine_config = RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed)
-            check_memory(refine_config, view_pool(refine_config), on_device.device)  # before the merge and the fits
-            views = ReferenceViews(on_device, refine_config)
+            views = ReferenceViews(on_device, RefineConfig(steps=job.refine_steps, size=job.refine_size, seed=job.config.seed))
         with package_warnings(lambda line: _note_once(scene.result, line)):  # the scene's notes, not stderr
             download = _simplify_budgets(scene, on_device, by_target, views, on_pass)
         del views

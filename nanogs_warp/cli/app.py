@@ -343,11 +343,9 @@ def _simplify_and_save(on_device, budgets_for_target, config, paths, passes, pro
     size_fit = size_fit_for(on_device, config)
     views = None  # the input's renders that refinement trains on: made once, shared by every budget
     if refine_config is not None:
-        from ..refinement.refine import ReferenceViews, check_memory, view_pool
+        from ..refinement.refine import ReferenceViews
 
-        # an impossible refinement is refused before the merge and the fits, not after them
-        check_memory(refine_config, view_pool(refine_config), on_device.device)
-        views = ReferenceViews(on_device, refine_config)
+        views = ReferenceViews(on_device, refine_config)  # refuses an impossible refinement before the merge
     for target, result in simplify_progressively(on_device, list(budgets_for_target), config, on_pass=on_pass, finish=size_fit):
         reached = time.perf_counter()
         report = None

@@ -149,6 +149,9 @@ class ReferenceViews:
     def __init__(self, reference: SplatSet, config: RefineConfig, device=None):
         self.source, self.config = reference, config
         self.device = wp.get_device(device if device is not None else reference.device)
+        # views that cannot fit are refused when made (before a run merges and fits), and again when
+        # rendered, when the device's free memory is what it will be
+        check_memory(config, view_pool(config), self.device)
         self.cameras: list | None = None  # None until rendered
         self.scale, self.offset, self.reference, self.extent = 1.0, None, reference, 1.0
         self.targets: wp.array | None = None  # the training views' stack (``_render_views``)
