@@ -33,6 +33,11 @@ Several views are back-propagated together as ``render.project_views`` and ``ren
 lay them out (view v's tile t is tile v view_tiles + t, its splat i row v n + i): a tile's
 kernels find their view and its own size (``view_tile_bounds``), and ``splat_backward`` adds the views
 to a splat's gradients one after another, in the order of one-at-a-time back-propagation: the same bits.
+
+A refinement of the colours alone (the colour fit: every other rate 0) asks for the colours'
+gradients only (``colours`` nonzero): each (entry, pixel) term is then dL/drgb_k = alpha_k T_k dL/dC
+alone, the walk keeps only T, and ``splat_backward`` runs only the SH colour's chain. The colours'
+gradients are the same bits as the whole pass's, in the same order; every other gradient stays 0.
 """
 
 import warp as wp
@@ -119,19 +124,22 @@ def entry_at_pixel(p: wp.vec2, co: wp.vec4, faint: float, fpx: float, fpy: float
 @wp.func
 def pixel_terms(
     t: float, alpha: float, gauss: float, raw: float, dx: float, dy: float, co: wp.vec4, rgb: wp.vec3,
-    g: wp.vec3, final: wp.vec3, front: wp.vec3,
+    g: wp.vec3, final: wp.vec3, front: wp.vec3, colours: int,
 ):  # fmt: skip
     """One entry's terms at one pixel (module docstring), given the pixel's transmittance ``t`` and
     colour ``front`` before the entry, dL/dC ``g`` and the final colour ``final``: (colour term,
     colour in front after the entry, opacity term, conic term, 2D-mean term); the last three 0
-    where the 0.99 clamp holds."""
+    where the 0.99 clamp holds, and where ``colours`` is nonzero (the colour term alone; ``front``
+    then unchanged)."""
     weight = alpha * t
     g_rgb = g * weight
-    in_front = front + rgb * weight
+    in_front = front
     g_op = float(0.0)
     g_co = wp.vec3(0.0, 0.0, 0.0)
     g_xy = wp.vec2(0.0, 0.0)
-    if raw < ALPHA_MAX:
+    if colours == 0:
+        in_front = front + rgb * weight
+    if colours == 0 and raw < ALPHA_MAX:
         # dL/dalpha = T rgb.g - B.g / (1 - alpha), B = C - C_<=k
         g_alpha = t * wp.dot(rgb, g) - wp.dot(final - in_front, g) / (1.0 - alpha)
         g_op = g_alpha * gauss
@@ -161,9 +169,11 @@ def row_gradients(
     gco: wp.vec3,
     gop: float,
     grgb: wp.vec3,
+    colours: int,
 ):
     """An entry's gradients over pixels gx0..gx1 of pixel row py of view ``view`` (their state in slots row + px),
-    added to the running sums (gxy, gco, gop, grgb) pixel by pixel; also the number of pixels the
+    added to the running sums (gxy, gco, gop, grgb) pixel by pixel (the colour's alone where ``colours``
+    is nonzero: ``pixel_terms``); also the number of pixels the
     entry finished (module docstring). Below the power ``faint`` alpha < ALPHA_MIN: the pixel is
     skipped without its exp, as ``composite_tiles`` skips it."""
     finished = int(0)
@@ -183,7 +193,7 @@ def row_gradients(
             continue
         g = wp.vec3(grad_image[view, py, px, 0], grad_image[view, py, px, 1], grad_image[view, py, px, 2])
         final = wp.vec3(image[view, py, px, 0], image[view, py, px, 1], image[view, py, px, 2])
-        g_rgb, in_front, g_op, g_co, g_xy = pixel_terms(t, alpha, gauss, raw, dx, dy, co, rgb, g, final, front[slot])
+        g_rgb, in_front, g_op, g_co, g_xy = pixel_terms(t, alpha, gauss, raw, dx, dy, co, rgb, g, final, front[slot], colours)
         front[slot] = in_front
         transmittance[slot] = test_t
         grgb = grgb + g_rgb
@@ -239,6 +249,7 @@ def reset_rows(base: int, lane: int, lanes: int, transmittance: wp.array(dtype=f
 def composite_backward(
     first: int,
     lanes: int,
+    colours: int,
     e_xy: wp.array(dtype=wp.vec2),
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
@@ -288,7 +299,7 @@ def composite_backward(
             for py in range(first_row, gy1 + 1, lanes):
                 gxy, gco, gop, grgb, finished = row_gradients(
                     view, py, gx0, gx1, base + (py - y_lo) * TILE - x_lo, e_xy[k], co, e_rgb[k], faint,
-                    image, grad_image, transmittance, front, done, gxy, gco, gop, grgb,
+                    image, grad_image, transmittance, front, done, gxy, gco, gop, grgb, colours,
                 )
                 remaining -= finished
         out = k * lanes + lane
@@ -302,6 +313,7 @@ def composite_backward(
 def composite_backward_lanes_in_turn(
     first: int,
     lanes: int,
+    colours: int,
     e_xy: wp.array(dtype=wp.vec2),
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
@@ -351,7 +363,7 @@ def composite_backward_lanes_in_turn(
                 for py in range(first_row, gy1 + 1, lanes):
                     gxy, gco, gop, grgb, finished = row_gradients(
                         view, py, gx0, gx1, base + (py - y_lo) * TILE - x_lo, p, co, rgb, faint,
-                        image, grad_image, transmittance, front, done, gxy, gco, gop, grgb,
+                        image, grad_image, transmittance, front, done, gxy, gco, gop, grgb, colours,
                     )
                     remaining -= finished
                 sum_xy = sum_xy + gxy
@@ -436,6 +448,7 @@ def composite_backward_pixels(
     cams: wp.array(dtype=CameraParams),
     tiles_x: int,
     view_tiles: int,
+    colours: int,
     image: wp.array4d(dtype=float),
     grad_image: wp.array4d(dtype=float),
     slot_ends: wp.array(dtype=wp.int32),
@@ -478,19 +491,21 @@ def composite_backward_pixels(
         dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], co, e_faint[k], fpx, fpy)
         if alpha == 0.0:
             p_rgb[slot] = wp.vec3(0.0, 0.0, 0.0)
-            p_opacity[slot] = 0.0
-            p_conic[slot] = wp.vec3(0.0, 0.0, 0.0)
-            p_xy[slot] = wp.vec2(0.0, 0.0)
+            if colours == 0:
+                p_opacity[slot] = 0.0
+                p_conic[slot] = wp.vec3(0.0, 0.0, 0.0)
+                p_xy[slot] = wp.vec2(0.0, 0.0)
             continue
         test_t = t * (1.0 - alpha)
         if test_t < T_MIN:
             stop = k  # the pixel is finished: no later entry reaches it
             break
-        g_rgb, in_front, g_op, g_co, g_xy = pixel_terms(t, alpha, gauss, raw, dx, dy, co, e_rgb[k], g, final, front)
+        g_rgb, in_front, g_op, g_co, g_xy = pixel_terms(t, alpha, gauss, raw, dx, dy, co, e_rgb[k], g, final, front, colours)
         p_rgb[slot] = g_rgb
-        p_opacity[slot] = g_op
-        p_conic[slot] = g_co
-        p_xy[slot] = g_xy
+        if colours == 0:
+            p_opacity[slot] = g_op
+            p_conic[slot] = g_co
+            p_xy[slot] = g_xy
         front = in_front
         t = test_t
     stops[tid] = stop
@@ -504,6 +519,7 @@ def sum_pixels(
     cams: wp.array(dtype=CameraParams),
     tiles_x: int,
     view_tiles: int,
+    colours: int,
     slot_ends: wp.array(dtype=wp.int32),
     p_xy: wp.array(dtype=wp.vec2),
     p_conic: wp.array(dtype=wp.vec3),
@@ -536,10 +552,11 @@ def sum_pixels(
             grgb = wp.vec3(0.0, 0.0, 0.0)
             for px in range(gx0, gx1 + 1):
                 if k < stops[base + py * TILE + px]:
-                    gxy = gxy + p_xy[slot]
-                    gco = gco + p_conic[slot]
-                    gop = gop + p_opacity[slot]
                     grgb = grgb + p_rgb[slot]
+                    if colours == 0:
+                        gxy = gxy + p_xy[slot]
+                        gco = gco + p_conic[slot]
+                        gop = gop + p_opacity[slot]
                 slot += 1
             sum_xy = sum_xy + gxy
             sum_co = sum_co + gco
@@ -655,6 +672,33 @@ def quat_matrix_backward(q: wp.quat, g: wp.mat33):
 
 
 @wp.func
+def colour_backward(
+    i: int,
+    means: wp.array(dtype=wp.vec3),
+    features: wp.array2d(dtype=float),
+    g_features: wp.array2d(dtype=float),
+    degree: int,
+    cam: CameraParams,
+    grgb: wp.vec3,
+):
+    """Adds dL/df of splat i's colour in the view of ``cam``, given dL/drgb ``grgb``, to row i of
+    ``g_features``: rgb = max(SH(d) + 0.5, 0), d = (mean - centre) / |mean - centre|. Returns
+    (dL/dd, d, |mean - centre|), whose chain to the mean is the caller's."""
+    dvec = means[i] - cam.centre
+    dn = wp.length(dvec)
+    d = dvec
+    if dn > 0.0:
+        d = dvec / dn
+    rgb = sh_to_rgb(features, i, degree, d)
+    g_pre = wp.vec3(0.0, 0.0, 0.0)
+    for ch in range(3):
+        if rgb[ch] > 0.0:
+            g_pre[ch] = grgb[ch]
+    g_dir = sh_backward(features, g_features, i, degree, d, g_pre)
+    return g_dir, d, dn
+
+
+@wp.func
 def splat_view_backward(
     i: int,
     row: int,
@@ -664,6 +708,7 @@ def splat_view_backward(
     opacities: wp.array(dtype=float),
     features: wp.array2d(dtype=float),
     degree: int,
+    colours: int,
     cam: CameraParams,
     touched: wp.array(dtype=wp.int32),
     ends: wp.array(dtype=wp.int32),
@@ -680,10 +725,17 @@ def splat_view_backward(
 ):
     """Splat i in the view of ``cam`` (its projection in row ``row``: ``render.project_splat``): its
     entries' gradients summed in slot order, then the chain rule back to the parameters
-    (``render.project_splat`` differentiated), added to row i of the g_ arrays."""
+    (``render.project_splat`` differentiated), added to row i of the g_ arrays; where ``colours``
+    is nonzero, the colours' alone (``g_features``: the same bits)."""
     n = touched[row]
     if n == 0:
         return  # culled in this view: no pixel depends on it
+    if colours != 0:
+        grgb = wp.vec3(0.0, 0.0, 0.0)
+        for slot in range(ends[row] - n, ends[row]):
+            grgb = grgb + e_g_rgb[entry_of_slot[slot]]
+        colour_backward(i, means, features, g_features, degree, cam, grgb)
+        return
     gxy = wp.vec2(0.0, 0.0)
     gco = wp.vec3(0.0, 0.0, 0.0)
     gop = float(0.0)
@@ -769,18 +821,7 @@ def splat_view_backward(
     gq_unit = quat_matrix_backward(qu, g_r)
     gq = (gq_unit - qu * wp.dot(qu, gq_unit)) / qn
 
-    # colour: rgb = max(SH(d) + 0.5, 0), d = (mean - centre) / |mean - centre|
-    dvec = means[i] - cam.centre
-    dn = wp.length(dvec)
-    d = dvec
-    if dn > 0.0:
-        d = dvec / dn
-    rgb = sh_to_rgb(features, i, degree, d)
-    g_pre = wp.vec3(0.0, 0.0, 0.0)
-    for ch in range(3):
-        if rgb[ch] > 0.0:
-            g_pre[ch] = grgb[ch]
-    g_dir = sh_backward(features, g_features, i, degree, d, g_pre)
+    g_dir, d, dn = colour_backward(i, means, features, g_features, degree, cam, grgb)
     if dn > 0.0:
         g_mean = g_mean + (g_dir - d * wp.dot(d, g_dir)) / dn
 
@@ -799,6 +840,7 @@ def splat_backward(
     opacities: wp.array(dtype=float),
     features: wp.array2d(dtype=float),
     degree: int,
+    colours: int,
     cams: wp.array(dtype=CameraParams),
     touched: wp.array(dtype=wp.int32),
     ends: wp.array(dtype=wp.int32),
@@ -815,10 +857,11 @@ def splat_backward(
 ):
     """Per splat i: ``splat_view_backward`` for each of the views of ``cams`` in order (its rows
     v n + i of ``render.project_views``), so that its gradients add up view by view in the same
-    order as when the views are back-propagated one at a time."""
+    order as when the views are back-propagated one at a time. ``colours`` nonzero: the colours'
+    gradients alone (``splat_view_backward``)."""
     i = first + wp.tid()
     n = means.shape[0]
     for v in range(cams.shape[0]):
-        splat_view_backward(i, v * n + i, means, rotations, log_scales, opacities, features, degree, cams[v], touched, ends,
+        splat_view_backward(i, v * n + i, means, rotations, log_scales, opacities, features, degree, colours, cams[v], touched, ends,
                             entry_of_slot, e_g_xy, e_g_conic, e_g_opacity, e_g_rgb, g_means, g_rotations, g_log_scales,
                             g_opacities, g_features)  # fmt: skip

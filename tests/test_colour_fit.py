@@ -92,6 +92,44 @@ def test_wrong_merged_colours_are_fitted_back_and_kept(device):
     assert coarse > 0 and fine > 0
 
 
+def test_the_fit_back_propagates_colours_alone_to_the_same_bytes(device, monkeypatch):
+    """The fit's backward computes the colours' gradients alone (``colours_only``) and Adam steps
+    only the colours; its output is the bytes of the same fit through the whole backward and Adam
+    on every group (at rate 0)."""
+    from nanogs_warp.refinement import refine
+    from nanogs_warp.refinement.render_grad import GradRasteriser
+
+    reference = blob(1500, 34, device, log_scale=(-3.5, -2.5))
+    merged, marks = merged_with_marks(reference, 700)
+    dark = recoloured(merged, marks.numpy(), -0.4)
+    backward, asked = GradRasteriser.backward, []
+
+    def recorded(self, image, grad_image, grads, colours_only=False):
+        asked.append(colours_only)
+        backward(self, image, grad_image, grads, colours_only)
+
+    monkeypatch.setattr(GradRasteriser, "backward", recorded)
+    fit = size_fit.SizeFit(reference, size=False, colour=True)
+    alone = fit(dark, marks)
+    assert fit.colour_kept[700] and asked and all(asked)
+
+    def whole(self, image, grad_image, grads, colours_only=False):
+        backward(self, image, grad_image, grads, False)
+
+    monkeypatch.setattr(GradRasteriser, "backward", whole)
+    init = refine._Refiner.__init__
+
+    def every_group(self, *args):
+        init(self, *args)
+        self.groups = self._groups()
+
+    monkeypatch.setattr(refine._Refiner, "__init__", every_group)
+    fit = size_fit.SizeFit(reference, size=False, colour=True)
+    out = fit(dark, marks)
+    for name in ("features", *UNCHANGED):
+        assert getattr(out, name).numpy().tobytes() == getattr(alone, name).numpy().tobytes(), name
+
+
 def test_a_fit_that_loses_in_either_view_set_is_not_kept(device, monkeypatch):
     """The size fit's rule: a fitted output that renders one of the two view sets worse (here the
     scores say so) is set aside, and the output comes back as it was."""

@@ -224,6 +224,11 @@ class _Refiner:
         self.rasteriser = GradRasteriser(self.splats)
         self.images: dict[tuple[int, int, int], tuple[wp.array, wp.array, ImageLoss]] = {}
         self.groups = self._groups()
+        # every rate but the colours' 0 (the colour fit): the backward computes the colours' gradients
+        # alone, and Adam leaves the other groups be (a rate of 0 would not move them anyway)
+        self.colours_only = not any((config.lr_means, config.lr_rotations, config.lr_log_scales, config.lr_opacities))
+        if self.colours_only:
+            self.groups = self.groups[-1:]
         wp.load_module(adam_kernels, device=device)
 
     def _rates(self, values: list[float]) -> wp.array:
@@ -375,7 +380,7 @@ def refine_with_report(
                                                   step_specs[first:last])  # fmt: skip
         sync()
         t2 = time.perf_counter()
-        refiner.rasteriser.backward(image, grad_image, refiner.grads)
+        refiner.rasteriser.backward(image, grad_image, refiner.grads, refiner.colours_only)
         sync()
         report.seconds_forward += t2 - t1
         report.seconds_backward += time.perf_counter() - t2
