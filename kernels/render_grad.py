@@ -865,3 +865,105 @@ def splat_backward(
         splat_view_backward(i, v * n + i, means, rotations, log_scales, opacities, features, degree, colours, cams[v], touched, ends,
                             entry_of_slot, e_g_xy, e_g_conic, e_g_opacity, e_g_rgb, g_means, g_rotations, g_log_scales,
                             g_opacities, g_features)  # fmt: skip
+
+
+@wp.kernel
+def composite_weights(
+    first: int,
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    cams: wp.array(dtype=CameraParams),
+    tiles_x: int,
+    view_tiles: int,
+    background: wp.vec3,
+    slot_ends: wp.array(dtype=wp.int32),
+    image: wp.array4d(dtype=float),
+    weights: wp.array(dtype=float),
+    stops: wp.array(dtype=wp.int32),
+):
+    """``render.composite`` (one thread per pixel of each view's own size) that also keeps, for a
+    refinement of the colours alone, each entry's weight alpha_k T_k at the pixel in the entry's
+    slot for it (0 where its alpha is 0 there; the slots of ``composite_backward_pixels``) and the
+    entry the pixel finished at in ``stops`` (as ``composite_backward_pixels``). The colours do not
+    change these weights: dC/drgb_k = alpha_k T_k, so ``sum_weighted_colours`` back-propagates the
+    colours without walking the tile again. The pixels are ``render.composite``'s to the bit (the
+    same walk, the same float32 operations); outside a view's own size nothing is written."""
+    tid = first + wp.tid()
+    tile = tid / TILE_PIXELS
+    view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(tile, tiles_x, view_tiles, cams)
+    local = tid - tile * TILE_PIXELS
+    px = x_lo + local - (local / TILE) * TILE
+    py = y_lo + local / TILE
+    if px >= x_hi or py >= y_hi:
+        return
+    t = float(1.0)
+    c = wp.vec3(0.0, 0.0, 0.0)
+    fpx = float(px)
+    fpy = float(py)
+    stop = tile_end[tile]
+    for k in range(tile_start[tile], tile_end[tile]):
+        gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
+        if px < gx0 or px > gx1 or py < gy0 or py > gy1:
+            continue
+        columns = gx1 - gx0 + 1
+        slot = slot_ends[k] - columns * (gy1 - gy0 + 1) + (py - gy0) * columns + px - gx0
+        dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], e_conic_opacity[k], e_faint[k], fpx, fpy)
+        if alpha == 0.0:
+            weights[slot] = 0.0
+            continue
+        test_t = t * (1.0 - alpha)
+        if test_t < T_MIN:
+            stop = k
+            break
+        weight = alpha * t
+        weights[slot] = weight
+        c = c + e_rgb[k] * weight
+        t = test_t
+    c = c + background * t
+    image[view, py, px, 0] = c[0]
+    image[view, py, px, 1] = c[1]
+    image[view, py, px, 2] = c[2]
+    stops[tid] = stop
+
+
+@wp.kernel
+def sum_weighted_colours(
+    first: int,
+    keys: wp.array(dtype=wp.int64),
+    e_box: wp.array(dtype=wp.vec4),
+    cams: wp.array(dtype=CameraParams),
+    tiles_x: int,
+    view_tiles: int,
+    slot_ends: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=float),
+    stops: wp.array(dtype=wp.int32),
+    grad_image: wp.array4d(dtype=float),
+    g_rgb: wp.array(dtype=wp.vec3),
+):
+    """Per entry k: dL/drgb_k = sum over its pixels of dL/dC alpha_k T_k, from ``composite_weights``'
+    weights, in ``sum_pixels``' order (rows of columns, leaving out the pixels finished at or before
+    k): the bits of ``composite_backward_pixels`` and ``sum_pixels`` with ``colours``, whose colour
+    term is the same product dL/dC * (alpha_k T_k) (where alpha is 0 that term is +0 and this one
+    +-0: added to a sum, neither changes a bit)."""
+    k = first + wp.tid()
+    tile = wp.int32(keys[k] >> wp.int64(32))
+    view = tile / view_tiles
+    gx0, gx1, gy0, gy1, x_lo, y_lo = entry_tile_columns(keys[k], e_box[k], tiles_x, view_tiles, cams)
+    base = tile * TILE_PIXELS - y_lo * TILE - x_lo  # + py TILE + px: the pixel's stop
+    sum_rgb = wp.vec3(0.0, 0.0, 0.0)
+    if gx0 <= gx1 and gy0 <= gy1:
+        slot = slot_ends[k] - (gx1 - gx0 + 1) * (gy1 - gy0 + 1)
+        for py in range(gy0, gy1 + 1):
+            grgb = wp.vec3(0.0, 0.0, 0.0)
+            for px in range(gx0, gx1 + 1):
+                if k < stops[base + py * TILE + px]:
+                    g = wp.vec3(grad_image[view, py, px, 0], grad_image[view, py, px, 1], grad_image[view, py, px, 2])
+                    grgb = grgb + g * weights[slot]
+                slot += 1
+            sum_rgb = sum_rgb + grgb
+    g_rgb[k] = sum_rgb

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 import warp as wp
 from scene_factory import random_splat_arrays
 from test_size_fit import blob
@@ -92,12 +93,17 @@ def test_wrong_merged_colours_are_fitted_back_and_kept(device):
     assert coarse > 0 and fine > 0
 
 
-def test_the_fit_back_propagates_colours_alone_to_the_same_bytes(device, monkeypatch):
-    """The fit's backward computes the colours' gradients alone (``colours_only``) and Adam steps
-    only the colours; its output is the bytes of the same fit through the whole backward and Adam
-    on every group (at rate 0)."""
+@pytest.mark.parametrize("per_pixel", [None, True])
+def test_the_fit_back_propagates_colours_alone_to_the_same_bytes(device, monkeypatch, per_pixel):
+    """The fit's backward computes the colours' gradients alone (``colours_only``; with the
+    per-pixel backward, a GPU's, from the forward's kept weights) and Adam steps only the colours;
+    its output is the bytes of the same fit through the whole backward and Adam on every group (at
+    rate 0)."""
     from nanogs_warp.refinement import refine
     from nanogs_warp.refinement.render_grad import GradRasteriser
+
+    if per_pixel:
+        monkeypatch.setattr(refine, "GradRasteriser", lambda splats: GradRasteriser(splats, per_pixel=True))
 
     reference = blob(1500, 34, device, log_scale=(-3.5, -2.5))
     merged, marks = merged_with_marks(reference, 700)
@@ -105,13 +111,13 @@ def test_the_fit_back_propagates_colours_alone_to_the_same_bytes(device, monkeyp
     backward, asked = GradRasteriser.backward, []
 
     def recorded(self, image, grad_image, grads, colours_only=False):
-        asked.append(colours_only)
+        asked.append((colours_only, self.weights_kept))
         backward(self, image, grad_image, grads, colours_only)
 
     monkeypatch.setattr(GradRasteriser, "backward", recorded)
     fit = size_fit.SizeFit(reference, size=False, colour=True)
     alone = fit(dark, marks)
-    assert fit.colour_kept[700] and asked and all(asked)
+    assert fit.colour_kept[700] and set(asked) == {(True, bool(per_pixel))}
 
     def whole(self, image, grad_image, grads, colours_only=False):
         backward(self, image, grad_image, grads, False)

@@ -264,14 +264,14 @@ class _Refiner:
         return [loss_view(k, c.width, c.height, self.config.ssim_weight, weight) for k, c in zip(chosen, cameras)]
 
     def views_loss(self, cameras, chosen: list[int], targets: wp.array, weight: float, params: wp.array | None = None,
-                   specs: wp.array | None = None) -> tuple[wp.array, wp.array, ImageLoss]:  # fmt: skip
+                   specs: wp.array | None = None, step: bool = False) -> tuple[wp.array, wp.array, ImageLoss]:  # fmt: skip
         """Renders ``cameras`` together and compares view v with targets[chosen[v]], each weighted
         ``weight``; returns the image, dL/dimage and the loss (``backward`` then adds weight
         dL/dparams of each view, view after view). ``params`` and ``specs``: the cameras'
         ``camera_array`` and ``loss_views`` already on the device (else copied there here, each copy
-        a wait for the device)."""
+        a wait for the device). ``step``: a training step's views, which ``backward`` follows."""
         image, grad_image, loss = self.buffers(cameras)
-        self.rasteriser.forward(cameras, wp.vec3(0.0, 0.0, 0.0), image, params)
+        self.rasteriser.forward(cameras, wp.vec3(0.0, 0.0, 0.0), image, params, keep_weights=step and self.colours_only)
         if specs is None:
             specs = wp.array(self.loss_views(cameras, chosen, weight), dtype=image_kernels.LossView, device=self.device)
         loss.of_views(image, targets, grad_image, specs)
@@ -377,7 +377,7 @@ def refine_with_report(
         # rendering and back-propagating them one at a time, in fewer launches
         first, last = step * config.views_per_step, (step + 1) * config.views_per_step
         image, grad_image, _ = refiner.views_loss(step_cameras, chosen, step_targets, weight, step_params[first:last],
-                                                  step_specs[first:last])  # fmt: skip
+                                                  step_specs[first:last], step=True)  # fmt: skip
         sync()
         t2 = time.perf_counter()
         refiner.rasteriser.backward(image, grad_image, refiner.grads, refiner.colours_only)

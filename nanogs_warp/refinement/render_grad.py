@@ -66,9 +66,10 @@ GRAD_ENTRY_BYTES = 3 * 4 + 8 + 12 + 4 + 12
 LANE_BYTES = 8 + 12 + 4 + 12
 
 
-# Bytes the per-pixel backward adds: per entry its area and its slots' end, per (entry, pixel) pair its terms.
+# Bytes the per-pixel backward adds: per entry its area and its slots' end, per (entry, pixel) pair its
+# terms (and its weight, where the colours alone are refined: ``forward``'s ``keep_weights``).
 PIXEL_ENTRY_BYTES = 2 * 4
-PIXEL_BYTES = 8 + 12 + 4 + 12
+PIXEL_BYTES = 8 + 12 + 4 + 12 + 4
 
 
 def camera_array(cameras: Sequence[Camera], device) -> wp.array:
@@ -108,6 +109,7 @@ class GradRasteriser(_Rasteriser):
         self.entry_bytes += PIXEL_ENTRY_BYTES if per_pixel else 0
         self.pixel_capacity = 0
         self.stops = None  # per pixel of the last view, the entry its per-pixel backward finished at
+        self.weights_kept = False  # whether the last forward kept its weights (``forward``'s ``keep_weights``)
         wp.load_module(grad_kernels, device=self.device)
         self.grad_capacity = 0
         self.scratch_pixels = 0
@@ -140,14 +142,20 @@ class GradRasteriser(_Rasteriser):
         if rows > 0:
             launch_rows_from(kernel, rows, inputs, self.device, min_rows=min_rows)
 
-    def forward(self, cameras: Sequence[Camera], background: wp.vec3, image: wp.array, params: wp.array | None = None) -> None:
+    def forward(
+        self, cameras: Sequence[Camera], background: wp.vec3, image: wp.array, params: wp.array | None = None,
+        keep_weights: bool = False,
+    ) -> None:  # fmt: skip
         """Renders ``cameras`` together into ``image`` (V, H, W, 3; H, W at least the largest view's),
         view v into the top-left corner of image[v], and keeps the views' entries for ``backward``.
         Each view's pixels are ``render.render``'s of that camera alone, bit for bit (the views'
         splats are projected into rows of their own and their tiles numbered one view after the
         other: ``kernels/render.py``); outside a view's own size image[v] holds nothing of use.
         ``params``: the cameras' ``camera_params`` already on the device (``camera_array``), else
-        made here (a copy to the device, which waits for it)."""
+        made here (a copy to the device, which waits for it). ``keep_weights``: for a backward of
+        the colours alone (``backward``'s ``colours_only``), the per-pixel backward keeps each entry's
+        weight at each pixel (``kernels/render_grad.py``'s ``composite_weights``; the same pixels),
+        so that that backward need not walk the tiles again."""
         views, n = len(cameras), self.n
         tiles_x = max(tile_count(c.width) for c in cameras)
         view_tiles = tiles_x * max(tile_count(c.height) for c in cameras)
@@ -183,7 +191,17 @@ class GradRasteriser(_Rasteriser):
             entries = [self.xy, self.conic_opacity, self.rgb, self.box, self.faint]
         inputs = [*entries, self.tile_start, self.tile_end]
         inputs += [image.shape[2], image.shape[1], tiles_x, background, 0, view_tiles]
-        if self.method == "tiles":
+        self.weights_kept = keep_weights and self.per_pixel and count > 0 and self._reserve_slots(count, tiles, tiles_x, view_tiles)
+        if self.weights_kept:
+            pixels = tiles * kernels.TILE_PIXELS
+            self._rows(
+                grad_kernels.composite_weights,
+                pixels,
+                [*entries, self.tile_start, self.tile_end, self.cams, tiles_x, view_tiles, background, self.slot_ends,
+                 image, self.p_weight, self.stops],
+                max(2048, rows_per_chunk(pixels, count)),
+            )  # fmt: skip
+        elif self.method == "tiles":
             self._composite_tiles(tiles, count, inputs, ONE_WALK, image)  # the backward replays one walk
         else:
             pixels = tiles * kernels.TILE_PIXELS
@@ -196,6 +214,14 @@ class GradRasteriser(_Rasteriser):
         ``colours_only``: the colours' gradients alone (``grads.features``, the same bits; no other
         array is touched), in a fraction of the time."""
         if self.count == 0:
+            return
+        if colours_only and self.weights_kept:  # the colours' gradients from the forward's weights
+            self._rows(
+                grad_kernels.sum_weighted_colours, self.count,
+                [self.keys, self.e_box, self.cams, self.tiles_x, self.view_tiles, self.slot_ends, self.p_weight, self.stops,
+                 grad_image, self.e_g_rgb], 16384,
+            )  # fmt: skip
+            self._splat_backward(grads, 1)
             return
         d = self.device
         pixels = self.tiles * kernels.TILE_PIXELS
@@ -223,14 +249,14 @@ class GradRasteriser(_Rasteriser):
                 self._rows(grad_kernels.sum_lanes, self.count, [self.lanes, *per_lane, *per_entry], 16384)
         self._splat_backward(grads, colours)
 
-    def _pixel_terms(self, image: wp.array, grad_image: wp.array, per_entry: list, colours: int) -> bool:
-        """The per-pixel backward into ``per_entry``: each (entry, pixel) term in its own slot, then
-        every entry's terms summed (``kernels/render_grad.py``). False, doing nothing, where the
-        slots would not fit the device (the lanes then give the same sums)."""
-        d, count = self.device, self.count
+    def _reserve_slots(self, count: int, tiles: int, tiles_x: int, view_tiles: int) -> bool:
+        """The per-pixel slots of the ``count`` entries just sorted (``pixel_areas``, their running
+        sum in ``slot_ends``) and the buffers for their terms, and a stop per pixel of ``tiles``
+        tiles. False where the slots would not fit the device."""
+        d = self.device
         if count * kernels.TILE_PIXELS > INDEX_LIMIT:
             return False  # the slots' int32 offsets could wrap
-        where = [self.keys, self.e_box, self.cams, self.tiles_x, self.view_tiles]
+        where = [self.keys, self.e_box, self.cams, tiles_x, view_tiles]
         self._rows(grad_kernels.pixel_areas, count, [*where, self.areas], 16384)
         wp.utils.array_scan(self.areas[:count], self.slot_ends[:count], inclusive=True)
         bound = count * kernels.TILE_PIXELS  # an entry reaches at most its tile's pixels
@@ -248,9 +274,21 @@ class GradRasteriser(_Rasteriser):
                 self.p_conic = wp.empty(c, dtype=wp.vec3, device=d)
                 self.p_opacity = wp.empty(c, dtype=wp.float32, device=d)
                 self.p_rgb = wp.empty(c, dtype=wp.vec3, device=d)
-        pixels = self.tiles * kernels.TILE_PIXELS
+                self.p_weight = wp.empty(c, dtype=wp.float32, device=d)
+        pixels = tiles * kernels.TILE_PIXELS
         if self.stops is None or self.stops.shape[0] < pixels:
             self.stops = wp.empty(pixels, dtype=wp.int32, device=d)
+        return True
+
+    def _pixel_terms(self, image: wp.array, grad_image: wp.array, per_entry: list, colours: int) -> bool:
+        """The per-pixel backward into ``per_entry``: each (entry, pixel) term in its own slot, then
+        every entry's terms summed (``kernels/render_grad.py``). False, doing nothing, where the
+        slots would not fit the device (the lanes then give the same sums)."""
+        count = self.count
+        if not self._reserve_slots(count, self.tiles, self.tiles_x, self.view_tiles):
+            return False
+        where = [self.keys, self.e_box, self.cams, self.tiles_x, self.view_tiles]
+        pixels = self.tiles * kernels.TILE_PIXELS
         terms = [self.p_xy, self.p_conic, self.p_opacity, self.p_rgb]
         self._rows(
             grad_kernels.composite_backward_pixels,
