@@ -31,10 +31,15 @@ runner = CliRunner()
 
 SCENES = {"room/a.ply": 2000, "room/sub/b.ply": 1200, "c.ply": 500, "d/d.ply": 200}
 RATIOS = (0.1, 0.01, 0.001)
+# What these tests check is the batch around the simplification (records, resume, workers, shards,
+# manifests, Ray). The geometry and colour fits, which take most of a small scene's time on a CPU
+# (seconds, whatever its size: their views' pixels), have tests of their own (test_geometry_fit.py,
+# test_colour_fit.py; through batch: test_farm.py), so the runs here leave them out.
+NO_FITS = ("--no-fit-geometry", "--no-fit-colour")
 
 
 def run(*args):
-    return runner.invoke(app, ["batch", *(str(a) for a in args)])
+    return runner.invoke(app, ["batch", *(str(a) for a in args), *NO_FITS])
 
 
 def run_json(*args, code=0):
@@ -110,7 +115,7 @@ def test_killed_run_resumes_without_redoing_finished_scenes(tmp_path):
     for i in range(4):
         random_splats_ply(root / f"s{i}.ply", 40000, seed=i)
     command = [sys.executable, "-m", "nanogs_warp.cli.batch", str(root), "-o", str(out), "--ratio", "0.1,0.01",
-               "--devices", "cpu", "--json"]  # fmt: skip
+               "--devices", "cpu", "--json", *NO_FITS]  # fmt: skip
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
     deadline = time.monotonic() + 60
     while not list(out.glob("*.nanogs.json")) and process.poll() is None and time.monotonic() < deadline:
@@ -509,7 +514,7 @@ def test_a_batch_whose_stderr_cannot_be_written_finishes(scenes, tmp_path, stder
     the progress's write error was taken for the worker's pipe closing. With the second, every
     worker failed to start Warp (its sys.stderr was None)."""
     out = tmp_path / "out"
-    command = f"{sys.executable} -m nanogs_warp batch {scenes} -o {out} --ratio 0.1 --devices cpu --json {stderr}"
+    command = f"{sys.executable} -m nanogs_warp batch {scenes} -o {out} --ratio 0.1 --devices cpu --json {' '.join(NO_FITS)} {stderr}"
     done = subprocess.run(["bash", "-c", command], capture_output=False, stdout=subprocess.PIPE, text=True, timeout=120)
     assert done.returncode == 0
     assert {s["status"] for s in json.loads(done.stdout)["scenes"]} == {"done"}

@@ -15,6 +15,10 @@ from scene_factory import random_splats_ply
 
 from nanogs_warp.io.ply import load_ply
 
+# These tests send signals to runs; the fits after the merge (seconds on a CPU, tested elsewhere)
+# would only make each run longer.
+NO_FITS = ("--no-fit-geometry", "--no-fit-colour")
+
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="POSIX signals, pgrep and /proc")
 
 
@@ -32,7 +36,7 @@ def test_a_signal_during_simplify_leaves_no_temporary_file(tmp_path, signum):
     out = tmp_path / "out"
     out.mkdir()
     process = subprocess.Popen([sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out / "o.ply"),
-                                "--ratio", "0.5", "--device", "cpu", "-q"], stderr=subprocess.PIPE, text=True)  # fmt: skip
+                                "--ratio", "0.5", "--device", "cpu", "-q", *NO_FITS], stderr=subprocess.PIPE, text=True)  # fmt: skip
     _wait_for(lambda: any(p.name.endswith(".tmp") for p in out.iterdir()) or process.poll() is not None)
     process.send_signal(signum)
     assert process.wait(timeout=120) in (128 + signum, 0), process.stderr.read()  # 0: it had just finished
@@ -82,7 +86,7 @@ def test_what_a_killed_simplify_left_goes_with_the_next_run(tmp_path):
     random_splats_ply(scene, 200_000, sh_degree=1, seed=3)
     out = tmp_path / "out"
     out.mkdir()
-    command = [sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out / "o.ply"), "--ratio", "0.5", "--device", "cpu", "-q"]
+    command = [sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out / "o.ply"), "--ratio", "0.5", "--device", "cpu", "-q", *NO_FITS]
     process = subprocess.Popen(command)
     _wait_for(lambda: any(p.name.endswith(".tmp") for p in out.iterdir()) or process.poll() is not None)
     process.kill()
@@ -177,7 +181,7 @@ def test_a_command_started_with_sighup_ignored_keeps_running(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     process = subprocess.Popen([sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out / "o.ply"),
-                                "--ratio", "0.5", "--device", "cpu", "-q"], stderr=subprocess.PIPE, text=True,
+                                "--ratio", "0.5", "--device", "cpu", "-q", *NO_FITS], stderr=subprocess.PIPE, text=True,
                                preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))  # fmt: skip
     _wait_for(lambda: any(p.name.endswith(".tmp") for p in out.iterdir()) or process.poll() is not None)
     process.send_signal(signal.SIGHUP)
