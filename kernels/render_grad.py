@@ -38,6 +38,9 @@ A refinement of the colours alone (the colour fit: every other rate 0) asks for 
 gradients only (``colours`` nonzero): each (entry, pixel) term is then dL/drgb_k = alpha_k T_k dL/dC
 alone, the walk keeps only T, and ``splat_backward`` runs only the SH colour's chain. The colours'
 gradients are the same bits as the whole pass's, in the same order; every other gradient stays 0.
+Those weights alpha_k T_k do not depend on the colours, so on a GPU the forward keeps them
+(``composite_weights``, in the per-pixel backward's slots) and ``sum_weighted_colours`` adds
+dL/dC alpha_k T_k per entry from them in ``sum_pixels``' order, with no second walk of the tiles.
 """
 
 import warp as wp
