@@ -438,6 +438,24 @@ def pixel_areas(
     areas[k] = area
 
 
+@wp.func
+def thread_pixel(tid: int, tiles_x: int, view_tiles: int, cams: wp.array(dtype=CameraParams)):
+    """Thread ``tid`` of a walk with a thread per pixel (256 consecutive threads per tile, row-major):
+    (tile, view, the tile's bounds x_lo, x_hi, y_lo, y_hi in its view: ``view_tile_bounds``, px, py)."""
+    tile = tid / TILE_PIXELS
+    view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(tile, tiles_x, view_tiles, cams)
+    local = tid - tile * TILE_PIXELS
+    return tile, view, x_lo, x_hi, y_lo, y_hi, x_lo + local - (local / TILE) * TILE, y_lo + local / TILE
+
+
+@wp.func
+def pixel_slot(slot_ends: wp.array(dtype=wp.int32), k: int, gx0: int, gx1: int, gy0: int, gy1: int, px: int, py: int):
+    """Entry k's slot for pixel (px, py) of its box's columns gx0..gx1 and rows gy0..gy1: the pixel's
+    place, row-major, among the box's slots, which end at ``slot_ends[k]``."""
+    columns = gx1 - gx0 + 1
+    return slot_ends[k] - columns * (gy1 - gy0 + 1) + (py - gy0) * columns + px - gx0
+
+
 @wp.kernel
 def composite_backward_pixels(
     first: int,
@@ -470,11 +488,7 @@ def composite_backward_pixels(
     then adds the slots before each pixel's stop in ``composite_backward``'s order: the same bits,
     with a thread per pixel instead of one per row. Tiles of several views as in ``view_tile_bounds``."""
     tid = first + wp.tid()
-    tile = tid / TILE_PIXELS
-    view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(tile, tiles_x, view_tiles, cams)
-    local = tid - tile * TILE_PIXELS
-    px = x_lo + local - (local / TILE) * TILE
-    py = y_lo + local / TILE
+    tile, view, x_lo, x_hi, y_lo, y_hi, px, py = thread_pixel(tid, tiles_x, view_tiles, cams)
     if px >= x_hi or py >= y_hi:
         return
     g = wp.vec3(grad_image[view, py, px, 0], grad_image[view, py, px, 1], grad_image[view, py, px, 2])
@@ -488,8 +502,7 @@ def composite_backward_pixels(
         gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
         if px < gx0 or px > gx1 or py < gy0 or py > gy1:
             continue
-        columns = gx1 - gx0 + 1
-        slot = slot_ends[k] - columns * (gy1 - gy0 + 1) + (py - gy0) * columns + px - gx0
+        slot = pixel_slot(slot_ends, k, gx0, gx1, gy0, gy1, px, py)
         co = e_conic_opacity[k]
         dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], co, e_faint[k], fpx, fpy)
         if alpha == 0.0:
@@ -897,11 +910,7 @@ def composite_weights(
     colours without walking the tile again. The pixels are ``render.composite``'s to the bit (the
     same walk, the same float32 operations); outside a view's own size nothing is written."""
     tid = first + wp.tid()
-    tile = tid / TILE_PIXELS
-    view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(tile, tiles_x, view_tiles, cams)
-    local = tid - tile * TILE_PIXELS
-    px = x_lo + local - (local / TILE) * TILE
-    py = y_lo + local / TILE
+    tile, view, x_lo, x_hi, y_lo, y_hi, px, py = thread_pixel(tid, tiles_x, view_tiles, cams)
     if px >= x_hi or py >= y_hi:
         return
     t = float(1.0)
@@ -913,8 +922,7 @@ def composite_weights(
         gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
         if px < gx0 or px > gx1 or py < gy0 or py > gy1:
             continue
-        columns = gx1 - gx0 + 1
-        slot = slot_ends[k] - columns * (gy1 - gy0 + 1) + (py - gy0) * columns + px - gx0
+        slot = pixel_slot(slot_ends, k, gx0, gx1, gy0, gy1, px, py)
         dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], e_conic_opacity[k], e_faint[k], fpx, fpy)
         if alpha == 0.0:
             weights[slot] = 0.0
