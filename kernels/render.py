@@ -163,14 +163,50 @@ def gram(m: wp.mat33):
     return g
 
 
+# A splat's view-independent terms, once per splat set for a renderer that draws many views of it
+# (``splat_shapes``): its 3D covariance's six distinct entries (00, 01, 02, 11, 12, 22), its opacity
+# and log(255 opacity), the reach that culls it below 1/255 (``project_shape``).
+vec8 = wp.types.vector(length=8, dtype=wp.float32)
+
+
 @wp.func
-def project_splat(
-    i: int,
-    out: int,
-    means: wp.array(dtype=wp.vec3),
+def world_covariance(q: wp.quat, log_scale: wp.vec3):
+    """Sigma = R S S^T R^T for the normalised quaternion q (non-zero) and scales exp(log_scale)."""
+    r = wp.quat_to_matrix(q / wp.length(q))
+    m = scaled_columns(r, wp.vec3(exp32(log_scale[0]), exp32(log_scale[1]), exp32(log_scale[2])))
+    return gram(m)
+
+
+@wp.func
+def splat_shape(q: wp.quat, log_scale: wp.vec3, logit: float):
+    """The view-independent terms of a splat (``vec8`` above); a zero quaternion gets reach -1 (culled)."""
+    opacity = sigmoid32(logit)
+    if wp.length(q) == 0.0:
+        return vec8(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, opacity, -1.0)
+    sigma = world_covariance(q, log_scale)
+    reach = log32(255.0 * opacity)
+    return vec8(sigma[0, 0], sigma[0, 1], sigma[0, 2], sigma[1, 1], sigma[1, 2], sigma[2, 2], opacity, reach)
+
+
+@wp.kernel
+def splat_shapes(
+    first: int,
     rotations: wp.array(dtype=wp.quat),
     log_scales: wp.array(dtype=wp.vec3),
     opacities: wp.array(dtype=float),
+    shapes: wp.array(dtype=vec8),
+):
+    """shapes[i] = ``splat_shape`` of splat ``first + tid``."""
+    i = first + wp.tid()
+    shapes[i] = splat_shape(rotations[i], log_scales[i], opacities[i])
+
+
+@wp.func
+def project_shape(
+    i: int,
+    out: int,
+    means: wp.array(dtype=wp.vec3),
+    shape: vec8,
     features: wp.array2d(dtype=float),
     degree: int,
     cam: CameraParams,
@@ -183,22 +219,20 @@ def project_splat(
     rect: wp.array(dtype=wp.vec4i),
     touched: wp.array(dtype=wp.int32),
 ):
-    """Splat i seen by ``cam``, written to row ``out``: projected mean, depth, conic and opacity,
-    colour, reach box, faint power, tile rectangle [x0, x1) x [y0, y1) and its tile count (0 when
-    culled)."""
+    """Splat i of view-independent terms ``shape`` (``splat_shape``) seen by ``cam``, written to row
+    ``out``: projected mean, depth, conic and opacity, colour, reach box, faint power, tile rectangle
+    [x0, x1) x [y0, y1) and its tile count (0 when culled)."""
     touched[out] = 0
+    # Where alpha >= 1/255 can hold: opacity * exp(power) >= 1/255, i.e. d^T conic d <= 2 ln(255 opacity)
+    # (see below); none where opacity < 1/255 (or the quaternion is zero: ``splat_shape``)
+    reach = shape[7]
+    if reach <= 0.0:
+        return
     t = cam.rotation * means[i] + cam.translation
     z = t[2]
     if z <= cam.near:
         return
-    q = rotations[i]
-    qn = wp.length(q)
-    if qn == 0.0:
-        return
-    r = wp.quat_to_matrix(q / qn)
-    s = log_scales[i]
-    m = scaled_columns(r, wp.vec3(exp32(s[0]), exp32(s[1]), exp32(s[2])))
-    sigma = gram(m)
+    sigma = wp.mat33(shape[0], shape[1], shape[2], shape[1], shape[3], shape[4], shape[2], shape[4], shape[5])
 
     # EWA: Jacobian of the perspective projection at the (FOV-clamped) view-space mean.
     tx = wp.clamp(t[0] / z, -cam.lim_x, cam.lim_x) * z
@@ -221,15 +255,11 @@ def project_splat(
     px = cam.fx * t[0] / z + cam.cx - 0.5
     py = cam.fy * t[1] / z + cam.cy - 0.5
     conic = wp.vec3(c / det, -b / det, a / det)
-    opacity = sigmoid32(opacities[i])
+    opacity = shape[6]
 
-    # Where alpha >= 1/255 can hold: opacity * exp(power) >= 1/255, i.e. d^T conic d <= 2 ln(255 opacity),
-    # an ellipse of half-widths sqrt(2 ln(255 opacity) conic_yy / det(conic)) in x, likewise in y.
-    # Widened by 1% + 1 px, so float32 rounding of the per-pixel test cannot matter, this box only
-    # lets pixels and tiles skip splats that cannot reach them: the image is that of INRIA's rule.
-    reach = log32(255.0 * opacity)
-    if reach <= 0.0:
-        return  # opacity < 1/255: alpha < 1/255 at every pixel
+    # The ellipse of alpha >= 1/255 has half-widths sqrt(2 ln(255 opacity) conic_yy / det(conic)) in x,
+    # likewise in y. Widened by 1% + 1 px, so float32 rounding of the per-pixel test cannot matter, this
+    # box only lets pixels and tiles skip splats that cannot reach them: the image is that of INRIA's rule.
     ca = wp.float64(conic[0])
     cb = wp.float64(conic[1])
     cc = wp.float64(conic[2])
@@ -269,9 +299,7 @@ def project_splat(
 @wp.kernel
 def project(
     means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    log_scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
+    shapes: wp.array(dtype=vec8),
     features: wp.array2d(dtype=float),
     degree: int,
     cam: CameraParams,
@@ -285,18 +313,15 @@ def project(
     rect: wp.array(dtype=wp.vec4i),
     touched: wp.array(dtype=wp.int32),
 ):
-    """``project_splat`` of splat ``first + tid`` into its own row."""
+    """``project_shape`` of splat ``first + tid`` (its terms from ``splat_shapes``) into its own row."""
     i = first + wp.tid()
-    project_splat(i, i, means, rotations, log_scales, opacities, features, degree, cam, xy, depth, conic_opacity, rgb, box,
-                  faint, rect, touched)  # fmt: skip
+    project_shape(i, i, means, shapes[i], features, degree, cam, xy, depth, conic_opacity, rgb, box, faint, rect, touched)
 
 
 @wp.kernel
 def project_views(
     means: wp.array(dtype=wp.vec3),
-    rotations: wp.array(dtype=wp.quat),
-    log_scales: wp.array(dtype=wp.vec3),
-    opacities: wp.array(dtype=float),
+    shapes: wp.array(dtype=vec8),
     features: wp.array2d(dtype=float),
     degree: int,
     cams: wp.array(dtype=CameraParams),
@@ -310,13 +335,13 @@ def project_views(
     rect: wp.array(dtype=wp.vec4i),
     touched: wp.array(dtype=wp.int32),
 ):
-    """Several views at once: row v n + i (n splats) is ``project_splat`` of splat i by camera v."""
+    """Several views at once: row v n + i (n splats) is ``project_shape`` of splat i by camera v."""
     row = first + wp.tid()
     n = means.shape[0]
     v = row / n
     i = row - v * n
-    project_splat(i, row, means, rotations, log_scales, opacities, features, degree, cams[v], xy, depth, conic_opacity, rgb,
-                  box, faint, rect, touched)  # fmt: skip
+    project_shape(i, row, means, shapes[i], features, degree, cams[v], xy, depth, conic_opacity, rgb, box, faint, rect,
+                  touched)  # fmt: skip
 
 
 @wp.kernel

@@ -739,10 +739,10 @@ def splat_view_backward(
     g_opacities: wp.array(dtype=float),
     g_features: wp.array2d(dtype=float),
 ):
-    """Splat i in the view of ``cam`` (its projection in row ``row``: ``render.project_splat``): its
+    """Splat i in the view of ``cam`` (its projection in row ``row``: ``render.project_shape``): its
     entries' gradients summed in slot order, then the chain rule back to the parameters
-    (``render.project_splat`` differentiated), added to row i of the g_ arrays; where ``colours``
-    is nonzero, the colours' alone (``g_features``: the same bits)."""
+    (``render.splat_shape`` and ``render.project_shape`` differentiated), added to row i of the g_
+    arrays; where ``colours`` is nonzero, the colours' alone (``g_features``: the same bits)."""
     n = touched[row]
     if n == 0:
         return  # culled in this view: no pixel depends on it

@@ -1,6 +1,7 @@
 """Renders a splat set from pinhole cameras: the standard 3DGS forward rasteriser, on the splats' device.
 
-Per view: ``project`` (one thread per splat: cull, EWA 2D covariance, SH colour, tile rectangle),
+Once per splat set ``splat_shapes`` (each splat's 3D covariance, opacity and reach), then per view:
+``project`` (one thread per splat: cull, EWA 2D covariance, SH colour, tile rectangle),
 an inclusive scan of tile counts, ``emit_entries`` (one (tile, depth) key per covered tile), a stable
 radix sort of the keys, ``gather_entries`` (entry-ordered splat data and per-tile ranges) and the
 composite: on a GPU one thread per pixel and chunk of its tile's entries, the chunks merged in order
@@ -50,6 +51,11 @@ PAIRS_PER_CHUNK = 1 << 16
 PROJECT_ROWS = 1024
 EMIT_ROWS = 4096
 GATHER_ROWS = 16384
+
+
+def key_bits(tiles: int) -> int:
+    """The bits of an entry's key that the sort orders by: 32 of depth and those of the tile index."""
+    return 32 + max(1, int(tiles - 1).bit_length())
 
 
 def entry_memory(device) -> int:
@@ -125,6 +131,7 @@ class _Rasteriser:
         self.entry_bytes = ENTRY_BYTES  # what an entry takes in this rasteriser's buffers
         self.tile_start = self.tile_end = None
         self.counts = None
+        self.shapes = None  # ``_shapes``
         wp.load_module(kernels, device=self.device)
 
     def _reserve_rows(self, rows: int) -> None:
@@ -195,7 +202,7 @@ class _Rasteriser:
         self._launch(
             kernel,
             rows,
-            [s.means, s.rotations, s.log_scales, s.opacities, s.features, self.degree, p],
+            [s.means, self._shapes(), s.features, self.degree, p],
             [self.xy, self.depth, self.conic_opacity, self.rgb, self.box, self.faint, self.rect, self.touched],
             PROJECT_ROWS,
         )
@@ -216,6 +223,16 @@ class _Rasteriser:
             )
         return count
 
+    def _shapes(self, again: bool = False) -> wp.array:
+        """Each splat's view-independent terms (``kernels.splat_shapes``), made on first use and read by
+        every view projected after (so the splats must not change in between); ``again``: made anew."""
+        if self.shapes is None or again:
+            s = self.splats
+            if self.shapes is None:
+                self.shapes = wp.empty(self.n, dtype=kernels.vec8, device=self.device)
+            self._launch(kernels.splat_shapes, self.n, [], [s.rotations, s.log_scales, s.opacities, self.shapes], PROJECT_ROWS)
+        return self.shapes
+
     def render_into(self, camera: Camera, background: wp.vec3, image: wp.array, view: int) -> None:
         """Composites view ``view`` of ``image`` (V, H, W, 3) from ``camera``."""
         p = camera_params(camera)
@@ -230,7 +247,7 @@ class _Rasteriser:
                 [self.keys, self.values],
                 EMIT_ROWS,
             )
-            wp.utils.radix_sort_pairs(self.keys, self.values, count, 0, 32 + max(1, int(tiles - 1).bit_length()))
+            wp.utils.radix_sort_pairs(self.keys, self.values, count, 0, key_bits(tiles))
             self._launch(
                 kernels.gather_entries,
                 count,

@@ -23,7 +23,7 @@ import warp as wp
 
 from ..eval.cameras import Camera
 from ..eval.render import (
-    EMIT_ROWS, GATHER_ROWS, INDEX_LIMIT, ONE_WALK, _Rasteriser, camera_params, entry_memory, rows_per_chunk, tile_count,
+    EMIT_ROWS, GATHER_ROWS, INDEX_LIMIT, ONE_WALK, _Rasteriser, camera_params, entry_memory, key_bits, rows_per_chunk, tile_count,
 )
 from ..kernels import render as kernels
 from ..kernels import render_grad as grad_kernels
@@ -163,6 +163,7 @@ class GradRasteriser(_Rasteriser):
         self.cams = camera_array(cameras, self.device) if params is None else params
         self._reserve_rows(views * n)
         named = f"a {cameras[0].width}x{cameras[0].height} view" if views == 1 else f"{views} views"
+        self._shapes(again=True)  # the splats may have changed since the last forward
         count = self._project(self.cams, tiles, kernels.project_views, views * n, named)
         if count > 0:
             self._reserve(count)
@@ -175,7 +176,7 @@ class GradRasteriser(_Rasteriser):
                 EMIT_ROWS,
             )
             self._rows(grad_kernels.number_slots, count, [self.values, self.slot_splat], 16384)
-            wp.utils.radix_sort_pairs(self.keys, self.values, count, 0, 32 + max(1, int(tiles - 1).bit_length()))
+            wp.utils.radix_sort_pairs(self.keys, self.values, count, 0, key_bits(tiles))
             self._rows(
                 grad_kernels.order_entries, count, [self.values, self.slot_splat, self.entry_splat, self.entry_of_slot], 16384
             )
