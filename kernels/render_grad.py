@@ -38,9 +38,10 @@ A refinement of the colours alone (the colour fit: every other rate 0) asks for 
 gradients only (``colours`` nonzero): each (entry, pixel) term is then dL/drgb_k = alpha_k T_k dL/dC
 alone, the walk keeps only T, and ``splat_backward`` runs only the SH colour's chain. The colours'
 gradients are the same bits as the whole pass's, in the same order; every other gradient stays 0.
-Those weights alpha_k T_k do not depend on the colours, so on a GPU the forward keeps them
-(``composite_weights``, in the per-pixel backward's slots) and ``sum_weighted_colours`` adds
-dL/dC alpha_k T_k per entry from them in ``sum_pixels``' order, with no second walk of the tiles.
+Those weights alpha_k T_k do not depend on the colours, so the forward keeps them, in the
+per-pixel backward's slots (``composite_weights`` on a GPU, ``composite_tile_weights`` on the CPU),
+and ``sum_weighted_colours`` adds dL/dC alpha_k T_k per entry from them in ``sum_pixels``' order,
+with no second walk of the tiles.
 """
 
 import warp as wp
@@ -940,6 +941,83 @@ def composite_weights(
     image[view, py, px, 1] = c[1]
     image[view, py, px, 2] = c[2]
     stops[tid] = stop
+
+
+@wp.kernel
+def composite_tile_weights(
+    first: int,
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    cams: wp.array(dtype=CameraParams),
+    tiles_x: int,
+    view_tiles: int,
+    background: wp.vec3,
+    slot_ends: wp.array(dtype=wp.int32),
+    transmittance: wp.array(dtype=float),
+    colour: wp.array(dtype=wp.vec3),
+    done: wp.array(dtype=wp.int32),
+    image: wp.array4d(dtype=float),
+    weights: wp.array(dtype=float),
+    stops: wp.array(dtype=wp.int32),
+):
+    """``composite_weights`` for the CPU: one thread per tile, entry by entry over the pixels of each
+    entry's box (``render.composite_tiles``' one walk, its per-pixel state in the tile's slots of
+    ``transmittance``, ``colour`` and ``done``). Each pixel sees the same entries in the same order
+    with the same float32 arithmetic, so the pixels, weights and stops are ``composite_weights``'."""
+    tile = first + wp.tid()
+    base = tile * TILE_PIXELS
+    view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(tile, tiles_x, view_tiles, cams)
+    end = tile_end[tile]
+    for s in range(TILE_PIXELS):
+        transmittance[base + s] = 1.0
+        colour[base + s] = wp.vec3(0.0, 0.0, 0.0)
+        done[base + s] = 0
+        stops[base + s] = end
+    remaining = (x_hi - x_lo) * (y_hi - y_lo)
+    for k in range(tile_start[tile], end):
+        if remaining == 0:
+            break  # every pixel finished: no later entry is read back
+        gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
+        if gx1 < gx0 or gy1 < gy0:
+            continue
+        p = e_xy[k]
+        co = e_conic_opacity[k]
+        rgb = e_rgb[k]
+        faint = e_faint[k]
+        slot = slot_ends[k] - (gx1 - gx0 + 1) * (gy1 - gy0 + 1)
+        for py in range(gy0, gy1 + 1):
+            row = base + (py - y_lo) * TILE - x_lo
+            for px in range(gx0, gx1 + 1):
+                pixel = row + px
+                if done[pixel] == 0:
+                    dx, dy, gauss, raw, alpha = entry_at_pixel(p, co, faint, float(px), float(py))
+                    if alpha == 0.0:
+                        weights[slot] = 0.0
+                    else:
+                        t = transmittance[pixel]
+                        test_t = t * (1.0 - alpha)
+                        if test_t < T_MIN:
+                            done[pixel] = 1
+                            stops[pixel] = k
+                            remaining -= 1
+                        else:
+                            weight = alpha * t
+                            weights[slot] = weight
+                            colour[pixel] = colour[pixel] + rgb * weight
+                            transmittance[pixel] = test_t
+                slot += 1
+    for py in range(y_lo, y_hi):
+        for px in range(x_lo, x_hi):
+            pixel = base + (py - y_lo) * TILE + px - x_lo
+            c = colour[pixel] + background * transmittance[pixel]
+            image[view, py, px, 0] = c[0]
+            image[view, py, px, 1] = c[1]
+            image[view, py, px, 2] = c[2]
 
 
 @wp.kernel

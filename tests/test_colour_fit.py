@@ -95,10 +95,10 @@ def test_wrong_merged_colours_are_fitted_back_and_kept(device):
 
 @pytest.mark.parametrize("per_pixel", [None, True])
 def test_the_fit_back_propagates_colours_alone_to_the_same_bytes(device, monkeypatch, per_pixel):
-    """The fit's backward computes the colours' gradients alone (``colours_only``; with the
-    per-pixel backward, a GPU's, from the forward's kept weights) and Adam steps only the colours;
-    its output is the bytes of the same fit through the whole backward and Adam on every group (at
-    rate 0)."""
+    """The fit's backward computes the colours' gradients alone (``colours_only``) from the forward's
+    kept weights (the CPU's, and with the per-pixel backward a GPU's) and Adam steps only the
+    colours; its output is the bytes of the same fit through the whole backward and Adam on every
+    group (at rate 0)."""
     from nanogs_warp.refinement import refine
     from nanogs_warp.refinement.render_grad import GradRasteriser
 
@@ -117,7 +117,7 @@ def test_the_fit_back_propagates_colours_alone_to_the_same_bytes(device, monkeyp
     monkeypatch.setattr(GradRasteriser, "backward", recorded)
     fit = size_fit.SizeFit(reference, size=False, colour=True)
     alone = fit(dark, marks)
-    assert fit.colour_kept[700] and set(asked) == {(True, bool(per_pixel))}
+    assert fit.colour_kept[700] and set(asked) == {(True, True)}
 
     def whole(self, image, grad_image, grads, colours_only=False):
         backward(self, image, grad_image, grads, False)

@@ -249,25 +249,33 @@ def test_views_rendered_together_give_the_bytes_of_one_at_a_time(device, rng, ba
         assert a.tobytes() == b.tobytes()
 
 
-@pytest.mark.parametrize("backward", ["weights", "per_pixel", "lanes", "lanes_in_turn"])
-def test_colours_alone_are_the_whole_backward_colour_bytes(device, rng, backward):
+@pytest.mark.parametrize("backward", ["weights", "tile_weights", "tile_weights_refused", "per_pixel", "lanes", "lanes_in_turn"])
+def test_colours_alone_are_the_whole_backward_colour_bytes(device, rng, backward, monkeypatch):
     """The colour fit's backward (``colours_only``) on views rendered together, with partial edge
     tiles and saturated pixels: the colours' gradients are the whole pass's to the bit, and no other
     gradient array is touched (NaN in, NaN out); from the forward's kept weights (``keep_weights``,
-    the per-pixel backward's) too, whose forward renders each view's pixels to the bit."""
+    the per-pixel backward's and the tiles', a GPU's and the CPU's) too, whose forward renders each
+    view's pixels to the bit. The tiles keep no weights where more entries reach a pixel than
+    ``KEPT_PAIRS_PER_PIXEL`` on average (lowered here to 1), and walk the tiles again."""
+    from nanogs_warp.refinement import render_grad
+
+    if backward == "tile_weights_refused":
+        monkeypatch.setattr(render_grad, "KEPT_PAIRS_PER_PIXEL", 1)
     cameras = [random_camera(rng, width=w, height=h) for w, h in [(48, 40), (45, 29)]]
     arrays = random_scene(rng, 500, 2, camera_centre=cameras[0].centre, behind=0.1, opacity=(0.3, 1.0), log_scale=(np.log(0.3), 0.6))
     splats = SplatSet.from_numpy(**arrays, device=device)
     options = {"per_pixel": dict(lanes=16, per_pixel=True), "lanes": dict(lanes=16, lanes_in_turn=False, per_pixel=False),
-               "lanes_in_turn": dict(lanes=16, lanes_in_turn=True, per_pixel=False)}.get(backward, dict(per_pixel=True))  # fmt: skip
+               "lanes_in_turn": dict(lanes=16, lanes_in_turn=True, per_pixel=False),
+               "weights": dict(per_pixel=True), "tile_weights": dict(per_pixel=False),
+               "tile_weights_refused": dict(per_pixel=False)}[backward]  # fmt: skip
     g_image = wp.array(rng.normal(size=(2, 40, 48, 3)).astype(np.float32), dtype=wp.float32, device=device)
     results, images = [], []
     for colours_only in (False, True):
         rasteriser = GradRasteriser(splats, **options)
         image = wp.full((2, 40, 48, 3), float("nan"), dtype=wp.float32, device=device)
-        keep = colours_only and backward == "weights"
+        keep = colours_only and "weights" in backward
         rasteriser.forward(cameras, wp.vec3(0.1, 0.2, 0.3), image, keep_weights=keep)
-        assert rasteriser.weights_kept == keep
+        assert rasteriser.weights_kept == (keep and backward != "tile_weights_refused")
         grads = SplatGradients.zeros_like(splats)
         for a in grads.arrays()[:-1]:
             a.fill_(float("nan"))

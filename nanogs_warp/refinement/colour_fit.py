@@ -12,7 +12,7 @@ are taken: every row that no merge made keeps its own colour, and no other value
 colour must not buy the coarse views' likeness with the fine ones', as the renderers' blur would
 let it (docs/quality.md): ``SizeFit`` keeps the result only where it gains in the size fit's
 coarse and fine views alike, the size fit's own rule. Its backward is the colours' alone
-(``GradRasteriser.backward``'s ``colours_only``; on a GPU from the forward's kept weights). On an
+(``GradRasteriser.backward``'s ``colours_only``, from the forward's kept weights). On an
 H200 the fit of a 6M-splat scene's 600,000-splat output adds 0.7-1.1 s (docs/performance.md);
 ``--no-fit-colour`` saves it.
 """

@@ -66,10 +66,19 @@ GRAD_ENTRY_BYTES = 3 * 4 + 8 + 12 + 4 + 12
 LANE_BYTES = 8 + 12 + 4 + 12
 
 
-# Bytes the per-pixel backward adds: per entry its area and its slots' end, per (entry, pixel) pair its
-# terms (and its weight, where the colours alone are refined: ``forward``'s ``keep_weights``).
+# Bytes the per-pixel slots add: per entry its area and its slots' end; per (entry, pixel) pair its
+# weight (``forward``'s ``keep_weights``) and, for the per-pixel backward, its terms.
 PIXEL_ENTRY_BYTES = 2 * 4
-PIXEL_BYTES = 8 + 12 + 4 + 12 + 4
+WEIGHT_BYTES = 4
+PIXEL_BYTES = 8 + 12 + 4 + 12
+
+
+# The CPU keeps a view's weights (``forward``'s ``keep_weights``) only while its entries reach at most
+# this many pixels a pixel on average (their slots): beyond, writing and reading the weights back costs
+# more than walking the tiles again. The 10 % output of playbot (500k splats) has 58 a pixel, and the
+# colour fit runs 7 % faster for keeping them; a fuzz case whose splats outgrow a 20,000-splat scene has
+# 1,000-1,600, and its run took 36 s and 2.2 GB with them against 30 s and 0.5 GB without.
+KEPT_PAIRS_PER_PIXEL = 256
 
 
 def camera_array(cameras: Sequence[Camera], device) -> wp.array:
@@ -106,7 +115,8 @@ class GradRasteriser(_Rasteriser):
         self.lanes_in_turn = lanes_in_turn and lanes > 1
         self.lane_buffers = lanes > 1 and not self.lanes_in_turn
         self.entry_bytes += GRAD_ENTRY_BYTES + (lanes * LANE_BYTES if self.lane_buffers else 0)
-        self.entry_bytes += PIXEL_ENTRY_BYTES if per_pixel else 0
+        self.entry_bytes += PIXEL_ENTRY_BYTES
+        self.pair_bytes = WEIGHT_BYTES + (PIXEL_BYTES if per_pixel else 0)
         self.pixel_capacity = 0
         self.stops = None  # per pixel of the last view, the entry its per-pixel backward finished at
         self.weights_kept = False  # whether the last forward kept its weights (``forward``'s ``keep_weights``)
@@ -127,9 +137,8 @@ class GradRasteriser(_Rasteriser):
         self.e_g_conic = wp.empty(c, dtype=wp.vec3, device=d)
         self.e_g_opacity = wp.empty(c, dtype=wp.float32, device=d)
         self.e_g_rgb = wp.empty(c, dtype=wp.vec3, device=d)
-        if self.per_pixel:
-            self.areas = wp.empty(c, dtype=wp.int32, device=d)
-            self.slot_ends = wp.empty(c, dtype=wp.int32, device=d)
+        self.areas = wp.empty(c, dtype=wp.int32, device=d)
+        self.slot_ends = wp.empty(c, dtype=wp.int32, device=d)
         if self.lane_buffers:
             lanes = c * self.lanes
             self.lane_xy = wp.empty(lanes, dtype=wp.vec2, device=d)
@@ -153,9 +162,10 @@ class GradRasteriser(_Rasteriser):
         other: ``kernels/render.py``); outside a view's own size image[v] holds nothing of use.
         ``params``: the cameras' ``camera_params`` already on the device (``camera_array``), else
         made here (a copy to the device, which waits for it). ``keep_weights``: for a backward of
-        the colours alone (``backward``'s ``colours_only``), the per-pixel backward keeps each entry's
-        weight at each pixel (``kernels/render_grad.py``'s ``composite_weights``; the same pixels),
-        so that that backward need not walk the tiles again."""
+        the colours alone (``backward``'s ``colours_only``), the composite keeps each entry's weight
+        at each pixel (``kernels/render_grad.py``'s ``composite_weights`` on a GPU,
+        ``composite_tile_weights`` on the CPU; the same pixels), so that that backward need not walk
+        the tiles again."""
         views, n = len(cameras), self.n
         tiles_x = max(tile_count(c.width) for c in cameras)
         view_tiles = tiles_x * max(tile_count(c.height) for c in cameras)
@@ -192,16 +202,20 @@ class GradRasteriser(_Rasteriser):
             entries = [self.xy, self.conic_opacity, self.rgb, self.box, self.faint]
         inputs = [*entries, self.tile_start, self.tile_end]
         inputs += [image.shape[2], image.shape[1], tiles_x, background, 0, view_tiles]
-        self.weights_kept = keep_weights and self.per_pixel and count > 0 and self._reserve_slots(count, tiles, tiles_x, view_tiles)
+        self.weights_kept = keep_weights and count > 0 and self._reserve_slots(count, tiles, tiles_x, view_tiles)
         if self.weights_kept:
+            weighted = [*entries, self.tile_start, self.tile_end, self.cams, tiles_x, view_tiles, background, self.slot_ends]
             pixels = tiles * kernels.TILE_PIXELS
-            self._rows(
-                grad_kernels.composite_weights,
-                pixels,
-                [*entries, self.tile_start, self.tile_end, self.cams, tiles_x, view_tiles, background, self.slot_ends,
-                 image, self.p_weight, self.stops],
-                max(2048, rows_per_chunk(pixels, count)),
-            )  # fmt: skip
+            if self.per_pixel:  # a GPU: a thread per pixel
+                self._rows(grad_kernels.composite_weights, pixels, [*weighted, image, self.p_weight, self.stops],
+                           max(2048, rows_per_chunk(pixels, count)))  # fmt: skip
+            else:  # the CPU: a thread per tile, entry by entry
+                self._reserve_scratch(pixels)
+                self._rows(
+                    grad_kernels.composite_tile_weights, tiles,
+                    [*weighted, self.bw_transmittance, self.bw_front, self.bw_done, image, self.p_weight, self.stops],
+                    rows_per_chunk(tiles, count),
+                )  # fmt: skip
         elif self.method == "tiles":
             self._composite_tiles(tiles, count, inputs, ONE_WALK, image)  # the backward replays one walk
         else:
@@ -224,13 +238,7 @@ class GradRasteriser(_Rasteriser):
             )  # fmt: skip
             self._splat_backward(grads, 1)
             return
-        d = self.device
-        pixels = self.tiles * kernels.TILE_PIXELS
-        if self.scratch_pixels < pixels:
-            self.scratch_pixels = pixels
-            self.bw_transmittance = wp.empty(pixels, dtype=wp.float32, device=d)
-            self.bw_front = wp.empty(pixels, dtype=wp.vec3, device=d)
-            self.bw_done = wp.empty(pixels, dtype=wp.int32, device=d)
+        self._reserve_scratch(self.tiles * kernels.TILE_PIXELS)
         per_entry = [self.e_g_xy, self.e_g_conic, self.e_g_opacity, self.e_g_rgb]
         per_lane = [self.lane_xy, self.lane_conic, self.lane_opacity, self.lane_rgb] if self.lane_buffers else per_entry
         colours = int(colours_only)
@@ -250,6 +258,15 @@ class GradRasteriser(_Rasteriser):
                 self._rows(grad_kernels.sum_lanes, self.count, [self.lanes, *per_lane, *per_entry], 16384)
         self._splat_backward(grads, colours)
 
+    def _reserve_scratch(self, pixels: int) -> None:
+        """Per-pixel state for ``pixels`` pixels: transmittance, colour (or colour in front) and done."""
+        if self.scratch_pixels < pixels:
+            d = self.device
+            self.scratch_pixels = pixels
+            self.bw_transmittance = wp.empty(pixels, dtype=wp.float32, device=d)
+            self.bw_front = wp.empty(pixels, dtype=wp.vec3, device=d)
+            self.bw_done = wp.empty(pixels, dtype=wp.int32, device=d)
+
     def _reserve_slots(self, count: int, tiles: int, tiles_x: int, view_tiles: int) -> bool:
         """The per-pixel slots of the ``count`` entries just sorted (``pixel_areas``, their running
         sum in ``slot_ends``) and the buffers for their terms, and a stop per pixel of ``tiles``
@@ -261,21 +278,25 @@ class GradRasteriser(_Rasteriser):
         self._rows(grad_kernels.pixel_areas, count, [*where, self.areas], 16384)
         wp.utils.array_scan(self.areas[:count], self.slot_ends[:count], inclusive=True)
         bound = count * kernels.TILE_PIXELS  # an entry reaches at most its tile's pixels
+        if not self.per_pixel:  # the CPU's kept weights (its only slots): not where entries pile up on each pixel
+            if int(self.slot_ends[count - 1 : count].numpy()[0]) > KEPT_PAIRS_PER_PIXEL * tiles * kernels.TILE_PIXELS:
+                return False
         if bound > self.pixel_capacity:  # else the slots fit without reading their count back (a wait for the GPU)
             pairs = int(self.slot_ends[count - 1 : count].numpy()[0])
             if pairs > self.pixel_capacity or self.pixel_capacity == 0:  # (none yet: a view whose entries reach no pixel)
                 memory = entry_memory(d)
-                if pairs * PIXEL_BYTES > memory:
+                if pairs * self.pair_bytes > memory:
                     return False
                 # room for twice this bound where it takes at most an eighth of that memory: the
                 # next views' slots then fit without a read-back while their entries stay that few
-                room = max(pairs, min(2 * bound, memory // (8 * PIXEL_BYTES), INDEX_LIMIT))
+                room = max(pairs, min(2 * bound, memory // (8 * self.pair_bytes), INDEX_LIMIT))
                 self.pixel_capacity = c = max(room, int(self.pixel_capacity * 1.5), 1024)
-                self.p_xy = wp.empty(c, dtype=wp.vec2, device=d)
-                self.p_conic = wp.empty(c, dtype=wp.vec3, device=d)
-                self.p_opacity = wp.empty(c, dtype=wp.float32, device=d)
-                self.p_rgb = wp.empty(c, dtype=wp.vec3, device=d)
                 self.p_weight = wp.empty(c, dtype=wp.float32, device=d)
+                if self.per_pixel:
+                    self.p_xy = wp.empty(c, dtype=wp.vec2, device=d)
+                    self.p_conic = wp.empty(c, dtype=wp.vec3, device=d)
+                    self.p_opacity = wp.empty(c, dtype=wp.float32, device=d)
+                    self.p_rgb = wp.empty(c, dtype=wp.vec3, device=d)
         pixels = tiles * kernels.TILE_PIXELS
         if self.stops is None or self.stops.shape[0] < pixels:
             self.stops = wp.empty(pixels, dtype=wp.int32, device=d)
