@@ -500,7 +500,10 @@ def composite_backward_pixels(
     fpy = float(py)
     stop = tile_end[tile]
     for k in range(tile_start[tile], tile_end[tile]):
-        gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
+        bx = e_box[k]
+        if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
+            continue  # outside the entry's box: ``entry_columns`` would leave the pixel out too
+        gx0, gx1, gy0, gy1 = entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
         if px < gx0 or px > gx1 or py < gy0 or py > gy1:
             continue
         slot = pixel_slot(slot_ends, k, gx0, gx1, gy0, gy1, px, py)
@@ -920,7 +923,10 @@ def composite_weights(
     fpy = float(py)
     stop = tile_end[tile]
     for k in range(tile_start[tile], tile_end[tile]):
-        gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
+        bx = e_box[k]
+        if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
+            continue  # outside the entry's box (as in ``composite_backward_pixels``)
+        gx0, gx1, gy0, gy1 = entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
         if px < gx0 or px > gx1 or py < gy0 or py > gy1:
             continue
         slot = pixel_slot(slot_ends, k, gx0, gx1, gy0, gy1, px, py)
