@@ -23,7 +23,8 @@ import warp as wp
 
 from ..eval.cameras import Camera
 from ..eval.render import (
-    EMIT_ROWS, GATHER_ROWS, INDEX_LIMIT, ONE_WALK, _Rasteriser, camera_params, entry_memory, key_bits, rows_per_chunk, tile_count,
+    EMIT_ROWS, GATHER_ROWS, INDEX_LIMIT, ONE_WALK, _Rasteriser, camera_params, entry_memory, key_bits, rows_per_chunk,
+    tile_count,
 )
 from ..kernels import render as kernels
 from ..kernels import render_grad as grad_kernels
@@ -75,9 +76,10 @@ PIXEL_BYTES = 8 + 12 + 4 + 12
 
 # The CPU keeps a view's weights (``forward``'s ``keep_weights``) only while its entries reach at most
 # this many pixels a pixel on average (their slots): beyond, writing and reading the weights back costs
-# more than walking the tiles again. The 10 % output of playbot (500k splats) has 58 a pixel, and the
-# colour fit runs 7 % faster for keeping them; a fuzz case whose splats outgrow a 20,000-splat scene has
-# 1,000-1,600, and its run took 36 s and 2.2 GB with them against 30 s and 0.5 GB without.
+# more than walking the tiles again. The 10 % output of playbot (500k splats) has 58 a pixel, and its
+# run is 7 % faster for keeping them; a fuzz case whose splats outgrow a 20,000-splat scene has
+# 1,000-1,600, and its run took 49 s and 2.2 GB with them against 43 s and 0.65 GB without
+# (docs/performance.md).
 KEPT_PAIRS_PER_PIXEL = 256
 
 
@@ -278,11 +280,15 @@ class GradRasteriser(_Rasteriser):
         self._rows(grad_kernels.pixel_areas, count, [*where, self.areas], 16384)
         wp.utils.array_scan(self.areas[:count], self.slot_ends[:count], inclusive=True)
         bound = count * kernels.TILE_PIXELS  # an entry reaches at most its tile's pixels
+        pixels = tiles * kernels.TILE_PIXELS
+        pairs = None
         if not self.per_pixel:  # the CPU's kept weights (its only slots): not where entries pile up on each pixel
-            if int(self.slot_ends[count - 1 : count].numpy()[0]) > KEPT_PAIRS_PER_PIXEL * tiles * kernels.TILE_PIXELS:
+            pairs = int(self.slot_ends[count - 1 : count].numpy()[0])
+            if pairs > KEPT_PAIRS_PER_PIXEL * pixels:
                 return False
         if bound > self.pixel_capacity:  # else the slots fit without reading their count back (a wait for the GPU)
-            pairs = int(self.slot_ends[count - 1 : count].numpy()[0])
+            if pairs is None:
+                pairs = int(self.slot_ends[count - 1 : count].numpy()[0])
             if pairs > self.pixel_capacity or self.pixel_capacity == 0:  # (none yet: a view whose entries reach no pixel)
                 memory = entry_memory(d)
                 if pairs * self.pair_bytes > memory:
@@ -297,7 +303,6 @@ class GradRasteriser(_Rasteriser):
                     self.p_conic = wp.empty(c, dtype=wp.vec3, device=d)
                     self.p_opacity = wp.empty(c, dtype=wp.float32, device=d)
                     self.p_rgb = wp.empty(c, dtype=wp.vec3, device=d)
-        pixels = tiles * kernels.TILE_PIXELS
         if self.stops is None or self.stops.shape[0] < pixels:
             self.stops = wp.empty(pixels, dtype=wp.int32, device=d)
         return True
