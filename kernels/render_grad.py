@@ -450,19 +450,9 @@ def thread_pixel(tid: int, tiles_x: int, view_tiles: int, cams: wp.array(dtype=C
 
 
 @wp.func
-def pixel_slot(
-    bx: wp.vec4, slot_ends: wp.array(dtype=wp.int32), k: int, x_lo: int, x_hi: int, y_lo: int, y_hi: int, px: int, py: int
-):
-    """Entry k's slot for pixel (px, py) of the tile [x_lo, x_hi) x [y_lo, y_hi), its box ``bx``: the
-    pixel's place, row-major, among the slots of the box's columns and rows in the tile
-    (``entry_columns``), which end at ``slot_ends[k]``; -1 where the box leaves the pixel out. The
-    box is tested first, as ``render.composite`` tests it (a pixel of the tile lies in the columns
-    exactly when it lies in the box): most entries of a tile miss most of its pixels."""
-    if float(px) < bx[0] or float(px) > bx[1] or float(py) < bx[2] or float(py) > bx[3]:
-        return -1
-    gx0, gx1, gy0, gy1 = entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
-    if px < gx0 or px > gx1 or py < gy0 or py > gy1:
-        return -1
+def pixel_slot(slot_ends: wp.array(dtype=wp.int32), k: int, gx0: int, gx1: int, gy0: int, gy1: int, px: int, py: int):
+    """Entry k's slot for pixel (px, py) of its box's columns gx0..gx1 and rows gy0..gy1: the pixel's
+    place, row-major, among the box's slots, which end at ``slot_ends[k]``."""
     columns = gx1 - gx0 + 1
     return slot_ends[k] - columns * (gy1 - gy0 + 1) + (py - gy0) * columns + px - gx0
 
@@ -510,9 +500,13 @@ def composite_backward_pixels(
     fpy = float(py)
     stop = tile_end[tile]
     for k in range(tile_start[tile], tile_end[tile]):
-        slot = pixel_slot(e_box[k], slot_ends, k, x_lo, x_hi, y_lo, y_hi, px, py)
-        if slot < 0:
+        bx = e_box[k]
+        if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
+            continue  # outside the entry's box: ``entry_columns`` would leave the pixel out too
+        gx0, gx1, gy0, gy1 = entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
+        if px < gx0 or px > gx1 or py < gy0 or py > gy1:
             continue
+        slot = pixel_slot(slot_ends, k, gx0, gx1, gy0, gy1, px, py)
         co = e_conic_opacity[k]
         dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], co, e_faint[k], fpx, fpy)
         if alpha == 0.0:
@@ -929,9 +923,13 @@ def composite_weights(
     fpy = float(py)
     stop = tile_end[tile]
     for k in range(tile_start[tile], tile_end[tile]):
-        slot = pixel_slot(e_box[k], slot_ends, k, x_lo, x_hi, y_lo, y_hi, px, py)
-        if slot < 0:
+        bx = e_box[k]
+        if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
+            continue  # outside the entry's box (as in ``composite_backward_pixels``)
+        gx0, gx1, gy0, gy1 = entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
+        if px < gx0 or px > gx1 or py < gy0 or py > gy1:
             continue
+        slot = pixel_slot(slot_ends, k, gx0, gx1, gy0, gy1, px, py)
         dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], e_conic_opacity[k], e_faint[k], fpx, fpy)
         if alpha == 0.0:
             weights[slot] = 0.0
