@@ -16,7 +16,9 @@ Conventions (shared with ``tests/reference_render.py``):
   a zero quaternion, an empty tile rectangle, or opacity < 1/255 (which can reach no pixel).
 - Tile binning: 16x16 tiles; a splat covers the tiles of the square of half-side
   ``ceil(3 sqrt(lambda_max))`` px around its projected mean (INRIA's ``getRect``), less the tiles
-  where its alpha is below 1/255 for certain (see ``project``): the same image, fewer entries.
+  where its alpha is below 1/255 for certain: outside the box of its ellipse of alpha >= 1/255 (see
+  ``project``), and, row by row, outside that ellipse itself (``reached_columns``): the same image,
+  fewer entries.
 - Entries are keyed ``tile << 32 | float bits of depth`` (depth > near > 0, so the bits sort as the
   floats do) and radix-sorted stably; splats of equal depth keep their row order.
 - Several views at once (refinement's steps): ``project_views`` writes splat i seen by camera v to
@@ -201,6 +203,90 @@ def splat_shapes(
     shapes[i] = splat_shape(rotations[i], log_scales[i], opacities[i])
 
 
+# The walks' float32 power -(a dx^2 + c dy^2)/2 - b dx dy (dx = x_k - px) lies within ROUNDING
+# ((a dx^2 + c dy^2)/2 + |b dx dy|) of the exact value from the same float32 inputs (about seven
+# roundings of 2^-24: 4.2e-7), so where the exact q/2 = (a dx^2 + 2 b dx dy + c dy^2)/2 exceeds
+# -faint by more than that everywhere in a tile, no walk composites the splat there (``reached_columns``).
+ROUNDING = wp.constant(1.0e-6)
+
+
+@wp.func
+def ellipse_span(a: wp.float64, b: wp.float64, c: wp.float64, det: wp.float64, limit: wp.float64, lo: wp.float64, hi: wp.float64):
+    """(least, greatest) d over the ellipse a d^2 + 2 b d e + c e^2 <= limit (det = a c - b^2 > 0) with e
+    in [lo, hi] (already within the ellipse's own range of e); each end where the ellipse's extreme
+    d lies inside the band, else at the band's edge nearer to it (d is concave in e along the ellipse's
+    right half and convex along its left half)."""
+    reach = wp.sqrt(limit * c / det)  # the ellipse's greatest d, at e = -b reach / c
+    e_right = -b * reach / c
+    right = reach
+    if e_right < lo or e_right > hi:
+        e = wp.clamp(e_right, lo, hi)
+        right = (-b * e + wp.sqrt(wp.max(a * limit - det * e * e, wp.float64(0.0)))) / a
+    left = -reach  # at e = b reach / c
+    if -e_right < lo or -e_right > hi:
+        e = wp.clamp(-e_right, lo, hi)
+        left = (-b * e - wp.sqrt(wp.max(a * limit - det * e * e, wp.float64(0.0)))) / a
+    return left, right
+
+
+@wp.func
+def reached_columns(p: wp.vec2, co: wp.vec4, faint: float, r: wp.vec4i, ty: int):
+    """The tiles [first, last] of row ``ty`` of tile rectangle ``r`` ([x0, x1) x [y0, y1)) where the
+    splat seen at ``p`` with conic ``co`` may reach alpha >= 1/255 (first > last: none): those whose
+    pixel centres meet its ellipse q/2 <= -faint + ROUNDING S, S the rounding bound's largest value over
+    the rectangle. A walk skips a pixel whose float32 power is below ``faint`` (``composite``), so the
+    tiles left out are tiles where every walk skips the splat at every pixel: the same images, fewer
+    entries. float64 throughout (the same bits on every device); the whole row where the conic is not
+    positive definite or anything is not finite."""
+    everything = wp.vec2i(r[0], r[2] - 1)
+    a = wp.float64(co[0])
+    b = wp.float64(co[1])
+    c = wp.float64(co[2])
+    det = a * c - b * b
+    x = wp.float64(p[0])
+    y = wp.float64(p[1])
+    if not (a > wp.float64(0.0) and c > wp.float64(0.0) and det > wp.float64(0.0) and det < wp.float64(wp.inf)
+            and wp.abs(x) < wp.float64(1.0e30) and wp.abs(y) < wp.float64(1.0e30)):  # fmt: skip
+        return everything
+    # d = p - pixel over the rectangle's pixel centres, and the rounding bound's largest value there
+    tile = wp.float64(TILE)
+    dx_far = wp.max(wp.abs(x - tile * wp.float64(r[0])), wp.abs(x - tile * wp.float64(r[2]) + wp.float64(1.0)))
+    dy_far = wp.max(wp.abs(y - tile * wp.float64(r[1])), wp.abs(y - tile * wp.float64(r[3]) + wp.float64(1.0)))
+    bound = wp.float64(0.5) * ((a + wp.abs(b)) * dx_far * dx_far + (c + wp.abs(b)) * dy_far * dy_far)
+    limit = wp.float64(2.0) * (-wp.float64(faint) + wp.float64(ROUNDING) * bound)  # q <= limit
+    if not (limit > wp.float64(0.0) and limit < wp.float64(wp.inf)):
+        return everything
+    # the row's band of dy, within the ellipse's own range of dy
+    reach_y = wp.sqrt(limit * a / det)
+    lo = wp.max(y - tile * wp.float64(ty) - tile + wp.float64(1.0), -reach_y)
+    hi = wp.min(y - tile * wp.float64(ty), reach_y)
+    if lo > hi:
+        return wp.vec2i(r[0], r[0] - 1)
+    left, right = ellipse_span(a, b, c, det, limit, lo, hi)
+    # pixel x = p_x - dx, widened by far more than the float64 rounding of the above
+    slack = wp.float64(1.0e-9) * (wp.float64(1.0) + wp.abs(x) + wp.abs(left) + wp.abs(right))
+    first = wp.ceil((x - right - slack - tile + wp.float64(1.0)) / tile)  # its last column, 16 tx + 15, reaches x - right
+    last = wp.floor((x - left + slack) / tile)  # its first column, 16 tx, reaches x - left
+    first = wp.max(first, wp.float64(r[0]))
+    last = wp.min(last, wp.float64(r[2] - 1))
+    if first > last:
+        return wp.vec2i(r[0], r[0] - 1)
+    return wp.vec2i(int(first), int(last))
+
+
+@wp.func
+def reached_tiles(p: wp.vec2, co: wp.vec4, faint: float, r: wp.vec4i):
+    """How many tiles of rectangle ``r`` the splat may reach: ``reached_columns`` summed over its rows
+    (every tile of a one-tile rectangle)."""
+    if (r[2] - r[0]) * (r[3] - r[1]) == 1:
+        return 1
+    n = int(0)
+    for ty in range(r[1], r[3]):
+        span = reached_columns(p, co, faint, r, ty)
+        n += wp.max(span[1] - span[0] + 1, 0)
+    return n
+
+
 @wp.func
 def project_shape(
     i: int,
@@ -289,11 +375,14 @@ def project_shape(
     rgb[out] = sh_to_rgb(features, i, degree, d)
     xy[out] = wp.vec2(px, py)
     box[out] = wp.vec4(px - half_x, px + half_x, py - half_y, py + half_y)
-    faint[out] = -reach - FAINT_MARGIN  # log(ALPHA_MIN / opacity) - FAINT_MARGIN: below it no exp is needed
+    faint_power = -reach - FAINT_MARGIN  # log(ALPHA_MIN / opacity) - FAINT_MARGIN: below it no exp is needed
+    faint[out] = faint_power
     depth[out] = z
-    conic_opacity[out] = wp.vec4(conic[0], conic[1], conic[2], opacity)
-    rect[out] = wp.vec4i(x0, y0, x1, y1)
-    touched[out] = (x1 - x0) * (y1 - y0)
+    co = wp.vec4(conic[0], conic[1], conic[2], opacity)
+    conic_opacity[out] = co
+    r = wp.vec4i(x0, y0, x1, y1)
+    rect[out] = r
+    touched[out] = reached_tiles(wp.vec2(px, py), co, faint_power, r)
 
 
 @wp.kernel
@@ -347,6 +436,9 @@ def project_views(
 @wp.kernel
 def emit_entries(
     depth: wp.array(dtype=float),
+    xy: wp.array(dtype=wp.vec2),
+    conic_opacity: wp.array(dtype=wp.vec4),
+    faint: wp.array(dtype=float),
     rect: wp.array(dtype=wp.vec4i),
     touched: wp.array(dtype=wp.int32),
     ends: wp.array(dtype=wp.int32),
@@ -357,10 +449,11 @@ def emit_entries(
     keys: wp.array(dtype=wp.int64),
     values: wp.array(dtype=wp.int32),
 ):
-    """Writes one (tile << 32 | depth bits, row) entry per covered tile, at the row's slots
-    [ends[i] - touched[i], ends[i]) of the inclusive prefix sum. Rows of several views
-    (``project_views``: ``splats`` rows a view) number their tiles after the earlier views'
-    ``view_tiles`` each (``tiles_x`` a row): view v's tile t is v view_tiles + t."""
+    """Writes one (tile << 32 | depth bits, row) entry per tile the splat reaches (``reached_tiles``:
+    row by row, its ``reached_columns``), at the row's slots [ends[i] - touched[i], ends[i]) of the
+    inclusive prefix sum. Rows of several views (``project_views``: ``splats`` rows a view) number
+    their tiles after the earlier views' ``view_tiles`` each (``tiles_x`` a row): view v's tile t is
+    v view_tiles + t."""
     i = first + wp.tid()
     n = touched[i]
     if n == 0:
@@ -369,8 +462,16 @@ def emit_entries(
     bits = wp.int64(wp.cast(depth[i], wp.int32))
     r = rect[i]
     offset = (i / splats) * view_tiles
+    if (r[2] - r[0]) * (r[3] - r[1]) == 1:
+        keys[slot] = (wp.int64(offset + r[1] * tiles_x + r[0]) << wp.int64(32)) | bits
+        values[slot] = i
+        return
+    p = xy[i]
+    co = conic_opacity[i]
+    f = faint[i]
     for ty in range(r[1], r[3]):
-        for tx in range(r[0], r[2]):
+        span = reached_columns(p, co, f, r, ty)
+        for tx in range(span[0], span[1] + 1):
             keys[slot] = (wp.int64(offset + ty * tiles_x + tx) << wp.int64(32)) | bits
             values[slot] = i
             slot += 1

@@ -290,3 +290,108 @@ def test_tile_entries_beyond_int32_are_counted_in_int64(device, monkeypatch):
     camera = orbit_cameras(splats, views=1, size=64)[0]
     with pytest.raises(InputError, match="covers 3,200"):
         render(splats, camera)
+
+
+def _emitted_tiles(splats: SplatSet, camera) -> tuple[_Rasteriser, dict[int, set[int]]]:
+    """Projects ``splats`` for ``camera`` and emits their entries (``render_into``'s first steps):
+    the rasteriser and, per splat row, the tiles its entries name."""
+    from nanogs_warp.eval.render import camera_params
+    from nanogs_warp.kernels import render as kernels
+
+    r = _Rasteriser(splats)
+    r.rect.fill_(wp.vec4i(-1, -1, -1, -1))  # poison: a row culled before its rectangle keeps an empty one
+    p = camera_params(camera)
+    tiles = p.tiles_x * p.tiles_y
+    count = r._project(p, tiles)
+    r._reserve(max(count, 1))
+    wp.launch(kernels.emit_entries, r.n, device=r.device,
+              inputs=[r.depth, r.xy, r.conic_opacity, r.faint, r.rect, r.touched, r.ends, p.tiles_x, r.n, tiles, 0, r.keys, r.values])  # fmt: skip
+    emitted: dict[int, set[int]] = {}
+    for key, row in zip(r.keys.numpy()[:count], r.values.numpy()[:count]):
+        emitted.setdefault(int(row), set()).add(int(key) >> 32)
+    assert sum(len(t) for t in emitted.values()) == count  # no tile twice
+    return r, emitted
+
+
+def _rect_tiles(rect) -> list[tuple[int, int]]:
+    x0, y0, x1, y1 = (int(v) for v in rect)
+    return [(tx, ty) for ty in range(y0, y1) for tx in range(x0, x1)]
+
+
+def _pixels_reached(xy, co, faint, box, tx, ty, width, height) -> bool:
+    """Whether any pixel of tile (tx, ty) inside the view passes the walks' tests (``composite``'s box
+    and power tests in float32, in its order of operations): the tile's entry is needed there."""
+    xs = np.arange(16 * tx, min(16 * tx + 16, width), dtype=np.float32)
+    ys = np.arange(16 * ty, min(16 * ty + 16, height), dtype=np.float32)
+    fpx, fpy = np.meshgrid(xs, ys)
+    dx = np.float32(xy[0]) - fpx
+    dy = np.float32(xy[1]) - fpy
+    power = np.float32(-0.5) * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
+    inside = (fpx >= box[0]) & (fpx <= box[1]) & (fpy >= box[2]) & (fpy <= box[3])
+    return bool(np.any(inside & (power <= 0.0) & (power >= faint)))
+
+
+def _ellipse_meets_tile(xy, co, faint, rect, tx, ty, scale) -> bool:
+    """float64, by brute force: whether the least of q = a dx^2 + 2 b dx dy + c dy^2 over tile (tx, ty)'s
+    rectangle of pixel centres is at most ``scale`` times ``reached_columns``' limit (its rounding
+    bound over ``rect`` included): each edge's least value, or 0 with the centre inside."""
+    a, b, c = (float(v) for v in co[:3])
+    x, y = float(xy[0]), float(xy[1])
+    x0, y0, x1, y1 = (int(v) for v in rect)
+    far_x = max(abs(x - 16 * x0), abs(x - 16 * x1 + 1))
+    far_y = max(abs(y - 16 * y0), abs(y - 16 * y1 + 1))
+    limit = 2.0 * (-float(faint) + 1e-6 * 0.5 * ((a + abs(b)) * far_x**2 + (c + abs(b)) * far_y**2))
+    dx_lo, dx_hi = x - (16 * tx + 15), x - 16 * tx
+    dy_lo, dy_hi = y - (16 * ty + 15), y - 16 * ty
+    if dx_lo <= 0 <= dx_hi and dy_lo <= 0 <= dy_hi:
+        return True
+    q = np.inf
+    for dx in (dx_lo, dx_hi):
+        dy = np.clip(-b * dx / c, dy_lo, dy_hi)
+        q = min(q, a * dx * dx + 2 * b * dx * dy + c * dy * dy)
+    for dy in (dy_lo, dy_hi):
+        dx = np.clip(-b * dy / a, dx_lo, dx_hi)
+        q = min(q, a * dx * dx + 2 * b * dx * dy + c * dy * dy)
+    return q <= scale * limit
+
+
+def needle_scene(rng, n, length=(0.3, 1.5)):
+    """Thin strands of random direction around the origin: one long axis, two short ones."""
+    log_scales = np.log(np.stack([rng.uniform(*length, n), rng.uniform(0.002, 0.02, n), rng.uniform(0.002, 0.02, n)], 1))
+    return dict(means=rng.normal(0.0, 0.6, (n, 3)), rotations=rng.normal(size=(n, 4)), log_scales=log_scales,
+                opacities=rng.normal(1.0, 2.0, n), features=rng.normal(0.0, 1.0, (n, 3)))  # fmt: skip
+
+
+@pytest.mark.parametrize("kind", ["ordinary", "needles"])
+def test_tiles_left_out_are_tiles_no_pixel_would_composite(device, rng, kind):
+    """A splat's entries leave out only tiles where every pixel fails the walks' float32 box and
+    power tests (so every image, and every gradient, is the one of the whole tile rectangle), and
+    they leave out exactly the tiles that a float64 brute-force test finds beyond the splat's ellipse:
+    every tile it meets is emitted, and none it misses by more than rounding. Thin strands lose most
+    of their rectangle."""
+    scene = random_scene(rng, 400, 0, log_scale=(np.log(0.15), 0.8)) if kind == "ordinary" else needle_scene(rng, 300)
+    splats = SplatSet.from_numpy(**scene, device=device)
+    camera = random_camera(rng, 200, 160)
+    r, emitted = _emitted_tiles(splats, camera)
+    tiles_x = (camera.width + 15) // 16
+    xy, co, faint = r.xy.numpy(), r.conic_opacity.numpy(), r.faint.numpy()
+    box, rect, touched = r.box.numpy(), r.rect.numpy(), r.touched.numpy()
+    area = kept = 0
+    for i in np.flatnonzero((rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])):
+        tiles = emitted.get(int(i), set())
+        assert len(tiles) == touched[i]
+        rect_tiles = _rect_tiles(rect[i])
+        area += len(rect_tiles)
+        kept += len(tiles)
+        for tx, ty in rect_tiles:
+            tile = ty * tiles_x + tx
+            if _pixels_reached(xy[i], co[i], faint[i], box[i], tx, ty, camera.width, camera.height):
+                assert tile in tiles, (i, tx, ty)
+            if len(rect_tiles) == 1:  # kept without a test
+                continue
+            if _ellipse_meets_tile(xy[i], co[i], faint[i], rect[i], tx, ty, 1.0 - 1e-6):
+                assert tile in tiles, (i, tx, ty)
+            if tile in tiles:
+                assert _ellipse_meets_tile(xy[i], co[i], faint[i], rect[i], tx, ty, 1.0 + 1e-6), (i, tx, ty)
+    assert area > 0
+    assert kept < (0.95 if kind == "ordinary" else 0.6) * area, (kept, area)

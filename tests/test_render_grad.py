@@ -191,13 +191,14 @@ def test_per_pixel_backward_falls_back_to_the_lanes(device, rng, monkeypatch):
 
 
 def test_per_pixel_backward_of_a_view_whose_entries_reach_no_pixel(device):
-    """A splat just off the image's right edge: its reach box touches the last tile column but no
-    pixel centre, so the view has entries and not one (entry, pixel) slot. Its gradients are zero,
+    """A splat just off the image's right edge, inside one tile row: its reach box touches the last
+    tile column but no pixel centre, so the view has an entry (a one-tile rectangle keeps its tile)
+    and not one (entry, pixel) slot. Its gradients are zero,
     by either backward (the per-pixel one once failed there for want of a buffer)."""
     from nanogs_warp.eval.cameras import Camera
 
     camera = Camera.look_at(np.array([0.0, 0.0, -5.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]), 50.0, 50.0, 32, 32, "edge", 0.2)
-    splats = SplatSet.from_numpy(means=np.array([[-1.85, 0.0, 0.0]]), rotations=np.array([[1.0, 0.0, 0.0, 0.0]]),
+    splats = SplatSet.from_numpy(means=np.array([[-1.85, 0.5, 0.0]]), rotations=np.array([[1.0, 0.0, 0.0, 0.0]]),
                                  log_scales=np.full((1, 3), np.log(1e-3)), opacities=np.array([2.0]),
                                  features=np.ones((1, 3)), device=device)  # fmt: skip
     weights = np.ones((camera.height, camera.width, 3))

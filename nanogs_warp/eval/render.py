@@ -243,7 +243,7 @@ class _Rasteriser:
             self._launch(
                 kernels.emit_entries,
                 self.n,
-                [self.depth, self.rect, self.touched, self.ends, p.tiles_x, self.n, tiles],
+                [self.depth, self.xy, self.conic_opacity, self.faint, self.rect, self.touched, self.ends, p.tiles_x, self.n, tiles],
                 [self.keys, self.values],
                 EMIT_ROWS,
             )

@@ -183,7 +183,7 @@ class GradRasteriser(_Rasteriser):
             self._launch(
                 kernels.emit_entries,
                 views * n,
-                [self.depth, self.rect, self.touched, self.ends, tiles_x, n, view_tiles],
+                [self.depth, self.xy, self.conic_opacity, self.faint, self.rect, self.touched, self.ends, tiles_x, n, view_tiles],
                 [self.keys, self.values],
                 EMIT_ROWS,
             )
