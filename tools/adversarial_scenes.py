@@ -1,10 +1,10 @@
 """Scenes made to defeat the search structures, for their work bounds (docs/numerics.md, "Scenes in
-any units", and docs/performance.md, "Pairing"): made deterministically (seeded), nothing is
-committed as data.
+any units", and docs/performance.md, "Pairing"), and the rasteriser's tile binning: made
+deterministically (seeded), nothing is committed as data.
 
     python tools/adversarial_scenes.py OUT_DIR --count 400000 [--seed 0]
 
-Writes four INRIA 3DGS PLY files (SH degree 0; where not said otherwise, rotations, log-scales in
+Writes five INRIA 3DGS PLY files (SH degree 0; where not said otherwise, rotations, log-scales in
 [-6, -1], opacity logits N(0, 2) and colours N(0, 0.5) as ordinary random splats):
 
 - ``ray.ply``: every centre on the x axis at 10^U(-30, 30): sixty decades, so most squared
@@ -19,6 +19,9 @@ Writes four INRIA 3DGS PLY files (SH degree 0; where not said otherwise, rotatio
   side by side along y, each along x and spaced ever wider (x_i = 10^(6 i / 100,000)), each splat
   as long as its spacing: merge costs grow along every chain, which would take the GPU's parallel
   pairing one round per pair (its bounded rounds).
+- ``needles.ply``: faint needles of random direction (opacity 0.05, as long as the scene is wide,
+  a thousandth of that thick) around the origin: each one's tile rectangle is most of a view, and
+  it reaches the tiles along a line across it (the rasteriser's ``reached_columns``).
 """
 
 from __future__ import annotations
@@ -84,11 +87,20 @@ def cluster_centres(n: int, rng: np.random.Generator) -> np.ndarray:
     return centres
 
 
+def needle_splats(n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    a = random_splats(n, rng)
+    a["means"] = rng.normal(size=(n, 3)).astype(np.float32)
+    a["log_scales"] = np.log(np.c_[np.full(n, 2.0), np.full(n, 2e-3), np.full(n, 2e-3)]).astype(np.float32)
+    a["opacities"][:] = np.float32(np.log(0.05 / 0.95))
+    return a
+
+
 SCENES = {
     "ray": with_centres(ray_centres),
     "bits": with_centres(bit_centres),
     "chain": chain_splats,
     "clusters": with_centres(cluster_centres),
+    "needles": needle_splats,
 }
 
 

@@ -1,8 +1,9 @@
 """Renders a splat set from pinhole cameras: the standard 3DGS forward rasteriser, on the splats' device.
 
 Once per splat set ``splat_shapes`` (each splat's 3D covariance, opacity and reach), then per view:
-``project`` (one thread per splat: cull, EWA 2D covariance, SH colour, tile rectangle),
-an inclusive scan of tile counts, ``emit_entries`` (one (tile, depth) key per covered tile), a stable
+``project`` (one thread per splat: cull, EWA 2D covariance, SH colour, tile rectangle and the count
+of its tiles that the splat's ellipse reaches), an inclusive scan of those counts, ``emit_entries``
+(one (tile, depth) key per reached tile), a stable
 radix sort of the keys, ``gather_entries`` (entry-ordered splat data and per-tile ranges) and the
 composite: on a GPU one thread per pixel and chunk of its tile's entries, the chunks merged in order
 (``composite_chunks``, ``composite_merge``); on the CPU one thread per tile (``composite_tiles``),
