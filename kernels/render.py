@@ -307,8 +307,10 @@ def project_shape(
 ):
     """Splat i of view-independent terms ``shape`` (``splat_shape``) seen by ``cam``, written to row
     ``out``: projected mean, depth, conic and opacity, colour, reach box, faint power, tile rectangle
-    [x0, x1) x [y0, y1) and its tile count (0 when culled)."""
+    [x0, x1) x [y0, y1) and the count of its tiles the splat reaches (``reached_tiles``; 0 and an empty
+    rectangle when culled)."""
     touched[out] = 0
+    rect[out] = wp.vec4i(0, 0, 0, 0)
     # Where alpha >= 1/255 can hold: opacity * exp(power) >= 1/255, i.e. d^T conic d <= 2 ln(255 opacity)
     # (see below); none where opacity < 1/255 (or the quaternion is zero: ``splat_shape``)
     reach = shape[7]
@@ -431,6 +433,15 @@ def project_views(
     i = row - v * n
     project_shape(i, row, means, shapes[i], features, degree, cams[v], xy, depth, conic_opacity, rgb, box, faint, rect,
                   touched)  # fmt: skip
+
+
+@wp.kernel
+def rect_areas(first: int, rect: wp.array(dtype=wp.vec4i), areas: wp.array(dtype=wp.int32)):
+    """areas[i] = the number of tiles of row i's tile rectangle (``project_shape``'s, empty for a row
+    culled before it), i = ``first`` + tid."""
+    i = first + wp.tid()
+    r = rect[i]
+    areas[i] = wp.max(r[2] - r[0], 0) * wp.max(r[3] - r[1], 0)
 
 
 @wp.kernel

@@ -395,3 +395,20 @@ def test_tiles_left_out_are_tiles_no_pixel_would_composite(device, rng, kind):
                 assert _ellipse_meets_tile(xy[i], co[i], faint[i], rect[i], tx, ty, 1.0 + 1e-6), (i, tx, ty)
     assert area > 0
     assert kept < (0.95 if kind == "ordinary" else 0.6) * area, (kept, area)
+
+
+def test_the_entry_bound_counts_whole_tile_rectangles(device, rng):
+    """``max_entries`` (the fits' bound on a view's work) counts every tile of the splats' rectangles,
+    not the fewer tiles their ellipses reach: each entry's walk visits every pixel of its box in its
+    tile. Thin strands whose reached tiles alone would pass the bound are refused."""
+    splats = SplatSet.from_numpy(**needle_scene(rng, 300), device=device)
+    camera = random_camera(rng, 200, 160)
+    r, emitted = _emitted_tiles(splats, camera)
+    rect = r.rect.numpy()
+    pairs = int((np.maximum(rect[:, 2] - rect[:, 0], 0) * np.maximum(rect[:, 3] - rect[:, 1], 0)).sum())
+    entries = sum(len(t) for t in emitted.values())
+    assert entries < pairs - 1
+    image = wp.zeros((1, camera.height, camera.width, 3), dtype=wp.float32, device=device)
+    _Rasteriser(splats, max_entries=pairs).render_into(camera, wp.vec3(0.0, 0.0, 0.0), image, 0)
+    with pytest.raises(InputError, match=f"spans {pairs:,} \\(tile, splat\\) pairs, more than the {pairs - 1:,}"):
+        _Rasteriser(splats, max_entries=pairs - 1).render_into(camera, wp.vec3(0.0, 0.0, 0.0), image, 0)

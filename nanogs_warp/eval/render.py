@@ -113,7 +113,8 @@ class _Rasteriser:
         self.chunk = int(chunk)  # entries a chunk of a tile's list holds ("pixels" method)
         if self.chunk < 1:
             raise ValueError(f"a chunk holds at least one entry, got {chunk}")
-        self.max_entries = max_entries  # a view needing more (tile, splat) entries raises InputError
+        self.max_entries = max_entries  # a view whose tile rectangles hold more (tile, splat) pairs raises InputError
+        self.areas = self.area_ends = None  # ``_rectangle_pairs``' rows
         self.device = splats.device
         self.n = splats.count
         self.degree = splats.sh_degree
@@ -212,17 +213,34 @@ class _Rasteriser:
             count = int(self.ends[rows - 1 : rows].numpy()[0])
         else:  # the int32 running sum may have wrapped: the total in int64, on the host
             count = int(self.touched[:rows].numpy().sum(dtype=np.int64))
-        limit = min(INDEX_LIMIT, max(self.capacity, entry_memory(self.device) // self.entry_bytes))  # what it holds, or can
+        views = views or f"a {p.width}x{p.height} view"
         if self.max_entries is not None:
-            limit = min(limit, self.max_entries)
+            pairs = self._rectangle_pairs(rows, tiles)
+            if pairs > self.max_entries:
+                raise InputError(f"{views} of these {self.n:,} splats spans {pairs:,} (tile, splat) pairs, more than the "
+                                 f"{self.max_entries:,} this render allows")  # fmt: skip
+        limit = min(INDEX_LIMIT, max(self.capacity, entry_memory(self.device) // self.entry_bytes))  # what it holds, or can
         if count > limit:
-            views = views or f"a {p.width}x{p.height} view"
             raise InputError(
                 f"{views} of these {self.n:,} splats cover{'s' if rows == self.n else ''} {count:,} (tile, splat) pairs "
                 f"({count * self.entry_bytes / 2**30:.1f} GiB); {self.device} has room for {limit:,}: "
                 "render smaller images (eval --size, --refine-size)"
             )
         return count
+
+    def _rectangle_pairs(self, rows: int, tiles: int) -> int:
+        """The (tile, splat) pairs of the ``rows`` projected rows' whole tile rectangles: what ``max_entries``
+        bounds. A view's entries leave out the tiles a splat's ellipse misses, but each entry's walk
+        still visits every pixel of its box in its tile, so a thin strand across the view costs about
+        its rectangle's pairs all the same, and the bound counts those."""
+        if self.areas is None or self.areas.shape[0] < rows:
+            self.areas = wp.empty(rows, dtype=wp.int32, device=self.device)
+            self.area_ends = wp.empty(rows, dtype=wp.int32, device=self.device)
+        self._launch(kernels.rect_areas, rows, [], [self.rect, self.areas], PROJECT_ROWS)
+        if rows * tiles > INDEX_LIMIT:  # an int32 running sum could wrap: the total in int64, on the host
+            return int(self.areas[:rows].numpy().sum(dtype=np.int64))
+        wp.utils.array_scan(self.areas[:rows], self.area_ends[:rows], inclusive=True)
+        return int(self.area_ends[rows - 1 : rows].numpy()[0])
 
     def _shapes(self, again: bool = False) -> wp.array:
         """Each splat's view-independent terms (``kernels.splat_shapes``), made on first use and read by
@@ -333,8 +351,9 @@ def render(splats: SplatSet, camera: Camera, background=(0.0, 0.0, 0.0)) -> wp.a
 def render_views(splats: SplatSet, cameras: Sequence[Camera], background=(0.0, 0.0, 0.0),
                  max_entries: int | None = None) -> np.ndarray:  # fmt: skip
     """Renders every camera (all of one image size) into one device array and copies it to the host
-    once: float32 (V, H, W, 3). A view needing more than ``max_entries`` (tile, splat) entries (or
-    more than the device holds) raises InputError."""
+    once: float32 (V, H, W, 3). A view whose splats' tile rectangles hold more than ``max_entries``
+    (tile, splat) pairs (``_Rasteriser._rectangle_pairs``), or whose entries the device cannot hold,
+    raises InputError."""
     return render_views_on_device(splats, cameras, background, max_entries).numpy()
 
 

@@ -15,8 +15,8 @@ kept (1 otherwise).
 
 The input is rendered once per run, when the first output to fit is reached. A scene that ``eval``
 would render rescaled or recentred (``eval.units``) is left as it is, and so is one whose renders
-would not fit the device's memory (``render``'s check) or would need more (tile, splat) entries
-than ENTRIES_PER_SPLAT a splat and MIN_ENTRIES more. CPU and CUDA render the same views to the
+would not fit the device's memory (``render``'s check) or whose splats' tile rectangles would hold
+more (tile, splat) pairs than ENTRIES_PER_SPLAT a splat and MIN_ENTRIES more. CPU and CUDA render the same views to the
 bit (``kernels/render.py``) and sum their errors in the same order, so they pick the same factor.
 """
 
@@ -47,8 +47,9 @@ ZOOM = 4.0
 STEP = 2.0 ** (1.0 / 12.0)
 MOST_STEPS = 6
 CAMERA_STREAM = 0x5CA1E  # the random stream of the fit's cameras (``training_cameras``)
-# A view needing more (tile, splat) entries than this (a file of huge splats: each covers every
-# tile) is not rendered, and the output is not fitted: the fit's time stays near a few passes'.
+# A view whose splats' tile rectangles hold more (tile, splat) pairs than this (a file of huge splats,
+# or of long strands across the view: each rectangle most of the view's tiles) is not rendered, and
+# the output is not fitted: the fit's time stays near a few passes'.
 ENTRIES_PER_SPLAT = 16
 MIN_ENTRIES = 1 << 22
 
