@@ -275,10 +275,16 @@ def reached_columns(p: wp.vec2, co: wp.vec4, faint: float, r: wp.vec4i, ty: int)
 
 
 @wp.func
+def one_tile(r: wp.vec4i):
+    """Whether tile rectangle ``r`` is a single tile, which a splat keeps without ``reached_columns``."""
+    return (r[2] - r[0]) * (r[3] - r[1]) == 1
+
+
+@wp.func
 def reached_tiles(p: wp.vec2, co: wp.vec4, faint: float, r: wp.vec4i):
     """How many tiles of rectangle ``r`` the splat may reach: ``reached_columns`` summed over its rows
-    (every tile of a one-tile rectangle)."""
-    if (r[2] - r[0]) * (r[3] - r[1]) == 1:
+    (every tile of a ``one_tile`` rectangle)."""
+    if one_tile(r):
         return 1
     n = int(0)
     for ty in range(r[1], r[3]):
@@ -473,7 +479,7 @@ def emit_entries(
     bits = wp.int64(wp.cast(depth[i], wp.int32))
     r = rect[i]
     offset = (i / splats) * view_tiles
-    if (r[2] - r[0]) * (r[3] - r[1]) == 1:
+    if one_tile(r):
         keys[slot] = (wp.int64(offset + r[1] * tiles_x + r[0]) << wp.int64(32)) | bits
         values[slot] = i
         return
