@@ -39,9 +39,12 @@ gradients only (``colours`` nonzero): each (entry, pixel) term is then dL/drgb_k
 alone, the walk keeps only T, and ``splat_backward`` runs only the SH colour's chain. The colours'
 gradients are the same bits as the whole pass's, in the same order; every other gradient stays 0.
 Those weights alpha_k T_k do not depend on the colours, so the forward keeps them, in the
-per-pixel backward's slots (``composite_weights`` on a GPU, ``composite_tile_weights`` on the CPU),
-and ``sum_weighted_colours`` adds dL/dC alpha_k T_k per entry from them in ``sum_pixels``' order,
-with no second walk of the tiles.
+per-pixel backward's slots (``composite_chunk_weights`` on a GPU, ``composite_tile_weights`` on the
+CPU), and ``sum_weighted_colours`` adds dL/dC alpha_k T_k per entry from them in ``sum_pixels``'
+order, with no second walk of the tiles. That forward composites a tile of more than a chunk of
+entries (``eval/render.py``'s ``CHUNK_ENTRIES``) as ``render.render`` does, in chunks side by side,
+each from the transmittance before it: there its T_k differ from one walk's by float32 rounding, and
+so do the colours' gradients from the whole pass's; a tile of one chunk is one walk, to the bit.
 """
 
 import warp as wp
@@ -71,6 +74,7 @@ from .render import (
     TILE_PIXELS,
     CameraParams,
     _sh_coef,
+    entry_alpha,
     gram,
     matrix_product,
     scaled_columns,
@@ -888,68 +892,6 @@ def splat_backward(
 
 
 @wp.kernel
-def composite_weights(
-    first: int,
-    e_xy: wp.array(dtype=wp.vec2),
-    e_conic_opacity: wp.array(dtype=wp.vec4),
-    e_rgb: wp.array(dtype=wp.vec3),
-    e_box: wp.array(dtype=wp.vec4),
-    e_faint: wp.array(dtype=float),
-    tile_start: wp.array(dtype=wp.int32),
-    tile_end: wp.array(dtype=wp.int32),
-    cams: wp.array(dtype=CameraParams),
-    tiles_x: int,
-    view_tiles: int,
-    background: wp.vec3,
-    slot_ends: wp.array(dtype=wp.int32),
-    image: wp.array4d(dtype=float),
-    weights: wp.array(dtype=float),
-    stops: wp.array(dtype=wp.int32),
-):
-    """``render.composite`` (one thread per pixel of each view's own size) that also keeps, for a
-    refinement of the colours alone, each entry's weight alpha_k T_k at the pixel in the entry's
-    slot for it (0 where its alpha is 0 there; the slots of ``composite_backward_pixels``) and the
-    entry the pixel finished at in ``stops`` (as ``composite_backward_pixels``). The colours do not
-    change these weights: dC/drgb_k = alpha_k T_k, so ``sum_weighted_colours`` back-propagates the
-    colours without walking the tile again. The pixels are ``render.composite``'s to the bit (the
-    same walk, the same float32 operations); outside a view's own size nothing is written."""
-    tid = first + wp.tid()
-    tile, view, x_lo, x_hi, y_lo, y_hi, px, py = thread_pixel(tid, tiles_x, view_tiles, cams)
-    if px >= x_hi or py >= y_hi:
-        return
-    t = float(1.0)
-    c = wp.vec3(0.0, 0.0, 0.0)
-    fpx = float(px)
-    fpy = float(py)
-    stop = tile_end[tile]
-    for k in range(tile_start[tile], tile_end[tile]):
-        bx = e_box[k]
-        if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
-            continue  # outside the entry's box (as in ``composite_backward_pixels``)
-        gx0, gx1, gy0, gy1 = entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
-        if px < gx0 or px > gx1 or py < gy0 or py > gy1:
-            continue
-        slot = pixel_slot(slot_ends, k, gx0, gx1, gy0, gy1, px, py)
-        dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], e_conic_opacity[k], e_faint[k], fpx, fpy)
-        if alpha == 0.0:
-            weights[slot] = 0.0
-            continue
-        test_t = t * (1.0 - alpha)
-        if test_t < T_MIN:
-            stop = k
-            break
-        weight = alpha * t
-        weights[slot] = weight
-        c = c + e_rgb[k] * weight
-        t = test_t
-    c = c + background * t
-    image[view, py, px, 0] = c[0]
-    image[view, py, px, 1] = c[1]
-    image[view, py, px, 2] = c[2]
-    stops[tid] = stop
-
-
-@wp.kernel
 def composite_tile_weights(
     first: int,
     e_xy: wp.array(dtype=wp.vec2),
@@ -964,66 +906,282 @@ def composite_tile_weights(
     view_tiles: int,
     background: wp.vec3,
     slot_ends: wp.array(dtype=wp.int32),
+    chunk: int,
     transmittance: wp.array(dtype=float),
     colour: wp.array(dtype=wp.vec3),
     done: wp.array(dtype=wp.int32),
+    chunk_state: wp.array(dtype=wp.vec2),
+    total: wp.array(dtype=wp.vec3),
     image: wp.array4d(dtype=float),
     weights: wp.array(dtype=float),
     stops: wp.array(dtype=wp.int32),
 ):
-    """``composite_weights`` for the CPU: one thread per tile, entry by entry over the pixels of each
-    entry's box (``render.composite_tiles``' one walk, its per-pixel state in the tile's slots of
-    ``transmittance``, ``colour`` and ``done``). Each pixel sees the same entries in the same order
-    with the same float32 arithmetic, so the pixels, weights and stops are ``composite_weights``'."""
+    """The forward's weights for the CPU: one thread per tile, entry by entry over the pixels of each
+    entry's box (``render.composite_tiles``' walk, its per-pixel state in the tile's slots of
+    ``transmittance``, ``colour`` and ``done``). A tile of more than ``chunk`` entries is walked as
+    ``composite_chunk_weights`` and ``merge_chunk_weights`` walk it on a GPU, chunk by chunk from
+    each chunk's transmittance before it (in ``chunk_state``: that and the chunk's own; in ``total``
+    the colour of the chunks before), its stop the first chunk's where the pixel stops or where the
+    transmittance before a chunk falls below T_MIN. Each pixel sees the same entries in the same
+    order with the same float32 arithmetic, so the pixels, weights and stops are the GPU's."""
     tile = first + wp.tid()
     base = tile * TILE_PIXELS
     view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(tile, tiles_x, view_tiles, cams)
+    start = tile_start[tile]
     end = tile_end[tile]
     for s in range(TILE_PIXELS):
         transmittance[base + s] = 1.0
         colour[base + s] = wp.vec3(0.0, 0.0, 0.0)
         done[base + s] = 0
         stops[base + s] = end
+        chunk_state[base + s] = wp.vec2(1.0, 1.0)
+        total[base + s] = wp.vec3(0.0, 0.0, 0.0)
     remaining = (x_hi - x_lo) * (y_hi - y_lo)
-    for k in range(tile_start[tile], end):
-        if remaining == 0:
-            break  # every pixel finished: no later entry is read back
-        gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
-        if gx1 < gx0 or gy1 < gy0:
-            continue
-        p = e_xy[k]
-        co = e_conic_opacity[k]
-        rgb = e_rgb[k]
-        faint = e_faint[k]
-        slot = slot_ends[k] - (gx1 - gx0 + 1) * (gy1 - gy0 + 1)
-        for py in range(gy0, gy1 + 1):
-            row = base + (py - y_lo) * TILE - x_lo
-            for px in range(gx0, gx1 + 1):
-                pixel = row + px
-                if done[pixel] == 0:
-                    dx, dy, gauss, raw, alpha = entry_at_pixel(p, co, faint, float(px), float(py))
-                    if alpha == 0.0:
-                        weights[slot] = 0.0
-                    else:
-                        t = transmittance[pixel]
-                        test_t = t * (1.0 - alpha)
-                        if test_t < T_MIN:
-                            done[pixel] = 1
-                            stops[pixel] = k
+    chunked = end - start > chunk  # else one chunk: ``render.composite``'s one walk
+    # done: 0 compositing, 1 stopped (T (1 - alpha) < T_MIN) in this chunk, 2 finished after a chunk
+    chunk_first = start
+    while chunk_first < end and remaining > 0:
+        chunk_last = end
+        if chunked:
+            chunk_last = wp.min(chunk_first + chunk, end)
+        last = chunk_last == end
+        for k in range(chunk_first, chunk_last):
+            if remaining == 0:
+                break  # every pixel finished: no later entry is read back
+            gx0, gx1, gy0, gy1 = entry_columns(e_box[k], x_lo, x_hi, y_lo, y_hi)
+            if gx1 < gx0 or gy1 < gy0:
+                continue
+            p = e_xy[k]
+            co = e_conic_opacity[k]
+            rgb = e_rgb[k]
+            faint = e_faint[k]
+            slot = slot_ends[k] - (gx1 - gx0 + 1) * (gy1 - gy0 + 1)
+            for py in range(gy0, gy1 + 1):
+                row = base + (py - y_lo) * TILE - x_lo
+                for px in range(gx0, gx1 + 1):
+                    pixel = row + px
+                    if done[pixel] == 0:
+                        dx, dy, gauss, raw, alpha = entry_at_pixel(p, co, faint, float(px), float(py))
+                        if alpha == 0.0:
+                            weights[slot] = 0.0
+                        else:
+                            if chunked and not last:  # ``chunk_own_transmittance``: the chunk's own, from 1
+                                state = chunk_state[pixel]
+                                if state[1] > 0.0:
+                                    own = state[1] * (1.0 - alpha)
+                                    if own < T_MIN:
+                                        own = 0.0
+                                    chunk_state[pixel] = wp.vec2(state[0], own)
+                            t = transmittance[pixel]
+                            test_t = t * (1.0 - alpha)
+                            if test_t < T_MIN:
+                                done[pixel] = 1
+                                stops[pixel] = k
+                                remaining -= 1
+                            else:
+                                weight = alpha * t
+                                weights[slot] = weight
+                                colour[pixel] = colour[pixel] + rgb * weight
+                                transmittance[pixel] = test_t
+                    slot += 1
+        if chunked:
+            # ``merge_chunk_weights`` adds the chunk's colour; ``chunk_prefix`` gives the next chunk's start
+            for py in range(y_lo, y_hi):
+                for px in range(x_lo, x_hi):
+                    pixel = base + (py - y_lo) * TILE + px - x_lo
+                    if done[pixel] == 2:
+                        continue
+                    total[pixel] = total[pixel] + colour[pixel]
+                    if done[pixel] == 1:
+                        done[pixel] = 2
+                        continue
+                    if not last:
+                        state = chunk_state[pixel]
+                        before = state[0] * state[1]
+                        if before < T_MIN:
+                            before = 0.0
+                        if before == 0.0:  # the merge stops before the next chunk, and so does the pixel
+                            done[pixel] = 2
+                            stops[pixel] = chunk_last
                             remaining -= 1
                         else:
-                            weight = alpha * t
-                            weights[slot] = weight
-                            colour[pixel] = colour[pixel] + rgb * weight
-                            transmittance[pixel] = test_t
-                slot += 1
+                            chunk_state[pixel] = wp.vec2(before, 1.0)
+                            transmittance[pixel] = before
+                            colour[pixel] = wp.vec3(0.0, 0.0, 0.0)
+        chunk_first = chunk_last
     for py in range(y_lo, y_hi):
         for px in range(x_lo, x_hi):
             pixel = base + (py - y_lo) * TILE + px - x_lo
-            c = colour[pixel] + background * transmittance[pixel]
+            c = colour[pixel]
+            if chunked:
+                c = total[pixel]
+            c = c + background * transmittance[pixel]
             image[view, py, px, 0] = c[0]
             image[view, py, px, 1] = c[1]
             image[view, py, px, 2] = c[2]
+
+
+@wp.func
+def chunk_pixel(c: int, tid: int, chunk_tile: wp.array(dtype=wp.int32), tiles_x: int, view_tiles: int, cams: wp.array(dtype=CameraParams)):
+    """Thread ``tid`` of chunk ``c`` in a walk with a thread per (chunk, pixel), 256 consecutive threads a
+    chunk: (view, the chunk's tile's bounds x_lo, x_hi, y_lo, y_hi in its view, px, py)."""
+    view, x_lo, x_hi, y_lo, y_hi = view_tile_bounds(chunk_tile[c], tiles_x, view_tiles, cams)
+    local = tid - c * TILE_PIXELS
+    return view, x_lo, x_hi, y_lo, y_hi, x_lo + local - (local / TILE) * TILE, y_lo + local / TILE
+
+
+@wp.kernel
+def chunk_own_transmittance(
+    first: int,
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
+    tile_end: wp.array(dtype=wp.int32),
+    chunk_ends: wp.array(dtype=wp.int32),
+    chunk_tile: wp.array(dtype=wp.int32),
+    chunk_first: wp.array(dtype=wp.int32),
+    chunk_last: wp.array(dtype=wp.int32),
+    cams: wp.array(dtype=CameraParams),
+    tiles_x: int,
+    view_tiles: int,
+    tiles: int,
+    transmittance: wp.array(dtype=float),
+):
+    """``render.chunk_transmittance`` for several views' tiles: per (chunk, pixel) the product of
+    (1 - alpha) over the chunk's entries, 0 once it falls below T_MIN; a tile's last chunk and the
+    threads beyond the last chunk are skipped."""
+    tid = first + wp.tid()
+    c = tid / TILE_PIXELS
+    if c >= chunk_ends[tiles - 1]:
+        return
+    if chunk_last[c] == tile_end[chunk_tile[c]]:
+        return
+    view, x_lo, x_hi, y_lo, y_hi, px, py = chunk_pixel(c, tid, chunk_tile, tiles_x, view_tiles, cams)
+    t = float(1.0)
+    if px < x_hi and py < y_hi:
+        for k in range(chunk_first[c], chunk_last[c]):
+            alpha = entry_alpha(e_xy, e_conic_opacity, e_box, e_faint, k, float(px), float(py))
+            if alpha > 0.0:
+                t = t * (1.0 - alpha)
+                if t < T_MIN:
+                    t = 0.0
+                    break
+    transmittance[tid] = t
+
+
+@wp.kernel
+def composite_chunk_weights(
+    first: int,
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
+    chunk_ends: wp.array(dtype=wp.int32),
+    chunk_tile: wp.array(dtype=wp.int32),
+    chunk_first: wp.array(dtype=wp.int32),
+    chunk_last: wp.array(dtype=wp.int32),
+    before: wp.array(dtype=float),
+    cams: wp.array(dtype=CameraParams),
+    tiles_x: int,
+    view_tiles: int,
+    tiles: int,
+    slot_ends: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=float),
+    colour: wp.array(dtype=wp.vec4),
+    chunk_stop: wp.array(dtype=wp.int32),
+):
+    """Per (chunk, pixel): ``render.composite_chunks``' walk of the chunk from the transmittance
+    before it (its colour and the transmittance after, negated where the pixel stopped here) that
+    also keeps each entry's weight alpha_k T_k in the entry's slot for the pixel (``pixel_slot``; 0
+    where its alpha is 0 there), and the entry the pixel stopped at in ``chunk_stop`` (the chunk's
+    end where it did not; the chunk's first entry where the transmittance before it is 0: it
+    stopped before the chunk)."""
+    tid = first + wp.tid()
+    c = tid / TILE_PIXELS
+    if c >= chunk_ends[tiles - 1]:
+        return
+    view, x_lo, x_hi, y_lo, y_hi, px, py = chunk_pixel(c, tid, chunk_tile, tiles_x, view_tiles, cams)
+    t = before[tid]
+    if px >= x_hi or py >= y_hi or t == 0.0:
+        colour[tid] = wp.vec4(0.0, 0.0, 0.0, -1.0)
+        chunk_stop[tid] = chunk_first[c]
+        return
+    fpx = float(px)
+    fpy = float(py)
+    rgb = wp.vec3(0.0, 0.0, 0.0)
+    stopped = float(1.0)
+    stop = chunk_last[c]
+    for k in range(chunk_first[c], chunk_last[c]):
+        bx = e_box[k]
+        if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
+            continue  # outside the entry's box (as in ``composite_backward_pixels``)
+        gx0, gx1, gy0, gy1 = entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
+        if px < gx0 or px > gx1 or py < gy0 or py > gy1:
+            continue
+        slot = pixel_slot(slot_ends, k, gx0, gx1, gy0, gy1, px, py)
+        dx, dy, gauss, raw, alpha = entry_at_pixel(e_xy[k], e_conic_opacity[k], e_faint[k], fpx, fpy)
+        if alpha == 0.0:
+            weights[slot] = 0.0
+            continue
+        test_t = t * (1.0 - alpha)
+        if test_t < T_MIN:
+            stopped = -1.0
+            stop = k
+            break
+        weight = alpha * t
+        weights[slot] = weight
+        rgb = rgb + e_rgb[k] * weight
+        t = test_t
+    colour[tid] = wp.vec4(rgb[0], rgb[1], rgb[2], stopped * t)
+    chunk_stop[tid] = stop
+
+
+@wp.kernel
+def merge_chunk_weights(
+    first: int,
+    colour: wp.array(dtype=wp.vec4),
+    before: wp.array(dtype=float),
+    chunk_stop: wp.array(dtype=wp.int32),
+    counts: wp.array(dtype=wp.int32),
+    chunk_ends: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    cams: wp.array(dtype=CameraParams),
+    tiles_x: int,
+    view_tiles: int,
+    background: wp.vec3,
+    image: wp.array4d(dtype=float),
+    stops: wp.array(dtype=wp.int32),
+):
+    """Per pixel (a thread per pixel of each view's own size): ``render.composite_merge``'s sum of its
+    tile's chunk colours in order up to the chunk it stopped in, plus the background times the
+    transmittance left, and the entry it stopped at in ``stops`` (the first entry that no longer
+    counts: the tile's end where it never stopped), as ``composite_backward_pixels`` reads them."""
+    tid = first + wp.tid()
+    tile, view, x_lo, x_hi, y_lo, y_hi, px, py = thread_pixel(tid, tiles_x, view_tiles, cams)
+    if px >= x_hi or py >= y_hi:
+        return
+    local = tid - tile * TILE_PIXELS
+    c = wp.vec3(0.0, 0.0, 0.0)
+    t = float(1.0)
+    stop = tile_end[tile]
+    for k in range(chunk_ends[tile] - counts[tile], chunk_ends[tile]):
+        slot = k * TILE_PIXELS + local
+        if before[slot] == 0.0:
+            stop = chunk_stop[slot]
+            break
+        v = colour[slot]
+        c = c + wp.vec3(v[0], v[1], v[2])
+        t = wp.abs(v[3])
+        if v[3] < 0.0:
+            stop = chunk_stop[slot]
+            break
+    c = c + background * t
+    image[view, py, px, 0] = c[0]
+    image[view, py, px, 1] = c[1]
+    image[view, py, px, 2] = c[2]
+    stops[tid] = stop
 
 
 @wp.kernel
@@ -1040,9 +1198,10 @@ def sum_weighted_colours(
     grad_image: wp.array4d(dtype=float),
     g_rgb: wp.array(dtype=wp.vec3),
 ):
-    """Per entry k: dL/drgb_k = sum over its pixels of dL/dC alpha_k T_k, from ``composite_weights``'
-    weights, in ``sum_pixels``' order (rows of columns, leaving out the pixels finished at or before
-    k): the bits of ``composite_backward_pixels`` and ``sum_pixels`` with ``colours``, whose colour
+    """Per entry k: dL/drgb_k = sum over its pixels of dL/dC alpha_k T_k, from the forward's kept
+    weights (``composite_chunk_weights``, ``composite_tile_weights``), in ``sum_pixels``' order (rows
+    of columns, leaving out the pixels finished at or before k): where the forward walked each tile
+    once, the bits of ``composite_backward_pixels`` and ``sum_pixels`` with ``colours``, whose colour
     term is the same product dL/dC * (alpha_k T_k) (where alpha is 0 that term is +0 and this one
     +-0: added to a sum, neither changes a bit)."""
     k = first + wp.tid()

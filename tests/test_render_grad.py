@@ -290,3 +290,100 @@ def test_colours_alone_are_the_whole_backward_colour_bytes(device, rng, backward
     assert np.abs(whole[-1]).max() > 0 and np.isfinite(whole[-1]).all()
     assert whole[-1].tobytes() == colours[-1].tobytes()
     assert all(np.isnan(a).all() for a in colours[:-1])
+
+
+@pytest.mark.parametrize("chunk", [1, 7])
+def test_weights_kept_in_chunks_are_the_renderers_chunks(device, rng, chunk):
+    """The colour fit's forward (``keep_weights``) composites a tile of more than a chunk of entries in
+    chunks, as the renderer does: on two views of different sizes rendered together, with ``chunk``
+    entries a chunk and pixels that stop on T < 1e-4 inside chunks, a GPU's kernels (``per_pixel``:
+    a thread per chunk and pixel) and the CPU's tile walk give each view the renderer's chunked image
+    of that camera alone, bit for bit, and the same colours' gradients, which are the one-walk
+    pass's to float32 rounding. A held-out view (``walked_back=False``) is the renderer's too."""
+    from nanogs_warp.eval.render import _Rasteriser
+
+    cameras = [random_camera(rng, width=w, height=h) for w, h in [(48, 40), (45, 29)]]
+    arrays = random_scene(rng, 600, 2, camera_centre=cameras[0].centre, behind=0.1, opacity=(4.0, 1.0), log_scale=(np.log(0.25), 0.4))
+    splats = SplatSet.from_numpy(**arrays, device=device)
+    background = wp.vec3(0.1, 0.2, 0.3)
+    g_image = wp.array(rng.normal(size=(2, 40, 48, 3)).astype(np.float32), dtype=wp.float32, device=device)
+    alone = []
+    for camera in cameras:
+        image = wp.full((1, camera.height, camera.width, 3), float("nan"), dtype=wp.float32, device=device)
+        renderer = _Rasteriser(splats, chunk=chunk)
+        renderer.render_into(camera, background, image, 0)
+        assert (renderer.tile_end.numpy() - renderer.tile_start.numpy()).max() > 3 * chunk  # several chunks a tile
+        alone.append(image.numpy()[0])
+    colours = {}
+    for per_pixel in (True, False):
+        rasteriser = GradRasteriser(splats, per_pixel=per_pixel)
+        rasteriser.chunk = chunk
+        image = wp.full((2, 40, 48, 3), float("nan"), dtype=wp.float32, device=device)
+        rasteriser.forward(cameras, background, image, keep_weights=True)
+        assert rasteriser.weights_kept
+        grads = SplatGradients.zeros_like(splats)
+        rasteriser.backward(image, g_image, grads, colours_only=True)
+        colours[per_pixel] = grads.features.numpy()
+        for v, camera in enumerate(cameras):
+            assert image.numpy()[v, : camera.height, : camera.width].tobytes() == alone[v].tobytes()
+        held_out = wp.full((1, 40, 48, 3), float("nan"), dtype=wp.float32, device=device)
+        rasteriser.forward(cameras[:1], background, held_out, walked_back=False)
+        assert held_out.numpy()[0].tobytes() == alone[0].tobytes()
+    assert colours[True].tobytes() == colours[False].tobytes()
+    one_walk = GradRasteriser(splats)
+    image = wp.full((2, 40, 48, 3), float("nan"), dtype=wp.float32, device=device)
+    one_walk.forward(cameras, background, image)
+    grads = SplatGradients.zeros_like(splats)
+    one_walk.backward(image, g_image, grads, colours_only=True)
+    whole = grads.features.numpy()
+    assert np.abs(whole).max() > 0 and np.isfinite(colours[True]).all()
+    np.testing.assert_allclose(colours[True], whole, rtol=0, atol=1e-4 * np.abs(whole).max())
+
+
+def test_a_pixel_whose_transmittance_runs_out_between_chunks_stops_there(device):
+    """Where the transmittance before a chunk is 0 (the chunks before it took it below 1e-4 between
+    them, though no walk stopped: float32 regrouping can do that), the chunk is not walked, and the
+    pixel's stop is its first entry, so that no weight of it or of a later chunk is read back. One
+    16 x 16 view, one tile of four entries in two chunks, the chunks' transmittances set by hand."""
+    from nanogs_warp.eval.cameras import Camera
+    from nanogs_warp.kernels import render_grad as grad_kernels
+    from nanogs_warp.refinement.render_grad import camera_array
+
+    camera = Camera.look_at([0.0, 0.0, -3.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], 20.0, 20.0, 16, 16)
+    cams = camera_array([camera], device)
+    pixels = 256
+
+    def ints(values):
+        return wp.array(np.asarray(values, np.int32), dtype=wp.int32, device=device)
+
+    # each entry an opaque-ish disc over the whole tile, its pixel (x, y)'s slot 256 k + 16 y + x
+    e_xy = wp.array(np.full((4, 2), 7.5, np.float32), dtype=wp.vec2, device=device)
+    e_co = wp.array(np.tile(np.float32([1e-4, 0.0, 1e-4, 0.3]), (4, 1)), dtype=wp.vec4, device=device)
+    e_rgb = wp.array(np.tile(np.float32([1.0, 0.5, 0.25]), (4, 1)), dtype=wp.vec3, device=device)
+    e_box = wp.array(np.tile(np.float32([0.0, 15.0, 0.0, 15.0]), (4, 1)), dtype=wp.vec4, device=device)
+    e_faint = wp.array(np.full(4, -1e30, np.float32), dtype=wp.float32, device=device)
+    slot_ends = ints(np.arange(1, 5) * pixels)
+    ranges = [ints([2]), ints([0, 0]), ints([0, 2]), ints([2, 4])]  # chunk_ends, chunk_tile, chunk_first, chunk_last
+    before = np.ones(2 * pixels, np.float32)
+    before[pixels:] = 0.0  # the second chunk: nothing gets through
+    before = wp.array(before, dtype=wp.float32, device=device)
+    weights = wp.full(4 * pixels, float("nan"), dtype=wp.float32, device=device)
+    colour = wp.empty(2 * pixels, dtype=wp.vec4, device=device)
+    chunk_stop = wp.full(2 * pixels, -7, dtype=wp.int32, device=device)
+    wp.launch(grad_kernels.composite_chunk_weights, 2 * pixels,
+              inputs=[0, e_xy, e_co, e_rgb, e_box, e_faint, *ranges, before, cams, 1, 1, 1, slot_ends, weights, colour, chunk_stop],
+              device=device)  # fmt: skip
+    stops_by_chunk = chunk_stop.numpy().reshape(2, pixels)
+    assert (stops_by_chunk[0] == 2).all() and (stops_by_chunk[1] == 2).all()  # no stop in the first; the second skipped
+    w = weights.numpy().reshape(4, pixels)
+    assert np.isfinite(w[:2]).all() and (w[:2] > 0).all() and np.isnan(w[2:]).all()
+    colours = colour.numpy().reshape(2, pixels, 4)
+    assert (colours[0, :, 3] > 0.0).all() and (colours[1] == [0.0, 0.0, 0.0, -1.0]).all()
+    image = wp.full((1, 16, 16, 3), float("nan"), dtype=wp.float32, device=device)
+    stops = wp.full(pixels, -7, dtype=wp.int32, device=device)
+    wp.launch(grad_kernels.merge_chunk_weights, pixels,
+              inputs=[0, colour, before, chunk_stop, ints([2]), ranges[0], ints([4]), cams, 1, 1, wp.vec3(0.0, 0.0, 1.0), image, stops],
+              device=device)  # fmt: skip
+    assert (stops.numpy() == 2).all()
+    expected = colours[0, :, :3] + np.float32([0.0, 0.0, 1.0]) * colours[0, :, 3:4]
+    assert image.numpy().reshape(pixels, 3).tobytes() == expected.astype(np.float32).tobytes()

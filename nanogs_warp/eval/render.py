@@ -290,37 +290,49 @@ class _Rasteriser:
         scratch = [self.transmittance, self.colour, self.done, self.chunk_state, self.total, image]
         self._launch(kernels.composite_tiles, tiles, [*inputs, chunk], scratch, rows_per_chunk(tiles, count))
 
-    def _composite_in_chunks(self, p, tiles: int, count: int, inputs: list, image: wp.array) -> None:
-        """``composite``'s image, each tile's entries split into chunks of at most ``self.chunk``
-        composited in parallel and then merged (``kernels/render.py``); ``composite`` itself where
-        no tile holds more (five launches fewer, which is most of a small scene's view). ``inputs``:
-        ``composite``'s arguments before the first thread's index."""
-        if self.counts is None or self.counts.shape[0] != tiles:
+    def _chunk_counts(self, tiles: int) -> None:
+        """Each of ``tiles`` tiles' chunks of at most ``self.chunk`` entries (``counts``) and the most
+        entries a tile holds (``longest``, on the device)."""
+        if self.counts is None or self.counts.shape[0] < tiles:
             self.counts = wp.empty(tiles, dtype=wp.int32, device=self.device)
             self.chunk_ends = wp.empty(tiles, dtype=wp.int32, device=self.device)
             self.longest = wp.empty(1, dtype=wp.int32, device=self.device)
-        pixels = kernels.TILE_PIXELS
         self.longest.zero_()
         self._launch(kernels.chunk_counts, tiles, [self.tile_start, self.tile_end, self.chunk], [self.counts, self.longest])
-        if int(self.longest.numpy()[0]) <= self.chunk:  # every tile is one chunk: the one walk, the same bits
-            self._launch(kernels.composite, tiles * pixels, inputs, [image], rows_per_chunk(tiles * pixels, count))
-            return
-        e_xy, e_co, e_rgb, e_box, e_faint = inputs[:5]
-        background, view = inputs[-3:-1]
-        wp.utils.array_scan(self.counts, self.chunk_ends, inclusive=True)
-        # launched for a bound on the chunk count (a tile of n entries has at most n / chunk + 1), so
-        # that the count is never read back: the threads beyond the last chunk return at once
+
+    def _chunk_ranges(self, tiles: int, count: int) -> int:
+        """After ``_chunk_counts``: the chunks' tiles and entry ranges, in tile order, and room for a
+        colour, a transmittance and a stop per (chunk, pixel). Returns a bound on the chunk count
+        (a tile of n entries has at most n / chunk + 1) for the chunk launches, so that the count is
+        never read back: the threads beyond the last chunk return at once."""
+        wp.utils.array_scan(self.counts[:tiles], self.chunk_ends[:tiles], inclusive=True)
         chunks = count // self.chunk + tiles
         if chunks > self.chunk_capacity or self.chunk_capacity == 0:
             self.chunk_capacity = max(chunks, int(self.chunk_capacity * 1.5), 64)
-            c, d = self.chunk_capacity, self.device
+            c, d, pixels = self.chunk_capacity, self.device, kernels.TILE_PIXELS
             self.chunk_tile = wp.empty(c, dtype=wp.int32, device=d)
             self.chunk_first = wp.empty(c, dtype=wp.int32, device=d)
             self.chunk_last = wp.empty(c, dtype=wp.int32, device=d)
             self.chunk_before = wp.empty(c * pixels, dtype=wp.float32, device=d)
             self.chunk_colour = wp.empty(c * pixels, dtype=wp.vec4, device=d)
+            self.chunk_stop = wp.empty(c * pixels, dtype=wp.int32, device=d)
         self._launch(kernels.chunk_ranges, tiles, [self.tile_start, self.tile_end, self.counts, self.chunk_ends, self.chunk],
                      [self.chunk_tile, self.chunk_first, self.chunk_last])  # fmt: skip
+        return chunks
+
+    def _composite_in_chunks(self, p, tiles: int, count: int, inputs: list, image: wp.array) -> None:
+        """``composite``'s image, each tile's entries split into chunks of at most ``self.chunk``
+        composited in parallel and then merged (``kernels/render.py``); ``composite`` itself where
+        no tile holds more (five launches fewer, which is most of a small scene's view). ``inputs``:
+        ``composite``'s arguments before the first thread's index."""
+        pixels = kernels.TILE_PIXELS
+        self._chunk_counts(tiles)
+        if int(self.longest.numpy()[0]) <= self.chunk:  # every tile is one chunk: the one walk, the same bits
+            self._launch(kernels.composite, tiles * pixels, inputs, [image], rows_per_chunk(tiles * pixels, count))
+            return
+        e_xy, e_co, e_rgb, e_box, e_faint = inputs[:5]
+        background, view = inputs[-3:-1]
+        chunks = self._chunk_ranges(tiles, count)
         ranges = [self.chunk_ends, self.chunk_tile, self.chunk_first, self.chunk_last]
         size = [p.width, p.height, p.tiles_x]
         self._launch(kernels.chunk_transmittance, chunks * pixels, [e_xy, e_co, e_box, e_faint, self.tile_end, *ranges, *size, tiles],

@@ -271,7 +271,8 @@ class _Refiner:
         ``camera_array`` and ``loss_views`` already on the device (else copied there here, each copy
         a wait for the device). ``step``: a training step's views, which ``backward`` follows."""
         image, grad_image, loss = self.buffers(cameras)
-        self.rasteriser.forward(cameras, wp.vec3(0.0, 0.0, 0.0), image, params, keep_weights=step and self.colours_only)
+        self.rasteriser.forward(cameras, wp.vec3(0.0, 0.0, 0.0), image, params, keep_weights=step and self.colours_only,
+                                walked_back=step)  # fmt: skip
         if specs is None:
             specs = wp.array(self.loss_views(cameras, chosen, weight), dtype=image_kernels.LossView, device=self.device)
         loss.of_views(image, targets, grad_image, specs)

@@ -5,7 +5,9 @@ The forward launches ``eval/render.py``'s kernels in the same order on the same 
 renderer's, bit for bit (where a tile holds more than ``CHUNK_ENTRIES`` entries, the renderer
 composites it in chunks and the two differ by float32 rounding; the backward replays this forward's
 single walk, ``composite``, which every device computes alike); the only addition is a numbering of
-the emitted entries, so that after the sort each splat's entries can be found in emit order.
+the emitted entries, so that after the sort each splat's entries can be found in emit order. Where
+no backward walks the tiles again (a held-out view, or the colours' backward from weights the
+forward kept), the forward composites long tiles in chunks as the renderer does.
 Gradients are summed in a fixed order (per entry over each of the tile's ``LANES`` lanes' pixel rows
 in row order, then the lanes in order; per splat over its entries in emit order; per view in the
 order views are back-propagated) with the portable float32 arithmetic of ``kernels/render.py``, so
@@ -155,19 +157,24 @@ class GradRasteriser(_Rasteriser):
 
     def forward(
         self, cameras: Sequence[Camera], background: wp.vec3, image: wp.array, params: wp.array | None = None,
-        keep_weights: bool = False,
+        keep_weights: bool = False, walked_back: bool = True,
     ) -> None:  # fmt: skip
         """Renders ``cameras`` together into ``image`` (V, H, W, 3; H, W at least the largest view's),
         view v into the top-left corner of image[v], and keeps the views' entries for ``backward``.
         Each view's pixels are ``render.render``'s of that camera alone, bit for bit (the views'
         splats are projected into rows of their own and their tiles numbered one view after the
-        other: ``kernels/render.py``); outside a view's own size image[v] holds nothing of use.
+        other: ``kernels/render.py``), where a backward may walk the tiles again (``walked_back``)
+        as one walk each, except in tiles of more than ``CHUNK_ENTRIES`` entries (the module's
+        docstring); outside a view's own size image[v] holds nothing of use. ``walked_back=False``
+        with one camera: no backward follows (a held-out view's loss), and the view is composited
+        as the renderer composites it, long tiles in chunks side by side.
         ``params``: the cameras' ``camera_params`` already on the device (``camera_array``), else
         made here (a copy to the device, which waits for it). ``keep_weights``: for a backward of
         the colours alone (``backward``'s ``colours_only``), the composite keeps each entry's weight
-        at each pixel (``kernels/render_grad.py``'s ``composite_weights`` on a GPU,
-        ``composite_tile_weights`` on the CPU; the same pixels), so that that backward need not walk
-        the tiles again."""
+        at each pixel (``_composite_weights_in_chunks`` on a GPU, ``composite_tile_weights`` on the CPU;
+        the same pixels and weights), so that that backward need not walk the tiles again; its tiles
+        of more than ``CHUNK_ENTRIES`` entries are composited in chunks side by side, as
+        ``render.render`` composites them."""
         views, n = len(cameras), self.n
         tiles_x = max(tile_count(c.width) for c in cameras)
         view_tiles = tiles_x * max(tile_count(c.height) for c in cameras)
@@ -208,22 +215,51 @@ class GradRasteriser(_Rasteriser):
         if self.weights_kept:
             weighted = [*entries, self.tile_start, self.tile_end, self.cams, tiles_x, view_tiles, background, self.slot_ends]
             pixels = tiles * kernels.TILE_PIXELS
-            if self.per_pixel:  # a GPU: a thread per pixel
-                self._rows(grad_kernels.composite_weights, pixels, [*weighted, image, self.p_weight, self.stops],
-                           max(2048, rows_per_chunk(pixels, count)))  # fmt: skip
+            if self.per_pixel:  # a GPU: a thread per (chunk, pixel)
+                self._composite_weights_in_chunks(entries, tiles, tiles_x, view_tiles, count, background, image)
             else:  # the CPU: a thread per tile, entry by entry
                 self._reserve_scratch(pixels)
                 self._rows(
                     grad_kernels.composite_tile_weights, tiles,
-                    [*weighted, self.bw_transmittance, self.bw_front, self.bw_done, image, self.p_weight, self.stops],
+                    [*weighted, self.chunk, self.bw_transmittance, self.bw_front, self.bw_done, self.chunk_state, self.total,
+                     image, self.p_weight, self.stops],
                     rows_per_chunk(tiles, count),
                 )  # fmt: skip
+        elif not walked_back and views == 1:  # ``render.render``'s image: no walk is replayed
+            if self.method == "tiles":
+                self._composite_tiles(tiles, count, inputs, self.chunk, image)
+            else:
+                self._composite_in_chunks(camera_params(cameras[0]), tiles, count, inputs, image)
         elif self.method == "tiles":
             self._composite_tiles(tiles, count, inputs, ONE_WALK, image)  # the backward replays one walk
         else:
             pixels = tiles * kernels.TILE_PIXELS
             self._launch(kernels.composite, pixels, inputs, [image], rows_per_chunk(pixels, count))
         self.count, self.tiles, self.tiles_x, self.view_tiles = count, tiles, tiles_x, view_tiles
+
+    def _composite_weights_in_chunks(
+        self, entries: list, tiles: int, tiles_x: int, view_tiles: int, count: int, background: wp.vec3, image: wp.array
+    ) -> None:  # fmt: skip
+        """The forward's image, weights and stops (``keep_weights``) on a GPU, each tile's entries cut into
+        chunks of at most ``self.chunk`` walked side by side (``render.render``'s chunks, for several
+        views: ``kernels/render_grad.py``'s ``chunk_own_transmittance`` to ``merge_chunk_weights``).
+        A tile of one chunk is ``render.composite``'s one walk, bit for bit; a long tile's pixel no
+        longer walks its whole list alone (a 6M-splat scene's 10 % output has tiles of 10^5 entries)."""
+        e_xy, e_co, e_rgb, e_box, e_faint = entries
+        pixels = kernels.TILE_PIXELS
+        self._chunk_counts(tiles)
+        chunks = self._chunk_ranges(tiles, count)
+        ranges = [self.chunk_ends, self.chunk_tile, self.chunk_first, self.chunk_last]
+        views = [self.cams, tiles_x, view_tiles]
+        self._rows(grad_kernels.chunk_own_transmittance, chunks * pixels,
+                   [e_xy, e_co, e_box, e_faint, self.tile_end, *ranges, *views, tiles, self.chunk_before], 2048)  # fmt: skip
+        self._launch(kernels.chunk_prefix, tiles * pixels, [self.counts, self.chunk_ends], [self.chunk_before])
+        self._rows(grad_kernels.composite_chunk_weights, chunks * pixels,
+                   [e_xy, e_co, e_rgb, e_box, e_faint, *ranges, self.chunk_before, *views, tiles, self.slot_ends, self.p_weight,
+                    self.chunk_colour, self.chunk_stop], 2048)  # fmt: skip
+        self._rows(grad_kernels.merge_chunk_weights, tiles * pixels,
+                   [self.chunk_colour, self.chunk_before, self.chunk_stop, self.counts, self.chunk_ends, self.tile_end, *views,
+                    background, image, self.stops], 2048)  # fmt: skip
 
     def backward(self, image: wp.array, grad_image: wp.array, grads: SplatGradients, colours_only: bool = False) -> None:
         """Adds to ``grads`` the gradient of L given dL/dimage ``grad_image`` (V, H, W, 3) for the views
