@@ -127,6 +127,7 @@ class GradRasteriser(_Rasteriser):
         wp.load_module(grad_kernels, device=self.device)
         self.grad_capacity = 0
         self.scratch_pixels = 0
+        self.chunk_scratch_pixels = 0
         self.count = 0
 
     def _reserve_grad(self, entries: int) -> None:
@@ -219,9 +220,10 @@ class GradRasteriser(_Rasteriser):
                 self._composite_weights_in_chunks(entries, tiles, tiles_x, view_tiles, count, background, image)
             else:  # the CPU: a thread per tile, entry by entry
                 self._reserve_scratch(pixels)
+                self._reserve_chunk_scratch(pixels)
                 self._rows(
                     grad_kernels.composite_tile_weights, tiles,
-                    [*weighted, self.chunk, self.bw_transmittance, self.bw_front, self.bw_done, self.chunk_state, self.total,
+                    [*weighted, self.chunk, self.bw_transmittance, self.bw_front, self.bw_done, self.bw_chunk_state, self.bw_total,
                      image, self.p_weight, self.stops],
                     rows_per_chunk(tiles, count),
                 )  # fmt: skip
@@ -304,6 +306,14 @@ class GradRasteriser(_Rasteriser):
             self.bw_transmittance = wp.empty(pixels, dtype=wp.float32, device=d)
             self.bw_front = wp.empty(pixels, dtype=wp.vec3, device=d)
             self.bw_done = wp.empty(pixels, dtype=wp.int32, device=d)
+
+    def _reserve_chunk_scratch(self, pixels: int) -> None:
+        """Per-pixel state of the tile walk's chunks (``composite_tile_weights``) for ``pixels`` pixels:
+        the transmittance before the chunk and the chunk's own, and the colour of the chunks before."""
+        if self.chunk_scratch_pixels < pixels:
+            self.chunk_scratch_pixels = pixels
+            self.bw_chunk_state = wp.empty(pixels, dtype=wp.vec2, device=self.device)
+            self.bw_total = wp.empty(pixels, dtype=wp.vec3, device=self.device)
 
     def _reserve_slots(self, count: int, tiles: int, tiles_x: int, view_tiles: int) -> bool:
         """The per-pixel slots of the ``count`` entries just sorted (``pixel_areas``, their running
