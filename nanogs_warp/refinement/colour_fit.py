@@ -1,6 +1,7 @@
-"""The colour fit: the merged splats' colours of an output that the geometry fit does not touch (the
-10 % outputs) fitted to renders of the input (``SimplifyConfig.fit_colour``, on by default), after
-the size fit.
+"""The colour fit: the merged splats' colours of every output above 0.1 % (``size_fit.COLOUR_FIT_ABOVE``)
+fitted to renders of the input (``SimplifyConfig.fit_colour``, on by default), after the size fit
+and, for the 1 % outputs, after the geometry fit, which moves their splats but keeps the merge's
+opacities and colours.
 
 A merge averages its pair's colours with weights, and the merged splat's colour is only an estimate
 of what the pair showed; an input splat that no merge touched has the colour the input was trained
@@ -13,7 +14,7 @@ colour must not buy the coarse views' likeness with the fine ones', as the rende
 let it (docs/quality.md): ``SizeFit`` keeps the result only where it gains in the size fit's
 coarse and fine views alike, the size fit's own rule. Its backward is the colours' alone
 (``GradRasteriser.backward``'s ``colours_only``, from the forward's kept weights). On an
-H200 the fit of a 6M-splat scene's 600,000-splat output adds 0.7-1.1 s (docs/performance.md);
+H200 the fits of a 6M-splat scene's three outputs add about 0.5 s (docs/performance.md);
 ``--no-fit-colour`` saves it.
 """
 
