@@ -59,9 +59,9 @@ class SimplifyConfig:
     refinement (a longer one for outputs of at most 0.1 %) kept only where it renders held-out views
     of the input better (``refinement.geometry_fit``).
 
-    ``fit_colour``: each output above 1 % (those the geometry fit leaves) has the colours of its
-    merged splats fitted to the same renders, every splat that no merge made keeping its own, kept
-    only where the output then renders the size fit's coarse and fine views better
+    ``fit_colour``: each output above 0.1 % (after its geometry fit, at 1 %) then has the colours of
+    its merged splats fitted to the same renders, every splat that no merge made keeping its own,
+    kept only where the output then renders the size fit's coarse and fine views better
     (``refinement.colour_fit``).
     """
 
