@@ -835,6 +835,54 @@ def composite_merge(
     image[view, pixel[1], pixel[0], 2] = c[2]
 
 
+@wp.func
+def chunk_own_step(chunk_state: wp.array(dtype=wp.vec2), slot: int, alpha: float):
+    """``chunk_transmittance``'s step in a tile walk (``composite_tiles``): the pixel's own product over
+    the chunk, from 1, times (1 - alpha), and 0 once it falls below T_MIN (``chunk_state[slot]``: the
+    transmittance before the chunk, the chunk's own)."""
+    state = chunk_state[slot]
+    if state[1] > 0.0:
+        own = state[1] * (1.0 - alpha)
+        if own < T_MIN:
+            own = 0.0
+        chunk_state[slot] = wp.vec2(state[0], own)
+
+
+@wp.func
+def chunk_end(
+    slot: int,
+    last: bool,
+    done: wp.array(dtype=wp.int32),
+    colour: wp.array(dtype=wp.vec3),
+    total: wp.array(dtype=wp.vec3),
+    chunk_state: wp.array(dtype=wp.vec2),
+    transmittance: wp.array(dtype=float),
+):
+    """A tile walk's end of a chunk for the pixel in ``slot``: ``composite_merge`` adds the chunk's
+    colour to ``total``; a pixel that stopped in the chunk (done 1) is finished (done 2); any other,
+    unless the chunk was the tile's last, goes on from ``chunk_prefix``'s transmittance before the
+    next chunk or, where that is 0, is finished too. Returns 1 for that last case (the pixel ran out
+    between chunks), else 0."""
+    if done[slot] == 2:
+        return 0
+    total[slot] = total[slot] + colour[slot]
+    if done[slot] == 1:
+        done[slot] = 2
+        return 0
+    if not last:
+        state = chunk_state[slot]
+        before = state[0] * state[1]
+        if before < T_MIN:
+            before = 0.0
+        if before == 0.0:  # the merge stops before the next chunk
+            done[slot] = 2
+            return 1
+        chunk_state[slot] = wp.vec2(before, 1.0)
+        transmittance[slot] = before
+        colour[slot] = wp.vec3(0.0, 0.0, 0.0)
+    return 0
+
+
 @wp.kernel
 def composite_tiles(
     e_xy: wp.array(dtype=wp.vec2),
@@ -925,13 +973,8 @@ def composite_tiles(
                     alpha = wp.min(ALPHA_MAX, co[3] * exp32(power))
                     if alpha < ALPHA_MIN:
                         continue
-                    if chunked and not last:  # chunk_transmittance: the chunk's own, from 1
-                        state = chunk_state[slot]
-                        if state[1] > 0.0:
-                            own = state[1] * (1.0 - alpha)
-                            if own < T_MIN:
-                                own = 0.0
-                            chunk_state[slot] = wp.vec2(state[0], own)
+                    if chunked and not last:
+                        chunk_own_step(chunk_state, slot, alpha)
                     t = transmittance[slot]
                     test_t = t * (1.0 - alpha)
                     if test_t < T_MIN:
@@ -941,28 +984,9 @@ def composite_tiles(
                     colour[slot] = colour[slot] + rgb * (alpha * t)
                     transmittance[slot] = test_t
         if chunked:
-            # composite_merge adds the chunk's colour; chunk_prefix gives the next chunk's start
             for py in range(y_lo, y_hi):
                 for px in range(x_lo, x_hi):
-                    slot = base + (py - y_lo) * TILE + px - x_lo
-                    if done[slot] == 2:
-                        continue
-                    total[slot] = total[slot] + colour[slot]
-                    if done[slot] == 1:
-                        done[slot] = 2
-                        continue
-                    if not last:
-                        state = chunk_state[slot]
-                        before = state[0] * state[1]
-                        if before < T_MIN:
-                            before = 0.0
-                        if before == 0.0:  # the merge stops before the next chunk
-                            done[slot] = 2
-                            remaining -= 1
-                        else:
-                            chunk_state[slot] = wp.vec2(before, 1.0)
-                            transmittance[slot] = before
-                            colour[slot] = wp.vec3(0.0, 0.0, 0.0)
+                    remaining -= chunk_end(base + (py - y_lo) * TILE + px - x_lo, last, done, colour, total, chunk_state, transmittance)
         chunk_first = chunk_last
     for py in range(y_lo, y_hi):
         for px in range(x_lo, x_hi):

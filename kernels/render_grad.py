@@ -74,6 +74,8 @@ from .render import (
     TILE_PIXELS,
     CameraParams,
     _sh_coef,
+    chunk_end,
+    chunk_own_step,
     entry_alpha,
     gram,
     matrix_product,
@@ -965,13 +967,8 @@ def composite_tile_weights(
                         if alpha == 0.0:
                             weights[slot] = 0.0
                         else:
-                            if chunked and not last:  # ``chunk_own_transmittance``: the chunk's own, from 1
-                                state = chunk_state[pixel]
-                                if state[1] > 0.0:
-                                    own = state[1] * (1.0 - alpha)
-                                    if own < T_MIN:
-                                        own = 0.0
-                                    chunk_state[pixel] = wp.vec2(state[0], own)
+                            if chunked and not last:
+                                chunk_own_step(chunk_state, pixel, alpha)
                             t = transmittance[pixel]
                             test_t = t * (1.0 - alpha)
                             if test_t < T_MIN:
@@ -984,30 +981,13 @@ def composite_tile_weights(
                                 colour[pixel] = colour[pixel] + rgb * weight
                                 transmittance[pixel] = test_t
                     slot += 1
-        if chunked:
-            # ``merge_chunk_weights`` adds the chunk's colour; ``chunk_prefix`` gives the next chunk's start
+        if chunked:  # ``merge_chunk_weights``' sums and ``chunk_prefix``'s next start, as ``render.composite_tiles``
             for py in range(y_lo, y_hi):
                 for px in range(x_lo, x_hi):
                     pixel = base + (py - y_lo) * TILE + px - x_lo
-                    if done[pixel] == 2:
-                        continue
-                    total[pixel] = total[pixel] + colour[pixel]
-                    if done[pixel] == 1:
-                        done[pixel] = 2
-                        continue
-                    if not last:
-                        state = chunk_state[pixel]
-                        before = state[0] * state[1]
-                        if before < T_MIN:
-                            before = 0.0
-                        if before == 0.0:  # the merge stops before the next chunk, and so does the pixel
-                            done[pixel] = 2
-                            stops[pixel] = chunk_last
-                            remaining -= 1
-                        else:
-                            chunk_state[pixel] = wp.vec2(before, 1.0)
-                            transmittance[pixel] = before
-                            colour[pixel] = wp.vec3(0.0, 0.0, 0.0)
+                    if chunk_end(pixel, last, done, colour, total, chunk_state, transmittance) == 1:
+                        stops[pixel] = chunk_last  # it ran out before the next chunk: its stop is there
+                        remaining -= 1
         chunk_first = chunk_last
     for py in range(y_lo, y_hi):
         for px in range(x_lo, x_hi):
