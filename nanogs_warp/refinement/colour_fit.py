@@ -14,8 +14,8 @@ colour must not buy the coarse views' likeness with the fine ones', as the rende
 let it (docs/quality.md): ``SizeFit`` keeps the result only where it gains in the size fit's
 coarse and fine views alike, the size fit's own rule. Its backward is the colours' alone
 (``GradRasteriser.backward``'s ``colours_only``, from the forward's kept weights). On an
-H200 the fits of a 6M-splat scene's three outputs add about 0.5 s (docs/performance.md);
-``--no-fit-colour`` saves it.
+H200 the forward of the fit of a 6M-splat scene's 600,000-splat output, its long tiles composited in
+chunks, is about 0.11 s of GPU time (docs/performance.md); ``--no-fit-colour`` saves the fits.
 """
 
 from __future__ import annotations
