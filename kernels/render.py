@@ -682,6 +682,60 @@ def chunk_ranges(
         k += chunk
 
 
+@wp.func
+def chunk_product(
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
+    first: int,
+    last: int,
+    fpx: float,
+    fpy: float,
+):
+    """The product of (1 - alpha) over entries [first, last) at pixel (fpx, fpy), 0 once it falls
+    below T_MIN: a chunk's own transmittance (``chunk_transmittance``)."""
+    t = float(1.0)
+    for k in range(first, last):
+        alpha = entry_alpha(e_xy, e_conic_opacity, e_box, e_faint, k, fpx, fpy)
+        if alpha > 0.0:
+            t = t * (1.0 - alpha)
+            if t < T_MIN:
+                t = 0.0
+                break
+    return t
+
+
+@wp.func
+def merged_chunks(
+    colour: wp.array(dtype=wp.vec4),
+    before: wp.array(dtype=float),
+    counts: wp.array(dtype=wp.int32),
+    chunk_ends: wp.array(dtype=wp.int32),
+    tile: int,
+    local: int,
+):
+    """A pixel's walk over its tile's chunks (``composite_merge``): (their colours summed in order up to
+    the chunk it stopped in, the transmittance left, that chunk's (chunk, pixel) slot, or -1 where it
+    never stopped). It stops in the chunk before which its transmittance is 0, or in the one whose
+    own walk stopped (a negative transmittance after it)."""
+    c = wp.vec3(0.0, 0.0, 0.0)
+    transmittance = float(1.0)
+    stopped = int(-1)
+    for k in range(chunk_ends[tile] - counts[tile], chunk_ends[tile]):
+        slot = k * TILE_PIXELS + local
+        if before[slot] == 0.0:
+            stopped = slot
+            break
+        v = colour[slot]
+        c = c + wp.vec3(v[0], v[1], v[2])
+        transmittance = wp.abs(v[3])
+        if v[3] < 0.0:
+            stopped = slot
+            break
+    return c, transmittance, stopped
+
+
 @wp.kernel
 def chunk_transmittance(
     e_xy: wp.array(dtype=wp.vec2),
@@ -710,17 +764,9 @@ def chunk_transmittance(
     if chunk_last[c] == tile_end[chunk_tile[c]]:
         return
     pixel = pixel_of(chunk_tile[c], tid - c * TILE_PIXELS, tiles_x)
-    fpx = float(pixel[0])
-    fpy = float(pixel[1])
     t = float(1.0)
     if pixel[0] < width and pixel[1] < height:
-        for k in range(chunk_first[c], chunk_last[c]):
-            alpha = entry_alpha(e_xy, e_conic_opacity, e_box, e_faint, k, fpx, fpy)
-            if alpha > 0.0:
-                t = t * (1.0 - alpha)
-                if t < T_MIN:
-                    t = 0.0
-                    break
+        t = chunk_product(e_xy, e_conic_opacity, e_box, e_faint, chunk_first[c], chunk_last[c], float(pixel[0]), float(pixel[1]))
     transmittance[tid] = t
 
 
@@ -818,17 +864,7 @@ def composite_merge(
     pixel = pixel_of(tile, local, tiles_x)
     if pixel[0] >= width or pixel[1] >= height:
         return
-    c = wp.vec3(0.0, 0.0, 0.0)
-    transmittance = float(1.0)
-    for k in range(chunk_ends[tile] - counts[tile], chunk_ends[tile]):
-        slot = k * TILE_PIXELS + local
-        if before[slot] == 0.0:
-            break
-        v = colour[slot]
-        c = c + wp.vec3(v[0], v[1], v[2])
-        transmittance = wp.abs(v[3])
-        if v[3] < 0.0:
-            break
+    c, transmittance, _stopped = merged_chunks(colour, before, counts, chunk_ends, tile, local)
     c = c + background * transmittance
     image[view, pixel[1], pixel[0], 0] = c[0]
     image[view, pixel[1], pixel[0], 1] = c[1]

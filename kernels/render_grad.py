@@ -76,7 +76,8 @@ from .render import (
     _sh_coef,
     chunk_end,
     chunk_own_step,
-    entry_alpha,
+    chunk_product,
+    merged_chunks,
     gram,
     matrix_product,
     scaled_columns,
@@ -1040,13 +1041,7 @@ def chunk_own_transmittance(
     view, x_lo, x_hi, y_lo, y_hi, px, py = chunk_pixel(c, tid, chunk_tile, tiles_x, view_tiles, cams)
     t = float(1.0)
     if px < x_hi and py < y_hi:
-        for k in range(chunk_first[c], chunk_last[c]):
-            alpha = entry_alpha(e_xy, e_conic_opacity, e_box, e_faint, k, float(px), float(py))
-            if alpha > 0.0:
-                t = t * (1.0 - alpha)
-                if t < T_MIN:
-                    t = 0.0
-                    break
+        t = chunk_product(e_xy, e_conic_opacity, e_box, e_faint, chunk_first[c], chunk_last[c], float(px), float(py))
     transmittance[tid] = t
 
 
@@ -1142,21 +1137,10 @@ def merge_chunk_weights(
     tile, view, x_lo, x_hi, y_lo, y_hi, px, py = thread_pixel(tid, tiles_x, view_tiles, cams)
     if px >= x_hi or py >= y_hi:
         return
-    local = tid - tile * TILE_PIXELS
-    c = wp.vec3(0.0, 0.0, 0.0)
-    t = float(1.0)
+    c, t, stopped = merged_chunks(colour, before, counts, chunk_ends, tile, tid - tile * TILE_PIXELS)
     stop = tile_end[tile]
-    for k in range(chunk_ends[tile] - counts[tile], chunk_ends[tile]):
-        slot = k * TILE_PIXELS + local
-        if before[slot] == 0.0:
-            stop = chunk_stop[slot]
-            break
-        v = colour[slot]
-        c = c + wp.vec3(v[0], v[1], v[2])
-        t = wp.abs(v[3])
-        if v[3] < 0.0:
-            stop = chunk_stop[slot]
-            break
+    if stopped >= 0:
+        stop = chunk_stop[stopped]
     c = c + background * t
     image[view, py, px, 0] = c[0]
     image[view, py, px, 1] = c[1]
