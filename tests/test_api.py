@@ -32,6 +32,13 @@ def test_several_ratios_in_the_order_given(splats, keyword):
         assert same(result, progressive[result.count])
 
 
+def test_the_budgets_order_changes_no_output(splats):
+    # an output depends on the set of budgets asked for together (README, "Budgets"), not their order
+    a = simplify(splats, ratios=[0.1, 0.01], device="cpu")
+    b = simplify(splats, ratios=[0.01, 0.1], device="cpu")
+    assert same(a[0], b[1]) and same(a[1], b[0])
+
+
 def test_several_counts_and_repeats(splats):
     results = simplify(splats, counts=(100, 10, 100))
     assert [r.count for r in results] == [100, 10, 100]
