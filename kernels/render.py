@@ -633,9 +633,10 @@ def entry_alpha(
 # stop rule (T (1 - alpha) < 1e-4) is kept by starting each chunk at the transmittance before it:
 #   chunk_counts, chunk_ranges   the chunks of each tile (and whether any tile needs more than one:
 #                                else ``composite`` does) (an inclusive scan of the counts between)
-#   chunk_transmittance          T_j of every chunk but a tile's last (0 where it falls below 1e-4)
+#   chunk_transmittance          T_j of every chunk but a tile's last (0 where it falls below 1e-4);
+#                                a tile's first chunk, which starts from T = 1, composited on the way
 #   chunk_prefix                 per pixel, the transmittance before each chunk (0 once stopped)
-#   composite_chunks             each chunk composited from that transmittance, as ``composite`` does
+#   composite_chunks             each later chunk composited from that transmittance, as ``composite`` does
 #   composite_merge              the chunks' colours summed in order, then the background
 # A tile of one chunk takes exactly ``composite``'s arithmetic, so its pixels are ``composite``'s bits.
 
@@ -736,12 +737,44 @@ def merged_chunks(
     return c, transmittance, stopped
 
 
+@wp.func
+def walked_chunk(
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
+    first: int,
+    last: int,
+    fpx: float,
+    fpy: float,
+    transmittance: float,
+):
+    """``composite``'s loop over entries [first, last) at pixel (fpx, fpy) from ``transmittance``:
+    (colour, transmittance after), the transmittance negated where the pixel stopped in the range."""
+    rgb = wp.vec3(0.0, 0.0, 0.0)
+    stopped = float(1.0)
+    for k in range(first, last):
+        alpha = entry_alpha(e_xy, e_conic_opacity, e_box, e_faint, k, fpx, fpy)
+        if alpha == 0.0:
+            continue
+        test_t = transmittance * (1.0 - alpha)
+        if test_t < T_MIN:
+            stopped = -1.0
+            break
+        rgb = rgb + e_rgb[k] * (alpha * transmittance)
+        transmittance = test_t
+    return wp.vec4(rgb[0], rgb[1], rgb[2], stopped * transmittance)
+
+
 @wp.kernel
 def chunk_transmittance(
     e_xy: wp.array(dtype=wp.vec2),
     e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
     e_box: wp.array(dtype=wp.vec4),
     e_faint: wp.array(dtype=float),
+    tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
     chunk_ends: wp.array(dtype=wp.int32),
     chunk_tile: wp.array(dtype=wp.int32),
@@ -753,19 +786,34 @@ def chunk_transmittance(
     tiles: int,
     first: int,
     transmittance: wp.array(dtype=float),
+    colour: wp.array(dtype=wp.vec4),
 ):
     """Per (chunk, pixel): the product of (1 - alpha) over the chunk's entries, 0 once it falls below
-    1e-4 (the pixel stops in this chunk, whatever came before). A tile's last chunk is skipped:
-    nothing follows it; so are the threads beyond the last chunk (launched for a bound on the count)."""
+    1e-4 (the pixel stops in this chunk, whatever came before). A tile's first chunk starts from
+    T = 1, so its walk is ``composite_chunks``' own: it is composited here (``walked_chunk``, its
+    colour to ``colour``), its product the walk's transmittance (0 where it stopped: the same
+    products), and ``composite_chunks`` leaves it alone. A tile's last chunk but its first is
+    skipped: nothing follows it; so are the threads beyond the last chunk (launched for a bound on
+    the count)."""
     tid = first + wp.tid()
     c = tid / TILE_PIXELS
     if c >= chunk_ends[tiles - 1]:
         return
-    if chunk_last[c] == tile_end[chunk_tile[c]]:
+    tile = chunk_tile[c]
+    opening = chunk_first[c] == tile_start[tile]
+    if chunk_last[c] == tile_end[tile] and not opening:
         return
-    pixel = pixel_of(chunk_tile[c], tid - c * TILE_PIXELS, tiles_x)
+    pixel = pixel_of(tile, tid - c * TILE_PIXELS, tiles_x)
+    inside = pixel[0] < width and pixel[1] < height
     t = float(1.0)
-    if pixel[0] < width and pixel[1] < height:
+    if opening:
+        walked = wp.vec4(0.0, 0.0, 0.0, -1.0)
+        if inside:
+            walked = walked_chunk(e_xy, e_conic_opacity, e_rgb, e_box, e_faint, chunk_first[c], chunk_last[c],
+                                  float(pixel[0]), float(pixel[1]), 1.0)  # fmt: skip
+            t = wp.max(walked[3], 0.0)
+        colour[tid] = walked
+    elif inside:
         t = chunk_product(e_xy, e_conic_opacity, e_box, e_faint, chunk_first[c], chunk_last[c], float(pixel[0]), float(pixel[1]))
     transmittance[tid] = t
 
@@ -802,6 +850,7 @@ def composite_chunks(
     e_rgb: wp.array(dtype=wp.vec3),
     e_box: wp.array(dtype=wp.vec4),
     e_faint: wp.array(dtype=float),
+    tile_start: wp.array(dtype=wp.int32),
     chunk_ends: wp.array(dtype=wp.int32),
     chunk_tile: wp.array(dtype=wp.int32),
     chunk_first: wp.array(dtype=wp.int32),
@@ -814,32 +863,22 @@ def composite_chunks(
     first: int,
     colour: wp.array(dtype=wp.vec4),
 ):
-    """Per (chunk, pixel): ``composite``'s loop over the chunk's entries from the transmittance before
-    it; (colour, transmittance after), the transmittance negated where the pixel stopped here."""
+    """Per (chunk, pixel) of every chunk but a tile's first (``chunk_transmittance`` composited it):
+    ``composite``'s loop over the chunk's entries from the transmittance before it (``walked_chunk``);
+    (colour, transmittance after), the transmittance negated where the pixel stopped here."""
     tid = first + wp.tid()
     c = tid / TILE_PIXELS
     if c >= chunk_ends[tiles - 1]:
+        return
+    if chunk_first[c] == tile_start[chunk_tile[c]]:
         return
     pixel = pixel_of(chunk_tile[c], tid - c * TILE_PIXELS, tiles_x)
     transmittance = before[tid]
     if pixel[0] >= width or pixel[1] >= height or transmittance == 0.0:
         colour[tid] = wp.vec4(0.0, 0.0, 0.0, -1.0)
         return
-    fpx = float(pixel[0])
-    fpy = float(pixel[1])
-    rgb = wp.vec3(0.0, 0.0, 0.0)
-    stopped = float(1.0)
-    for k in range(chunk_first[c], chunk_last[c]):
-        alpha = entry_alpha(e_xy, e_conic_opacity, e_box, e_faint, k, fpx, fpy)
-        if alpha == 0.0:
-            continue
-        test_t = transmittance * (1.0 - alpha)
-        if test_t < T_MIN:
-            stopped = -1.0
-            break
-        rgb = rgb + e_rgb[k] * (alpha * transmittance)
-        transmittance = test_t
-    colour[tid] = wp.vec4(rgb[0], rgb[1], rgb[2], stopped * transmittance)
+    colour[tid] = walked_chunk(e_xy, e_conic_opacity, e_rgb, e_box, e_faint, chunk_first[c], chunk_last[c],
+                               float(pixel[0]), float(pixel[1]), transmittance)  # fmt: skip
 
 
 @wp.kernel

@@ -1011,84 +1011,36 @@ def chunk_pixel(c: int, tid: int, chunk_tile: wp.array(dtype=wp.int32), tiles_x:
     return view, x_lo, x_hi, y_lo, y_hi, x_lo + local - (local / TILE) * TILE, y_lo + local / TILE
 
 
-@wp.kernel
-def chunk_own_transmittance(
-    first: int,
-    e_xy: wp.array(dtype=wp.vec2),
-    e_conic_opacity: wp.array(dtype=wp.vec4),
-    e_box: wp.array(dtype=wp.vec4),
-    e_faint: wp.array(dtype=float),
-    tile_end: wp.array(dtype=wp.int32),
-    chunk_ends: wp.array(dtype=wp.int32),
-    chunk_tile: wp.array(dtype=wp.int32),
-    chunk_first: wp.array(dtype=wp.int32),
-    chunk_last: wp.array(dtype=wp.int32),
-    cams: wp.array(dtype=CameraParams),
-    tiles_x: int,
-    view_tiles: int,
-    tiles: int,
-    transmittance: wp.array(dtype=float),
-):
-    """``render.chunk_transmittance`` for several views' tiles: per (chunk, pixel) the product of
-    (1 - alpha) over the chunk's entries, 0 once it falls below T_MIN; a tile's last chunk and the
-    threads beyond the last chunk are skipped."""
-    tid = first + wp.tid()
-    c = tid / TILE_PIXELS
-    if c >= chunk_ends[tiles - 1]:
-        return
-    if chunk_last[c] == tile_end[chunk_tile[c]]:
-        return
-    view, x_lo, x_hi, y_lo, y_hi, px, py = chunk_pixel(c, tid, chunk_tile, tiles_x, view_tiles, cams)
-    t = float(1.0)
-    if px < x_hi and py < y_hi:
-        t = chunk_product(e_xy, e_conic_opacity, e_box, e_faint, chunk_first[c], chunk_last[c], float(px), float(py))
-    transmittance[tid] = t
-
-
-@wp.kernel
-def composite_chunk_weights(
-    first: int,
+@wp.func
+def weighted_chunk(
     e_xy: wp.array(dtype=wp.vec2),
     e_conic_opacity: wp.array(dtype=wp.vec4),
     e_rgb: wp.array(dtype=wp.vec3),
     e_box: wp.array(dtype=wp.vec4),
     e_faint: wp.array(dtype=float),
-    chunk_ends: wp.array(dtype=wp.int32),
-    chunk_tile: wp.array(dtype=wp.int32),
-    chunk_first: wp.array(dtype=wp.int32),
-    chunk_last: wp.array(dtype=wp.int32),
-    before: wp.array(dtype=float),
-    cams: wp.array(dtype=CameraParams),
-    tiles_x: int,
-    view_tiles: int,
-    tiles: int,
+    first: int,
+    last: int,
+    x_lo: int,
+    x_hi: int,
+    y_lo: int,
+    y_hi: int,
+    px: int,
+    py: int,
+    t: float,
     slot_ends: wp.array(dtype=wp.int32),
     weights: wp.array(dtype=float),
-    colour: wp.array(dtype=wp.vec4),
-    chunk_stop: wp.array(dtype=wp.int32),
 ):
-    """Per (chunk, pixel): ``render.composite_chunks``' walk of the chunk from the transmittance
-    before it (its colour and the transmittance after, negated where the pixel stopped here) that
-    also keeps each entry's weight alpha_k T_k in the entry's slot for the pixel (``pixel_slot``; 0
-    where its alpha is 0 there), and the entry the pixel stopped at in ``chunk_stop`` (the chunk's
-    end where it did not; the chunk's first entry where the transmittance before it is 0: it
-    stopped before the chunk)."""
-    tid = first + wp.tid()
-    c = tid / TILE_PIXELS
-    if c >= chunk_ends[tiles - 1]:
-        return
-    view, x_lo, x_hi, y_lo, y_hi, px, py = chunk_pixel(c, tid, chunk_tile, tiles_x, view_tiles, cams)
-    t = before[tid]
-    if px >= x_hi or py >= y_hi or t == 0.0:
-        colour[tid] = wp.vec4(0.0, 0.0, 0.0, -1.0)
-        chunk_stop[tid] = chunk_first[c]
-        return
+    """``render.walked_chunk``'s walk of entries [first, last) at pixel (px, py) of a tile [x_lo, x_hi)
+    x [y_lo, y_hi) from transmittance ``t``, keeping each entry's weight alpha_k T_k in the entry's
+    slot for the pixel (``pixel_slot``; 0 where its alpha is 0 there): (colour and the transmittance
+    after, negated where the pixel stopped in the range; the entry it stopped at, ``last`` where it
+    did not)."""
     fpx = float(px)
     fpy = float(py)
     rgb = wp.vec3(0.0, 0.0, 0.0)
     stopped = float(1.0)
-    stop = chunk_last[c]
-    for k in range(chunk_first[c], chunk_last[c]):
+    stop = last
+    for k in range(first, last):
         bx = e_box[k]
         if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
             continue  # outside the entry's box (as in ``composite_backward_pixels``)
@@ -1109,7 +1061,108 @@ def composite_chunk_weights(
         weights[slot] = weight
         rgb = rgb + e_rgb[k] * weight
         t = test_t
-    colour[tid] = wp.vec4(rgb[0], rgb[1], rgb[2], stopped * t)
+    return wp.vec4(rgb[0], rgb[1], rgb[2], stopped * t), stop
+
+
+@wp.kernel
+def chunk_own_transmittance(
+    first: int,
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
+    tile_start: wp.array(dtype=wp.int32),
+    tile_end: wp.array(dtype=wp.int32),
+    chunk_ends: wp.array(dtype=wp.int32),
+    chunk_tile: wp.array(dtype=wp.int32),
+    chunk_first: wp.array(dtype=wp.int32),
+    chunk_last: wp.array(dtype=wp.int32),
+    cams: wp.array(dtype=CameraParams),
+    tiles_x: int,
+    view_tiles: int,
+    tiles: int,
+    slot_ends: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=float),
+    transmittance: wp.array(dtype=float),
+    colour: wp.array(dtype=wp.vec4),
+    chunk_stop: wp.array(dtype=wp.int32),
+):
+    """``render.chunk_transmittance`` for several views' tiles: per (chunk, pixel) the product of
+    (1 - alpha) over the chunk's entries, 0 once it falls below T_MIN. A tile's first chunk, which
+    starts from T = 1, is walked as ``composite_chunk_weights`` walks it (``weighted_chunk``: its
+    weights, colour and stop kept here), its product that walk's transmittance (0 where it stopped:
+    the same products); a tile's last chunk but its first and the threads beyond the last chunk are
+    skipped."""
+    tid = first + wp.tid()
+    c = tid / TILE_PIXELS
+    if c >= chunk_ends[tiles - 1]:
+        return
+    tile = chunk_tile[c]
+    opening = chunk_first[c] == tile_start[tile]
+    if chunk_last[c] == tile_end[tile] and not opening:
+        return
+    view, x_lo, x_hi, y_lo, y_hi, px, py = chunk_pixel(c, tid, chunk_tile, tiles_x, view_tiles, cams)
+    inside = px < x_hi and py < y_hi
+    t = float(1.0)
+    if opening:
+        walked = wp.vec4(0.0, 0.0, 0.0, -1.0)
+        stop = chunk_first[c]
+        if inside:
+            walked, stop = weighted_chunk(e_xy, e_conic_opacity, e_rgb, e_box, e_faint, chunk_first[c], chunk_last[c],
+                                          x_lo, x_hi, y_lo, y_hi, px, py, 1.0, slot_ends, weights)  # fmt: skip
+            t = wp.max(walked[3], 0.0)
+        colour[tid] = walked
+        chunk_stop[tid] = stop
+    elif inside:
+        t = chunk_product(e_xy, e_conic_opacity, e_box, e_faint, chunk_first[c], chunk_last[c], float(px), float(py))
+    transmittance[tid] = t
+
+
+@wp.kernel
+def composite_chunk_weights(
+    first: int,
+    e_xy: wp.array(dtype=wp.vec2),
+    e_conic_opacity: wp.array(dtype=wp.vec4),
+    e_rgb: wp.array(dtype=wp.vec3),
+    e_box: wp.array(dtype=wp.vec4),
+    e_faint: wp.array(dtype=float),
+    tile_start: wp.array(dtype=wp.int32),
+    chunk_ends: wp.array(dtype=wp.int32),
+    chunk_tile: wp.array(dtype=wp.int32),
+    chunk_first: wp.array(dtype=wp.int32),
+    chunk_last: wp.array(dtype=wp.int32),
+    before: wp.array(dtype=float),
+    cams: wp.array(dtype=CameraParams),
+    tiles_x: int,
+    view_tiles: int,
+    tiles: int,
+    slot_ends: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=float),
+    colour: wp.array(dtype=wp.vec4),
+    chunk_stop: wp.array(dtype=wp.int32),
+):
+    """Per (chunk, pixel) of every chunk but a tile's first (``chunk_own_transmittance`` walked it):
+    ``render.composite_chunks``' walk of the chunk from the transmittance before it (its colour and
+    the transmittance after, negated where the pixel stopped here) that also keeps each entry's
+    weight alpha_k T_k in the entry's slot for the pixel (``weighted_chunk``), and the entry the pixel
+    stopped at in ``chunk_stop`` (the chunk's end where it did not; the chunk's first entry where the
+    transmittance before it is 0: it stopped before the chunk)."""
+    tid = first + wp.tid()
+    c = tid / TILE_PIXELS
+    if c >= chunk_ends[tiles - 1]:
+        return
+    if chunk_first[c] == tile_start[chunk_tile[c]]:
+        return
+    view, x_lo, x_hi, y_lo, y_hi, px, py = chunk_pixel(c, tid, chunk_tile, tiles_x, view_tiles, cams)
+    t = before[tid]
+    if px >= x_hi or py >= y_hi or t == 0.0:
+        colour[tid] = wp.vec4(0.0, 0.0, 0.0, -1.0)
+        chunk_stop[tid] = chunk_first[c]
+        return
+    walked, stop = weighted_chunk(e_xy, e_conic_opacity, e_rgb, e_box, e_faint, chunk_first[c], chunk_last[c],
+                                  x_lo, x_hi, y_lo, y_hi, px, py, t, slot_ends, weights)  # fmt: skip
+    colour[tid] = walked
     chunk_stop[tid] = stop
 
 

@@ -345,7 +345,8 @@ def test_a_pixel_whose_transmittance_runs_out_between_chunks_stops_there(device)
     """Where the transmittance before a chunk is 0 (the chunks before it took it below 1e-4 between
     them, though no walk stopped: float32 regrouping can do that), the chunk is not walked, and the
     pixel's stop is its first entry, so that no weight of it or of a later chunk is read back. One
-    16 x 16 view, one tile of four entries in two chunks, the chunks' transmittances set by hand."""
+    16 x 16 view, one tile of four entries in two chunks, the transmittance before the second set by
+    hand; the first is walked by ``chunk_own_transmittance``, the second by ``composite_chunk_weights``."""
     from nanogs_warp.eval.cameras import Camera
     from nanogs_warp.kernels import render_grad as grad_kernels
     from nanogs_warp.refinement.render_grad import camera_array
@@ -371,9 +372,20 @@ def test_a_pixel_whose_transmittance_runs_out_between_chunks_stops_there(device)
     weights = wp.full(4 * pixels, float("nan"), dtype=wp.float32, device=device)
     colour = wp.empty(2 * pixels, dtype=wp.vec4, device=device)
     chunk_stop = wp.full(2 * pixels, -7, dtype=wp.int32, device=device)
-    wp.launch(grad_kernels.composite_chunk_weights, 2 * pixels,
-              inputs=[0, e_xy, e_co, e_rgb, e_box, e_faint, *ranges, before, cams, 1, 1, 1, slot_ends, weights, colour, chunk_stop],
+    own = wp.full(2 * pixels, float("nan"), dtype=wp.float32, device=device)
+    tile_start, tile_end = ints([0]), ints([4])
+    # the first chunk is walked with its own transmittance, the second (its transmittance before set to 0) after
+    wp.launch(grad_kernels.chunk_own_transmittance, 2 * pixels,
+              inputs=[0, e_xy, e_co, e_rgb, e_box, e_faint, tile_start, tile_end, *ranges, cams, 1, 1, 1, slot_ends, weights,
+                      own, colour, chunk_stop],
               device=device)  # fmt: skip
+    wp.launch(grad_kernels.composite_chunk_weights, 2 * pixels,
+              inputs=[0, e_xy, e_co, e_rgb, e_box, e_faint, tile_start, *ranges, before, cams, 1, 1, 1, slot_ends, weights, colour,
+                      chunk_stop],
+              device=device)  # fmt: skip
+    # the first chunk's own transmittance is its walk's (the same products), the last chunk's is not made
+    own = own.numpy().reshape(2, pixels)
+    assert own[0].tobytes() == colour.numpy().reshape(2, pixels, 4)[0, :, 3].tobytes() and np.isnan(own[1]).all()
     stops_by_chunk = chunk_stop.numpy().reshape(2, pixels)
     assert (stops_by_chunk[0] == 2).all() and (stops_by_chunk[1] == 2).all()  # no stop in the first; the second skipped
     w = weights.numpy().reshape(4, pixels)
