@@ -776,7 +776,6 @@ def chunk_transmittance(
     e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
-    counts: wp.array(dtype=wp.int32),
     chunk_ends: wp.array(dtype=wp.int32),
     chunk_tile: wp.array(dtype=wp.int32),
     chunk_first: wp.array(dtype=wp.int32),
@@ -785,7 +784,6 @@ def chunk_transmittance(
     height: int,
     tiles_x: int,
     tiles: int,
-    later: int,
     first: int,
     transmittance: wp.array(dtype=float),
     colour: wp.array(dtype=wp.vec4),
@@ -794,9 +792,7 @@ def chunk_transmittance(
     1e-4 (the pixel stops in this chunk, whatever came before). A tile's first chunk starts from
     T = 1, so its walk is ``composite_chunks``' own: it is composited here (``walked_chunk``, its
     colour to ``colour``), its product the walk's transmittance (0 where it stopped: the same
-    products), and ``composite_chunks`` leaves it alone. Two launches: ``later`` 0 walks the tiles'
-    first chunks, ``later`` 1 the others, each skipping a pixel that stopped in its tile's first
-    chunk (0 there: nothing of a later chunk counts for it). A tile's last chunk but its first is
+    products), and ``composite_chunks`` leaves it alone. A tile's last chunk but its first is
     skipped: nothing follows it; so are the threads beyond the last chunk (launched for a bound on
     the count)."""
     tid = first + wp.tid()
@@ -805,15 +801,9 @@ def chunk_transmittance(
         return
     tile = chunk_tile[c]
     opening = chunk_first[c] == tile_start[tile]
-    if opening == (later != 0):
-        return
     if chunk_last[c] == tile_end[tile] and not opening:
         return
-    local = tid - c * TILE_PIXELS
-    if not opening and colour[(chunk_ends[tile] - counts[tile]) * TILE_PIXELS + local][3] < 0.0:
-        transmittance[tid] = 0.0  # it stopped in the tile's first chunk
-        return
-    pixel = pixel_of(tile, local, tiles_x)
+    pixel = pixel_of(tile, tid - c * TILE_PIXELS, tiles_x)
     inside = pixel[0] < width and pixel[1] < height
     t = float(1.0)
     if opening:

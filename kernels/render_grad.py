@@ -1074,7 +1074,6 @@ def chunk_own_transmittance(
     e_faint: wp.array(dtype=float),
     tile_start: wp.array(dtype=wp.int32),
     tile_end: wp.array(dtype=wp.int32),
-    counts: wp.array(dtype=wp.int32),
     chunk_ends: wp.array(dtype=wp.int32),
     chunk_tile: wp.array(dtype=wp.int32),
     chunk_first: wp.array(dtype=wp.int32),
@@ -1083,7 +1082,6 @@ def chunk_own_transmittance(
     tiles_x: int,
     view_tiles: int,
     tiles: int,
-    later: int,
     slot_ends: wp.array(dtype=wp.int32),
     weights: wp.array(dtype=float),
     transmittance: wp.array(dtype=float),
@@ -1094,21 +1092,15 @@ def chunk_own_transmittance(
     (1 - alpha) over the chunk's entries, 0 once it falls below T_MIN. A tile's first chunk, which
     starts from T = 1, is walked as ``composite_chunk_weights`` walks it (``weighted_chunk``: its
     weights, colour and stop kept here), its product that walk's transmittance (0 where it stopped:
-    the same products). Two launches, as ``render.chunk_transmittance``: ``later`` 0 walks the tiles'
-    first chunks, ``later`` 1 the others, each skipping a pixel that stopped in its tile's first chunk
-    (0 there). A tile's last chunk but its first and the threads beyond the last chunk are skipped."""
+    the same products); a tile's last chunk but its first and the threads beyond the last chunk are
+    skipped."""
     tid = first + wp.tid()
     c = tid / TILE_PIXELS
     if c >= chunk_ends[tiles - 1]:
         return
     tile = chunk_tile[c]
     opening = chunk_first[c] == tile_start[tile]
-    if opening == (later != 0):
-        return
     if chunk_last[c] == tile_end[tile] and not opening:
-        return
-    if not opening and colour[(chunk_ends[tile] - counts[tile]) * TILE_PIXELS + tid - c * TILE_PIXELS][3] < 0.0:
-        transmittance[tid] = 0.0  # it stopped in the tile's first chunk
         return
     view, x_lo, x_hi, y_lo, y_hi, px, py = chunk_pixel(c, tid, chunk_tile, tiles_x, view_tiles, cams)
     inside = px < x_hi and py < y_hi

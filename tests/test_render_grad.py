@@ -375,11 +375,10 @@ def test_a_pixel_whose_transmittance_runs_out_between_chunks_stops_there(device)
     own = wp.full(2 * pixels, float("nan"), dtype=wp.float32, device=device)
     tile_start, tile_end = ints([0]), ints([4])
     # the first chunk is walked with its own transmittance, the second (its transmittance before set to 0) after
-    for later in (0, 1):
-        wp.launch(grad_kernels.chunk_own_transmittance, 2 * pixels,
-                  inputs=[0, e_xy, e_co, e_rgb, e_box, e_faint, tile_start, tile_end, ints([2]), *ranges, cams, 1, 1, 1, later,
-                          slot_ends, weights, own, colour, chunk_stop],
-                  device=device)  # fmt: skip
+    wp.launch(grad_kernels.chunk_own_transmittance, 2 * pixels,
+              inputs=[0, e_xy, e_co, e_rgb, e_box, e_faint, tile_start, tile_end, *ranges, cams, 1, 1, 1, slot_ends, weights,
+                      own, colour, chunk_stop],
+              device=device)  # fmt: skip
     wp.launch(grad_kernels.composite_chunk_weights, 2 * pixels,
               inputs=[0, e_xy, e_co, e_rgb, e_box, e_faint, tile_start, *ranges, before, cams, 1, 1, 1, slot_ends, weights, colour,
                       chunk_stop],

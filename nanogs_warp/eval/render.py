@@ -335,10 +335,9 @@ class _Rasteriser:
         chunks = self._chunk_ranges(tiles, count)
         ranges = [self.chunk_ends, self.chunk_tile, self.chunk_first, self.chunk_last]
         size = [p.width, p.height, p.tiles_x]
-        for later in (0, 1):  # the tiles' first chunks, then the others for the pixels that did not stop in them
-            self._launch(kernels.chunk_transmittance, chunks * pixels,
-                         [e_xy, e_co, e_rgb, e_box, e_faint, self.tile_start, self.tile_end, self.counts, *ranges, *size, tiles, later],
-                         [self.chunk_before, self.chunk_colour])  # fmt: skip
+        self._launch(kernels.chunk_transmittance, chunks * pixels,
+                     [e_xy, e_co, e_rgb, e_box, e_faint, self.tile_start, self.tile_end, *ranges, *size, tiles],
+                     [self.chunk_before, self.chunk_colour])  # fmt: skip
         self._launch(kernels.chunk_prefix, tiles * pixels, [self.counts, self.chunk_ends], [self.chunk_before])
         self._launch(kernels.composite_chunks, chunks * pixels,
                      [e_xy, e_co, e_rgb, e_box, e_faint, self.tile_start, *ranges, self.chunk_before, *size, tiles],

@@ -253,10 +253,9 @@ class GradRasteriser(_Rasteriser):
         chunks = self._chunk_ranges(tiles, count)
         ranges = [self.chunk_ends, self.chunk_tile, self.chunk_first, self.chunk_last]
         views = [self.cams, tiles_x, view_tiles]
-        for later in (0, 1):  # the tiles' first chunks, then the others for the pixels that did not stop in them
-            self._rows(grad_kernels.chunk_own_transmittance, chunks * pixels,
-                       [e_xy, e_co, e_rgb, e_box, e_faint, self.tile_start, self.tile_end, self.counts, *ranges, *views, tiles, later,
-                        self.slot_ends, self.p_weight, self.chunk_before, self.chunk_colour, self.chunk_stop], 2048)  # fmt: skip
+        self._rows(grad_kernels.chunk_own_transmittance, chunks * pixels,
+                   [e_xy, e_co, e_rgb, e_box, e_faint, self.tile_start, self.tile_end, *ranges, *views, tiles, self.slot_ends,
+                    self.p_weight, self.chunk_before, self.chunk_colour, self.chunk_stop], 2048)  # fmt: skip
         self._launch(kernels.chunk_prefix, tiles * pixels, [self.counts, self.chunk_ends], [self.chunk_before])
         self._rows(grad_kernels.composite_chunk_weights, chunks * pixels,
                    [e_xy, e_co, e_rgb, e_box, e_faint, self.tile_start, *ranges, self.chunk_before, *views, tiles, self.slot_ends,
