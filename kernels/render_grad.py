@@ -80,6 +80,7 @@ from .render import (
     merged_chunks,
     gram,
     matrix_product,
+    outside,
     scaled_columns,
     sh_to_rgb,
 )
@@ -508,7 +509,7 @@ def composite_backward_pixels(
     stop = tile_end[tile]
     for k in range(tile_start[tile], tile_end[tile]):
         bx = e_box[k]
-        if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
+        if outside(bx, fpx, fpy):
             continue  # outside the entry's box: ``entry_columns`` would leave the pixel out too
         gx0, gx1, gy0, gy1 = entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
         if px < gx0 or px > gx1 or py < gy0 or py > gy1:
@@ -1042,7 +1043,7 @@ def weighted_chunk(
     stop = last
     for k in range(first, last):
         bx = e_box[k]
-        if fpx < bx[0] or fpx > bx[1] or fpy < bx[2] or fpy > bx[3]:
+        if outside(bx, fpx, fpy):
             continue  # outside the entry's box (as in ``composite_backward_pixels``)
         gx0, gx1, gy0, gy1 = entry_columns(bx, x_lo, x_hi, y_lo, y_hi)
         if px < gx0 or px > gx1 or py < gy0 or py > gy1:
