@@ -15,6 +15,7 @@ import importlib
 import json
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -135,6 +136,25 @@ def missing_after_shipped(modules: list, device) -> list:
     return missing
 
 
+# (device, module name) pairs whose shipped binaries were copied into the cache, or found there, in
+# this process (``use_shipped_kernels``; ``load_kernels`` adds its own)
+_SHIPPED_CHECKED: set[tuple[str, str]] = set()
+_SHIPPED_LOCK = threading.Lock()
+
+
+def use_shipped_kernels(device, names) -> None:
+    """For the Python API (the commands call ``load_kernels`` before they start): copies into the
+    kernel cache the package's shipped binaries of the named modules that it lacks for ``device`` (a
+    Warp device), once a process and device, so that a program on a fresh machine compiles nothing
+    that ships. What ships for no such device, Warp compiles on first launch, as it always does."""
+    key = str(device)
+    with _SHIPPED_LOCK:
+        todo = tuple(name for name in names if (key, name) not in _SHIPPED_CHECKED)
+        if todo:
+            missing_after_shipped(warp_modules(todo), device)
+            _SHIPPED_CHECKED.update((key, name) for name in todo)
+
+
 def load_kernels(device, names=SIMPLIFY_MODULES, announce: bool = True) -> float:
     """Loads the named kernel modules on ``device`` (a Warp device), compiling those the cache
     lacks, several at once; when some must be compiled and ``announce`` is true, one line on stderr
@@ -153,6 +173,8 @@ def load_kernels(device, names=SIMPLIFY_MODULES, announce: bool = True) -> float
               f"{wp.config.kernel_cache_dir}; 'nanogs-warp warmup' does this ahead of time)", file=sys.stderr)  # fmt: skip
         sys.stderr.flush()
     _force_load(modules, [device], len(missing))
+    with _SHIPPED_LOCK:
+        _SHIPPED_CHECKED.update((str(device), name) for name in names)
     return time.perf_counter() - started
 
 

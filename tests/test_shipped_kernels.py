@@ -122,6 +122,44 @@ def test_a_fresh_cache_compiles_nothing_on_the_cpu(tmp_path):
     assert outputs[0] == outputs[1]
 
 
+@pytest.mark.skipif(not SHIPPED or not ships_cpu(), reason="the CPU objects ship for Linux x86-64 only")
+def test_the_python_api_compiles_nothing_on_a_fresh_cache(tmp_path):
+    """A program that imports the package (no command, so no ``load_kernels``) on an empty kernel
+    cache: ``simplify`` with every fit (1 %: size, colour and geometry) loads the shipped CPU
+    objects. Warp leaves the C++ it compiled beside each binary it builds; none may appear."""
+    cache = tmp_path / "fresh"
+    program = (
+        "import nanogs_warp as ng\n"
+        "from nanogs_warp.data import sample_path\n"
+        "out = ng.simplify(ng.load_ply(sample_path()), ratio=0.01, device='cpu')\n"
+        "print(out.count)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True,
+                            env={**os.environ, "NANOGS_WARP_CACHE": str(cache), "NANOGS_WARP_SHIPPED_KERNELS": "1"})  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    loaded = {p.parent.name.rsplit("_", 1)[0] for p in cache.rglob("*.o")}
+    assert {"wp_nanogs_warp.kernels.knn", "wp_nanogs_warp.kernels.render", "wp_nanogs_warp.kernels.render_grad"} <= loaded, loaded
+    assert sorted(p.name for p in cache.rglob("*.cpp")) == []
+
+
+@pytest.mark.skipif(not SHIPPED or not ships_cpu(), reason="the CPU objects ship for Linux x86-64 only")
+def test_batch_compiles_nothing_on_a_fresh_cache(tmp_path):
+    """``batch`` on an empty kernel cache, to a budget every fit runs at: its worker loads the
+    shipped CPU objects of the fits' modules too (they were compiled in the first scene before)."""
+    from nanogs_warp.data import sample_path
+
+    scenes = tmp_path / "in"
+    scenes.mkdir()
+    (scenes / "a.ply").write_bytes(sample_path().read_bytes())
+    cache = tmp_path / "fresh"
+    result = subprocess.run([sys.executable, "-m", "nanogs_warp", "batch", str(scenes), "-o", str(tmp_path / "out"), "--ratio", "0.01",
+                             "--devices", "cpu", "-q"], capture_output=True, text=True,
+                            env={**os.environ, "NANOGS_WARP_CACHE": str(cache), "NANOGS_WARP_SHIPPED_KERNELS": "1"})  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert "compiling" not in result.stderr, result.stderr
+    assert sorted(p.name for p in cache.rglob("*.cpp")) == []
+
+
 def test_the_switch_turns_shipped_kernels_off(tmp_path, monkeypatch):
     modules = warp_modules(("knn",))
     monkeypatch.setenv("NANOGS_WARP_SHIPPED_KERNELS", "0")

@@ -304,12 +304,12 @@ def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bo
             import warp as wp
 
             from ..device import init_warp, keep_freed_host_memory
-            from ..kernel_cache import load_kernels
+            from ..kernel_cache import ALL_MODULES, load_kernels
 
             init_warp()
             keep_freed_host_memory()
             warp_device = wp.get_device("cpu" if device == "cpu" else "cuda:0")
-            load_kernels(warp_device, announce=name == "w0")  # before any scene's clock starts
+            load_kernels(warp_device, ALL_MODULES, announce=name == "w0")  # the fits' too, before any scene's clock starts
         except Exception as e:  # noqa: BLE001 - reported to the parent, which fails the scenes
             conn.send(("broken", f"cannot start Warp on {device}: {type(e).__name__}: {e}"))
             return

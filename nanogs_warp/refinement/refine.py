@@ -23,6 +23,7 @@ import warp as wp
 
 from ..errors import InputError
 from ..device import memory_short
+from ..kernel_cache import REFINE_MODULES, use_shipped_kernels
 from ..eval.render import _Rasteriser
 from ..eval.units import render_offset, render_units, rendered_as_is, rescaled
 from ..kernels import adam as adam_kernels
@@ -325,6 +326,7 @@ def refine_with_report(
     config = config or RefineConfig()
     config.validate()
     device = wp.get_device(device if device is not None else simplified.device)
+    use_shipped_kernels(device, REFINE_MODULES)  # as the commands load them: no compile where they ship
     if views is not None and not views.serves(reference, config, device):
         raise ValueError("these reference views were made for another reference scene, configuration or device")
     started = time.perf_counter()

@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 
 from ..config import SimplifyConfig
+from ..kernel_cache import simplify_modules, use_shipped_kernels
 from ..pipeline import PassReport, check_arguments
 from ..pipeline import simplify as simplify_merged
 from ..pipeline import simplify_progressively as merged_progressively
@@ -25,6 +26,7 @@ def simplify_progressively(
     """Yields (target, splats) for each target count, largest first, from one progressive merge
     (``pipeline.simplify_progressively``), each output fitted for size when ``config.fit_size``."""
     check_arguments(splats, config)
+    use_shipped_kernels(splats.device, simplify_modules(config))  # as the commands load them: no compile where they ship
     return merged_progressively(splats, targets, config, on_pass, clock, finish=size_fit_for(splats, config))
 
 
@@ -42,5 +44,6 @@ def simplify(
     for size when ``config.fit_size``."""
     check_arguments(splats, config)
     on_device = splats.to(device if device is not None else splats.device)  # a name read as --device reads it
+    use_shipped_kernels(on_device.device, simplify_modules(config))
     return simplify_merged(on_device, ratio, count, None, config, ratios=ratios, counts=counts,
                            finish=size_fit_for(on_device, config))  # fmt: skip
