@@ -184,6 +184,7 @@ def main(argv=None) -> int:
     from nanogs_warp.cost import FieldCost, reference_energy
     from nanogs_warp.operators import COVERAGE_GROWTH
     from nanogs_warp.device import init_warp, resolve_device
+    from nanogs_warp.kernel_cache import ALL_MODULES, load_kernels
     from nanogs_warp.kernels import field_cost as field64
     from nanogs_warp.kernels import merge as merge64
     from nanogs_warp.pairing import select_pairs
@@ -193,6 +194,7 @@ def main(argv=None) -> int:
 
     init_warp()
     device = resolve_device(args.device)
+    load_kernels(device, ALL_MODULES)  # as the commands load them: no compile where they ship
     host = load_ply(args.scene)
     if args.tile:
         from tile_scene import tile_splats
@@ -262,7 +264,7 @@ def main(argv=None) -> int:
     extent = float(np.ptp(host.means.numpy(), axis=0).max()) or 1.0
     for name, module in builds.items():
         kernels = merge64 if module is None else module
-        out, destination = remove_rows(splats, reference_pairs.j, reference_pairs.count)
+        out, destination, _ = remove_rows(splats, reference_pairs.j, reference_pairs.count)
 
         def merge():
             wp.launch(

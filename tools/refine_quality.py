@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from nanogs_warp.device import init_warp, resolve_device
+from nanogs_warp.kernel_cache import ALL_MODULES, load_kernels
 from nanogs_warp.eval.cameras import Camera, near_plane, orbit_cameras, parse_up
 from nanogs_warp.eval.evaluate import evaluate
 from nanogs_warp.io.ply import load_ply
@@ -90,6 +91,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     init_warp()
     device = resolve_device(args.device)
+    load_kernels(device, ALL_MODULES)  # as the commands load them: no compile where they ship
     ratios = [float(r) for r in args.ratios.split(",")]
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []

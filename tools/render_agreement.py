@@ -12,6 +12,7 @@ import argparse
 import numpy as np
 
 from nanogs_warp.device import resolve_device
+from nanogs_warp.kernel_cache import ALL_MODULES, load_kernels
 from nanogs_warp.eval.cameras import orbit_cameras
 from nanogs_warp.eval.render import render_views
 from nanogs_warp.io.ply import load_ply
@@ -31,7 +32,9 @@ def main() -> None:
     c.add_argument("b")
     args = parser.parse_args()
     if args.command == "render":
-        splats = load_ply(args.scene, device=resolve_device(args.device))
+        device = resolve_device(args.device)
+        load_kernels(device, ALL_MODULES)  # as the commands load them: no compile where they ship
+        splats = load_ply(args.scene, device=device)
         np.save(args.out, render_views(splats, orbit_cameras(splats, args.views, args.size)))
     else:
         a, b = np.load(args.a), np.load(args.b)

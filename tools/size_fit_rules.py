@@ -37,6 +37,7 @@ from unseen_cameras import camera_sets  # noqa: E402  (this folder's)
 
 from nanogs_warp.config import SimplifyConfig  # noqa: E402
 from nanogs_warp.device import init_warp, resolve_device  # noqa: E402
+from nanogs_warp.kernel_cache import ALL_MODULES, load_kernels  # noqa: E402
 from nanogs_warp.eval.cameras import orbit_cameras  # noqa: E402
 from nanogs_warp.eval.evaluate import evaluate  # noqa: E402
 from nanogs_warp.io.ply import load_ply  # noqa: E402
@@ -141,7 +142,9 @@ def main(argv=None) -> int:
     if not args.scenes or args.out is None:
         parser.error("give scenes and -o, or --table")
     init_warp()
-    measure(args.scenes, args.out, resolve_device(args.device))
+    device = resolve_device(args.device)
+    load_kernels(device, ALL_MODULES)  # as the commands load them: no compile where they ship
+    measure(args.scenes, args.out, device)
     report([json.loads(line) for line in open(args.out)])
     return 0
 
