@@ -46,10 +46,16 @@ def merged_rows_after(merged: wp.array | None, keep: wp.array, destination: wp.a
     return out
 
 
-def with_merged_features(splats: SplatSet, fitted: SplatSet, merged: wp.array) -> SplatSet:
+def with_merged_features(splats: SplatSet, fitted: SplatSet, merged: wp.array, opacities: bool = False) -> SplatSet:
     """``splats`` with the features (colours) of ``fitted`` (the same rows after a fit changed them)
-    in every row that a merge made (``merged``: ``merged_rows_after``'s marks); every other value is
-    ``splats``' own."""
+    and, with ``opacities``, its opacities, in every row that a merge made (``merged``:
+    ``merged_rows_after``'s marks); every other value is ``splats``' own."""
+    n, device = splats.count, splats.device
     features = wp.clone(splats.features)
-    wp.launch(kernels.copy_merged_rows, splats.count, inputs=[merged, fitted.features], outputs=[features], device=splats.device)
-    return replace(splats, features=features)
+    wp.launch(kernels.copy_merged_rows, n, inputs=[merged, fitted.features], outputs=[features], device=device)
+    if not opacities:
+        return replace(splats, features=features)
+    values = wp.clone(splats.opacities)
+    wp.launch(kernels.copy_merged_rows, n, inputs=[merged, fitted.opacities.reshape((n, 1))], outputs=[values.reshape((n, 1))],
+              device=device)  # fmt: skip
+    return replace(splats, features=features, opacities=values)

@@ -1,6 +1,7 @@
 """The colour fit (``refinement/colour_fit.py``): the pipeline's marks of the rows merges made, what
-the fit may change (the merged rows' colours, nothing else), when it is kept (the size fit's coarse
-and fine views both render better), and which outputs it applies to. Its rasteriser, loss and
+the fit may change (the merged rows' colours, and their opacities in outputs whose geometry is
+fitted; nothing else), when it is kept (the size fit's coarse and fine views both render better),
+and which outputs it applies to. Its rasteriser, loss and
 optimiser have their own float64 references (tests/test_render_grad.py, tests/test_image_loss.py,
 tests/test_refine.py)."""
 
@@ -136,6 +137,61 @@ def test_the_fit_back_propagates_colours_alone_to_the_same_bytes(device, monkeyp
         assert getattr(out, name).numpy().tobytes() == getattr(alone, name).numpy().tobytes(), name
 
 
+def test_with_opacities_the_merged_rows_opacities_are_fitted_too(device):
+    """``fitted_colours(..., opacities=True)``: an output whose merged splats are too faint and too
+    dark comes back with those rows more opaque and brighter; every row no merge made keeps every
+    value, and no merged row changes but in its colour and opacity. Without ``opacities`` the same
+    fit leaves every opacity as it was."""
+    from nanogs_warp.refinement.geometry_fit import GeometryFit
+
+    reference = blob(2000, 36, device, log_scale=(-3.5, -2.5))
+    merged, marks = merged_with_marks(reference, 1000)
+    host_marks = marks.numpy()
+    arrays = recoloured(merged, host_marks, -0.4).to_numpy()
+    arrays["opacities"][host_marks == 1] -= np.float32(2.0)  # too faint
+    wrong = SplatSet.from_numpy(**arrays, device=device)
+    views = GeometryFit(reference).views
+    out = colour_fit.fitted_colours(wrong, marks, reference, views, opacities=True)
+    assert out is not None
+    for name in ("means", "rotations", "log_scales", "extras", "integer_extras"):
+        np.testing.assert_array_equal(getattr(out, name).numpy(), getattr(wrong, name).numpy(), err_msg=name)
+    for name in ("features", "opacities"):
+        before, after = getattr(wrong, name).numpy(), getattr(out, name).numpy()
+        np.testing.assert_array_equal(after[host_marks == 0], before[host_marks == 0], err_msg=name)
+    raised = out.opacities.numpy()[host_marks == 1] - wrong.opacities.numpy()[host_marks == 1]
+    assert raised.mean() > 0.05 and np.isfinite(raised).all()
+    plain = colour_fit.fitted_colours(wrong, marks, reference, views)
+    assert plain.opacities.numpy().tobytes() == wrong.opacities.numpy().tobytes()
+
+
+def test_the_opacities_are_fitted_where_the_geometry_is(device, monkeypatch):
+    """``SizeFit`` asks the colour fit for the opacities in the outputs its geometry fit applies to (at
+    most 1 % of the input, with ``geometry``), and where that fit is not kept for the colours alone;
+    elsewhere for the colours alone, once."""
+    reference = blob(1000, 37, device)
+    asked = []
+
+    def recorded(splats, merged, reference, views, seed=0, opacities=False):
+        asked.append((splats.count, opacities))
+        return None  # not kept
+
+    monkeypatch.setattr(colour_fit, "fitted_colours", recorded)
+    marks = wp.ones(1000, dtype=wp.int32, device=device)
+    for geometry in (True, False):
+        fit = size_fit.SizeFit(reference, size=False, colour=True, geometry=geometry)
+        for count in (100, 11, 10, 2):
+            small = _first_rows(reference, count)
+            assert fit._fit_colour(small, marks[:count]) is small and fit.colour_kept[count] is False
+        both = [(10, True), (10, False), (2, True), (2, False)] if geometry else [(10, False), (2, False)]
+        assert asked == [(100, False), (11, False), *both], geometry
+        asked.clear()
+
+
+def _first_rows(splats: SplatSet, count: int) -> SplatSet:
+    arrays = {k: v[:count] for k, v in splats.to_numpy().items()}
+    return SplatSet.from_numpy(**arrays, device=splats.device)
+
+
 def test_a_fit_that_loses_in_either_view_set_is_not_kept(device, monkeypatch):
     """The size fit's rule: a fitted output that renders one of the two view sets worse (here the
     scores say so) is set aside, and the output comes back as it was."""
@@ -184,17 +240,19 @@ def test_which_outputs_get_the_colour_fit(device, monkeypatch):
 
 def test_the_default_fits_the_colours_of_every_output_above_a_thousandth(device):
     """Against the default without the colour fit: the geometry-fitted 1 % output differs in colours
-    alone (here its fit is kept), the 0.1 % one is the same bytes; the same bytes every run. (The
-    10 % outputs: the tests above.)"""
+    (and opacities, where they were fitted with them) alone (here its fit is kept), the 0.1 % one is
+    the same bytes; the same bytes every run. (The 10 % outputs: the tests above.)"""
     splats = blob(3000, 15, device, log_scale=(-4.0, -2.5))
     ratios = [0.01, 0.001]
     fitted = simplify(splats, ratio=ratios)
     plain = simplify(splats, ratio=ratios, config=SimplifyConfig(fit_colour=False))
     for f, p in zip(fitted, plain):
         for name in UNCHANGED:
-            np.testing.assert_array_equal(getattr(f, name).numpy(), getattr(p, name).numpy(), err_msg=name)
+            if name != "opacities":
+                np.testing.assert_array_equal(getattr(f, name).numpy(), getattr(p, name).numpy(), err_msg=name)
     assert not np.array_equal(fitted[0].features.numpy(), plain[0].features.numpy())
-    assert fitted[1].features.numpy().tobytes() == plain[1].features.numpy().tobytes()
+    for name in ("features", "opacities"):
+        assert getattr(fitted[1], name).numpy().tobytes() == getattr(plain[1], name).numpy().tobytes(), name
     again = simplify(splats, ratio=ratios)
     for f, a in zip(fitted, again):
         assert a.features.numpy().tobytes() == f.features.numpy().tobytes()

@@ -209,21 +209,28 @@ class SizeFit:
 
     def _fit_colour(self, splats: SplatSet, merged: wp.array | None) -> SplatSet:
         """``colour_fit.fitted_colours`` of ``splats``, kept where it gains in the fit's coarse and fine
-        views alike (both PSNR gains positive, the size fit's rule); ``splats`` itself otherwise."""
+        views alike (both PSNR gains positive, the size fit's rule); ``splats`` itself otherwise.
+        Where its geometry is fitted, its opacities are fitted with its colours first, and where that
+        is not kept, its colours alone."""
         from .colour_fit import fitted_colours
 
         self.colour_kept[splats.count] = False
         if merged is None or not self._prepare():
             return splats
         try:
-            candidate = fitted_colours(splats, merged, self.reference, self._geometry().views, self.seed)
-            # floor 0: once one view set's gain is not positive, the other is not rendered
-            if candidate is None or not min(self._scores(candidate, self._scores(splats), floor=0.0)) > 0.0:
-                return splats
+            base = None
+            for opacities in (True, False) if self.applies_geometry(splats.count) else (False,):
+                candidate = fitted_colours(splats, merged, self.reference, self._geometry().views, self.seed, opacities)
+                if candidate is None:
+                    continue
+                base = self._scores(splats) if base is None else base
+                # floor 0: once one view set's gain is not positive, the other is not rendered
+                if min(self._scores(candidate, base, floor=0.0)) > 0.0:
+                    self.colour_kept[splats.count] = True
+                    return candidate
         except InputError:  # the input's views would not fit the device's memory: not fitted
-            return splats
-        self.colour_kept[splats.count] = True
-        return candidate
+            pass
+        return splats
 
     def _fit_geometry(self, splats: SplatSet) -> SplatSet:
         """``GeometryFit`` of ``splats`` (its input views made for the first output); ``splats`` itself
