@@ -46,7 +46,7 @@ def colour_config(seed: int = 0, opacities: bool = False) -> RefineConfig:
 
 def fitted_colours(splats: SplatSet, merged: wp.array, reference: SplatSet, views: ReferenceViews, seed: int = 0,
                    opacities: bool = False) -> SplatSet | None:  # fmt: skip
-    """``splats`` with its merged rows' colours (with ``opacities``, and opacities) fitted toward
+    """``splats`` with its merged rows' colours (and, with ``opacities``, their opacities) fitted toward
     ``reference`` (on ``views``, the geometry fit's renders of it) and every other value as it was
     (the refinement also renormalises quaternions: those stay ``splats``' own); None where the fit
     did not render the held-out views better. ``merged``: int32 marks, 1 in each row a merge made."""
