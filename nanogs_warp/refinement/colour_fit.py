@@ -11,8 +11,8 @@ views render better) with every rate at 0 but the colours' (3DGS's, ``RefineConf
 defaults); of its result only the merged rows' colours are taken: every row that no merge made
 keeps its own colour, and no other value changes. In an output whose geometry was fitted (at most
 ``size_fit.GEOMETRY_FIT_BELOW`` of the input) the merged rows' opacities are fitted and taken too
-(3DGS's opacity rate): a splat moved and reshaped to what the input shows keeps an opacity the
-merge chose for its old shape. There it gained in every scene and camera set measured, where at
+(3DGS's opacity rate), in OPACITY_STEPS steps: a splat moved and reshaped to what the input shows
+keeps an opacity the merge chose for its old shape. There it gained in every scene and camera set measured, where at
 10 %, with no geometry fit, it lost up to 0.46 dB (docs/quality.md); where it is not kept (the rule
 below), the colours are fitted alone. A fitted
 colour must not buy the coarse views' likeness with the fine ones', as the renderers' blur would
@@ -33,15 +33,23 @@ import warp as wp
 from ..compact import with_merged_features
 from ..splats import SplatSet
 from .config import RefineConfig
-from .geometry_fit import geometry_config
+from .geometry_fit import STEPS, geometry_config
 from .refine import ReferenceViews, refine_with_report
 
+# The fit with opacities: twice the geometry fit's short steps, on the same views (40 of them, as
+# before: the pool is the geometry fit's). Against 40 steps it gained in every scene and camera set
+# measured (docs/quality.md).
+OPACITY_STEPS = 2 * STEPS
+
+
 def colour_config(seed: int = 0, opacities: bool = False) -> RefineConfig:
-    """The refinement the colour fit runs: the geometry fit's (its steps, views and cameras), colours only
-    (with ``opacities``, opacities too), at refinement's default rates (3DGS's)."""
-    return dataclasses.replace(geometry_config(seed), lr_means=0.0, lr_log_scales=0.0, lr_rotations=0.0,
-                               lr_opacities=RefineConfig.lr_opacities if opacities else 0.0,
-                               lr_features_dc=RefineConfig.lr_features_dc, lr_features_rest=RefineConfig.lr_features_rest)  # fmt: skip
+    """The refinement the colour fit runs: the geometry fit's (its steps, views and cameras), colours only,
+    at refinement's default rates (3DGS's); with ``opacities``, opacities too, for OPACITY_STEPS steps."""
+    config = dataclasses.replace(geometry_config(seed), lr_means=0.0, lr_log_scales=0.0, lr_rotations=0.0, lr_opacities=0.0,
+                                 lr_features_dc=RefineConfig.lr_features_dc, lr_features_rest=RefineConfig.lr_features_rest)  # fmt: skip
+    if not opacities:
+        return config
+    return dataclasses.replace(config, lr_opacities=RefineConfig.lr_opacities, steps=OPACITY_STEPS)
 
 
 def fitted_colours(splats: SplatSet, merged: wp.array, reference: SplatSet, views: ReferenceViews, seed: int = 0,
