@@ -8,18 +8,17 @@ of what the pair showed; an input splat that no merge touched has the colour the
 to. So the fit is the geometry fit's short refinement (``geometry_fit.STEPS`` steps of
 ``geometry_fit.STEP_VIEWS`` views on the same views of the input, kept only where its held-out
 views render better) with every rate at 0 but the colours' (3DGS's, ``RefineConfig``'s
-defaults); of its result only the merged rows' colours are taken: every row that no merge made
-keeps its own colour, and no other value changes. In an output whose geometry was fitted (at most
+defaults); of its result only the merged rows' colours are taken: every row that no merge made keeps
+its own colour, and no other value changes. In an output whose geometry was fitted (at most
 ``size_fit.GEOMETRY_FIT_BELOW`` of the input) the merged rows' opacities are fitted and taken too
 (3DGS's opacity rate), in OPACITY_STEPS steps: a splat moved and reshaped to what the input shows
-keeps an opacity the merge chose for its old shape. There it gained in every scene and camera set measured, where at
-10 %, with no geometry fit, it lost up to 0.46 dB (docs/quality.md); where it is not kept (the rule
-below), the colours are fitted alone. A fitted
-colour must not buy the coarse views' likeness with the fine ones', as the renderers' blur would
-let it (docs/quality.md): ``SizeFit`` keeps the result only where it gains in the size fit's
-coarse and fine views alike, the size fit's own rule. Its backward is the colours' alone
-(``GradRasteriser.backward``'s ``colours_only``, from the forward's kept weights; with the
-opacities, the whole backward). On an
+keeps an opacity the merge chose for its old shape. There it gained in every scene and camera set
+measured, where at 10 %, with no geometry fit, it lost up to 0.46 dB (docs/quality.md); where it is
+not kept (the rule below), the colours are fitted alone. A fitted colour must not buy the coarse
+views' likeness with the fine ones', as the renderers' blur would let it (docs/quality.md):
+``SizeFit`` keeps the result only where it gains in the size fit's coarse and fine views alike, the
+size fit's own rule. Its backward is the colours' alone (``GradRasteriser.backward``'s
+``colours_only``, from the forward's kept weights; with the opacities, the whole backward). On an
 H200 the forward of the fit of a 6M-splat scene's 600,000-splat output, its long tiles composited in
 chunks, is about 0.11 s of GPU time (docs/performance.md); ``--no-fit-colour`` saves the fits.
 """
