@@ -46,9 +46,10 @@ def merged_rows_after(merged: wp.array | None, keep: wp.array, destination: wp.a
     return out
 
 
-def with_merged_features(splats: SplatSet, fitted: SplatSet, merged: wp.array, opacities: bool = False) -> SplatSet:
+def with_merged_appearance(splats: SplatSet, fitted: SplatSet, merged: wp.array, opacities: bool = False) -> SplatSet:
     """``splats`` with the features (colours) of ``fitted`` (the same rows after a fit changed them)
-    and, with ``opacities``, its opacities, in every row that a merge made (``merged``:
+    and, with ``opacities``, its opacities (the opacity array seen as one column, so the same copy
+    serves), in every row that a merge made (``merged``:
     ``merged_rows_after``'s marks); every other value is ``splats``' own."""
     n, device = splats.count, splats.device
     features = wp.clone(splats.features)

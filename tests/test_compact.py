@@ -4,7 +4,7 @@ import numpy as np
 import warp as wp
 from scene_factory import random_splat_arrays
 
-from nanogs_warp.compact import merged_rows_after, remove_rows, select_rows, with_merged_features
+from nanogs_warp.compact import merged_rows_after, remove_rows, select_rows, with_merged_appearance
 from nanogs_warp.splats import SplatSet
 
 
@@ -62,9 +62,25 @@ def test_merged_features_are_taken_in_merged_rows_only(device, rng):
     fitted = SplatSet.from_numpy(**random_splat_arrays(n, sh_degree=3, seed=12), device=device)
     merged = (rng.random(n) < 0.6).astype(np.int32)
     before = splats.features.numpy().copy()
-    out = with_merged_features(splats, fitted, wp.array(merged, dtype=wp.int32, device=device))
+    out = with_merged_appearance(splats, fitted, wp.array(merged, dtype=wp.int32, device=device))
     expected = np.where(merged[:, None] == 1, fitted.features.numpy(), before)
     np.testing.assert_array_equal(out.features.numpy(), expected)
     np.testing.assert_array_equal(splats.features.numpy(), before)  # a new array: the input unchanged
     for key in ("means", "rotations", "log_scales", "opacities"):  # the same arrays: nothing else is copied
+        assert getattr(out, key) is getattr(splats, key)
+
+
+def test_with_opacities_the_merged_rows_opacities_are_taken_too(device, rng):
+    """``opacities=True``: the merged rows' opacities are ``fitted``'s as well, every other row's the
+    input's, into a new array (the input unchanged)."""
+    n = 300
+    splats = SplatSet.from_numpy(**random_splat_arrays(n, sh_degree=1, seed=13), device=device)
+    fitted = SplatSet.from_numpy(**random_splat_arrays(n, sh_degree=1, seed=14), device=device)
+    merged = (rng.random(n) < 0.6).astype(np.int32)
+    before = splats.opacities.numpy().copy()
+    out = with_merged_appearance(splats, fitted, wp.array(merged, dtype=wp.int32, device=device), opacities=True)
+    np.testing.assert_array_equal(out.opacities.numpy(), np.where(merged == 1, fitted.opacities.numpy(), before))
+    np.testing.assert_array_equal(out.features.numpy(), np.where(merged[:, None] == 1, fitted.features.numpy(), splats.features.numpy()))
+    np.testing.assert_array_equal(splats.opacities.numpy(), before)
+    for key in ("means", "rotations", "log_scales"):
         assert getattr(out, key) is getattr(splats, key)

@@ -29,7 +29,7 @@ import dataclasses
 
 import warp as wp
 
-from ..compact import with_merged_features
+from ..compact import with_merged_appearance
 from ..splats import SplatSet
 from .config import RefineConfig
 from .geometry_fit import STEPS, geometry_config
@@ -61,4 +61,4 @@ def fitted_colours(splats: SplatSet, merged: wp.array, reference: SplatSet, view
                                         training_loss=False)  # fmt: skip
     if report.kept_step == 0:
         return None
-    return with_merged_features(splats, fitted, merged, opacities)
+    return with_merged_appearance(splats, fitted, merged, opacities)
