@@ -17,6 +17,9 @@ and as the zero-padded Gaussian correlation is its own transpose,
 
     dL/dX = G*(dL/dmx) + 2 X G*(dL/dG*X^2) + Y G*(dL/dG*XY) + l1_weight sign(X - Y).
 
+The target's terms, my and G*Y^2, do not change while it is trained toward: they are blurred once
+per target view (``target_inputs``, then ``blur``), and each loss reads them.
+
 Several views at once: X is (V, H, W, 3), Y a stack of targets, and view v compares X[v] with
 target ``views[v].target``, both of its own size ``views[v].width`` x ``views[v].height`` in the
 top-left corner (H, W at least every view's). Every kernel is one thread per pixel of the stack
@@ -37,8 +40,8 @@ SSIM_C1 = wp.constant(0.0001)
 SSIM_C2 = wp.constant(0.0009)
 RADIUS = wp.constant(5)
 
-vec15 = wp.types.vector(length=15, dtype=wp.float32)  # X, Y, X^2, Y^2, XY for 3 channels
-vec9 = wp.types.vector(length=9, dtype=wp.float32)  # dL/d(mx, G*X^2, G*XY) for 3 channels
+vec6 = wp.types.vector(length=6, dtype=wp.float32)  # a target's Y, Y^2 for 3 channels
+vec9 = wp.types.vector(length=9, dtype=wp.float32)  # X, X^2, XY; or dL/d(mx, G*X^2, G*XY); for 3 channels
 
 
 @wp.struct
@@ -62,28 +65,80 @@ def view_pixel(tid: int, height: int, width: int):
 
 
 @wp.kernel
+def target_inputs(
+    first: int,
+    y: wp.array4d(dtype=float),
+    views: wp.array(dtype=LossView),
+    stack: wp.array3d(dtype=vec6),
+):
+    """stack[v, py, px] = (Y, Y^2) of target ``views[v].target``, each for channels 0..2 (6 values)."""
+    view, py, px = view_pixel(first + wp.tid(), stack.shape[1], stack.shape[2])
+    lv = views[view]
+    if px >= lv.width or py >= lv.height:
+        return
+    v = vec6()
+    for ch in range(3):
+        b = y[lv.target, py, px, ch]
+        v[ch] = b
+        v[3 + ch] = b * b
+    stack[view, py, px] = v
+
+
+@wp.kernel
 def ssim_inputs(
     first: int,
     x: wp.array4d(dtype=float),
     y: wp.array4d(dtype=float),
     views: wp.array(dtype=LossView),
-    stack: wp.array3d(dtype=vec15),
+    stack: wp.array3d(dtype=vec9),
 ):
-    """stack[v, py, px] = (X, Y, X^2, Y^2, XY), each for channels 0..2 (15 values)."""
+    """stack[v, py, px] = (X, X^2, XY), each for channels 0..2 (9 values)."""
     view, py, px = view_pixel(first + wp.tid(), x.shape[1], x.shape[2])
     lv = views[view]
     if px >= lv.width or py >= lv.height:
         return
-    v = vec15()
+    v = vec9()
     for ch in range(3):
         a = x[view, py, px, ch]
-        b = y[lv.target, py, px, ch]
         v[ch] = a
-        v[3 + ch] = b
-        v[6 + ch] = a * a
-        v[9 + ch] = b * b
-        v[12 + ch] = a * b
+        v[3 + ch] = a * a
+        v[6 + ch] = a * y[lv.target, py, px, ch]
     stack[view, py, px] = v
+
+
+RUN = wp.constant(4)  # pixels a blur thread computes, side by side along its axis (they share their loads)
+
+
+def blur_threads(views: int, height: int, width: int, vertical: int) -> int:
+    """The threads ``blur`` runs over a (views, height, width) stack: one a RUN of pixels along the axis."""
+    if vertical:
+        return views * ((height + RUN - 1) // RUN) * width
+    return views * height * ((width + RUN - 1) // RUN)
+
+
+@wp.func
+def tap_sum(
+    source: wp.array3d(dtype=Any),
+    taps: wp.array(dtype=float),
+    view: int,
+    py: int,
+    px: int,
+    vertical: int,
+    position: int,
+    length: int,
+):
+    """The blur at one pixel, ``position`` along an axis of ``length`` pixels: the centre tap, then the
+    other taps that land inside, in order."""
+    acc = taps[RADIUS] * source[view, py, px]
+    lo = wp.max(0, RADIUS - position)
+    hi = wp.min(2 * RADIUS, length - 1 - position + RADIUS)
+    for j in range(lo, hi + 1):
+        if j != RADIUS:
+            if vertical != 0:
+                acc += taps[j] * source[view, py + j - RADIUS, px]
+            else:
+                acc += taps[j] * source[view, py, px + j - RADIUS]
+    return acc
 
 
 @wp.kernel
@@ -96,41 +151,76 @@ def blur(
     target: wp.array3d(dtype=Any),
 ):
     """target[v, py, px] = sum_j taps[j] source[v, py, px + j - 5] (vertically: py + j - 5); zero
-    outside view v's own size. The centre tap first, then the others in order: away from the edges
-    an unrolled loop, near them a loop over the taps that land inside the view (the same sums in the
-    same order)."""
-    view, py, px = view_pixel(first + wp.tid(), source.shape[1], source.shape[2])
+    outside view v's own size. The centre tap first, then the others in order (``tap_sum``). A thread
+    computes RUN pixels side by side along the axis (``blur_threads``: view-major, then row-major
+    over the runs); a run whose every tap lands inside the view shares its loads in an unrolled loop
+    (the same sums in the same order), at 2x the speed of a thread a pixel on the CPU."""
+    t = first + wp.tid()
+    rows = source.shape[1]
+    columns = (source.shape[2] + RUN - 1) / RUN
+    if vertical != 0:
+        rows = (source.shape[1] + RUN - 1) / RUN
+        columns = source.shape[2]
+    view = t / (rows * columns)
+    rest = t - view * (rows * columns)
+    row = rest / columns
+    column = rest - row * columns
     lv = views[view]
-    if px >= lv.width or py >= lv.height:
-        return
-    position = px
+    py = row
+    px = column * RUN
+    start = px
     length = lv.width
     if vertical != 0:
-        position = py
+        py = row * RUN
+        px = column
+        start = py
         length = lv.height
-    acc = taps[RADIUS] * source[view, py, px]
-    if position >= RADIUS and position + RADIUS < length:  # every tap inside the view
-        if vertical != 0:
-            for j in range(wp.static(2 * RADIUS + 1)):
-                if wp.static(j != RADIUS):
-                    acc += taps[j] * source[view, py + j - RADIUS, px]
-        else:
-            for j in range(wp.static(2 * RADIUS + 1)):
-                if wp.static(j != RADIUS):
-                    acc += taps[j] * source[view, py, px + j - RADIUS]
-    else:
-        lo = wp.max(0, RADIUS - position)  # taps that land inside the view
-        hi = wp.min(2 * RADIUS, length - 1 - position + RADIUS)
-        for j in range(lo, hi + 1):
-            if j != RADIUS:
+    if py >= lv.height or px >= lv.width:
+        return
+    if start < RADIUS or start + RUN - 1 + RADIUS >= length:  # near an edge: pixel by pixel
+        for i in range(RUN):
+            if start + i < length:
                 if vertical != 0:
-                    acc += taps[j] * source[view, py + j - RADIUS, px]
+                    target[view, py + i, px] = tap_sum(source, taps, view, py + i, px, vertical, start + i, length)
                 else:
-                    acc += taps[j] * source[view, py, px + j - RADIUS]
-    target[view, py, px] = acc
+                    target[view, py, px + i] = tap_sum(source, taps, view, py, px + i, vertical, start + i, length)
+        return
+    centre = taps[RADIUS]
+    if vertical != 0:
+        a0 = centre * source[view, py, px]
+        a1 = centre * source[view, py + 1, px]
+        a2 = centre * source[view, py + 2, px]
+        a3 = centre * source[view, py + 3, px]
+        for j in range(wp.static(2 * RADIUS + 1)):
+            if wp.static(j != RADIUS):
+                tap = taps[j]
+                a0 += tap * source[view, py + j - RADIUS, px]
+                a1 += tap * source[view, py + 1 + j - RADIUS, px]
+                a2 += tap * source[view, py + 2 + j - RADIUS, px]
+                a3 += tap * source[view, py + 3 + j - RADIUS, px]
+        target[view, py, px] = a0
+        target[view, py + 1, px] = a1
+        target[view, py + 2, px] = a2
+        target[view, py + 3, px] = a3
+    else:
+        a0 = centre * source[view, py, px]
+        a1 = centre * source[view, py, px + 1]
+        a2 = centre * source[view, py, px + 2]
+        a3 = centre * source[view, py, px + 3]
+        for j in range(wp.static(2 * RADIUS + 1)):
+            if wp.static(j != RADIUS):
+                tap = taps[j]
+                a0 += tap * source[view, py, px + j - RADIUS]
+                a1 += tap * source[view, py, px + 1 + j - RADIUS]
+                a2 += tap * source[view, py, px + 2 + j - RADIUS]
+                a3 += tap * source[view, py, px + 3 + j - RADIUS]
+        target[view, py, px] = a0
+        target[view, py, px + 1] = a1
+        target[view, py, px + 2] = a2
+        target[view, py, px + 3] = a3
 
 
-wp.overload(blur, {"source": wp.array3d(dtype=vec15), "target": wp.array3d(dtype=vec15)})
+wp.overload(blur, {"source": wp.array3d(dtype=vec6), "target": wp.array3d(dtype=vec6)})
 wp.overload(blur, {"source": wp.array3d(dtype=vec9), "target": wp.array3d(dtype=vec9)})
 
 
@@ -140,12 +230,14 @@ def ssim_terms(
     x: wp.array4d(dtype=float),
     y: wp.array4d(dtype=float),
     views: wp.array(dtype=LossView),
-    moments: wp.array3d(dtype=vec15),
+    moments: wp.array3d(dtype=vec9),
+    target_moments: wp.array3d(dtype=vec6),
     loss: wp.array3d(dtype=float),
     partials: wp.array3d(dtype=vec9),
 ):
     """Per pixel: its loss terms (summed over channels, 0 outside its view) and dL/d(mx, G*X^2, G*XY)
-    per channel, with its view's weights."""
+    per channel, with its view's weights. ``moments``: the view's G*(X, X^2, XY); ``target_moments``:
+    each target's G*(Y, Y^2), read at ``views[v].target``."""
     view, py, px = view_pixel(first + wp.tid(), x.shape[1], x.shape[2])
     lv = views[view]
     if px >= lv.width or py >= lv.height:
@@ -155,13 +247,14 @@ def ssim_terms(
     ssim_weight = lv.ssim_weight
     total = float(0.0)
     mo = moments[view, py, px]
+    tm = target_moments[lv.target, py, px]
     out = vec9()
     for ch in range(3):
         mx = mo[ch]
-        my = mo[3 + ch]
-        sxx = mo[6 + ch] - mx * mx
-        syy = mo[9 + ch] - my * my
-        sxy = mo[12 + ch] - mx * my
+        my = tm[ch]
+        sxx = mo[3 + ch] - mx * mx
+        syy = tm[3 + ch] - my * my
+        sxy = mo[6 + ch] - mx * my
         a1 = 2.0 * mx * my + SSIM_C1
         a2 = 2.0 * sxy + SSIM_C2
         b1 = mx * mx + my * my + SSIM_C1

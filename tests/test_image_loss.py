@@ -7,7 +7,7 @@ import pytest
 import reference_refine as ref
 import warp as wp
 
-from nanogs_warp.refinement.image_loss import ImageLoss, loss_view
+from nanogs_warp.refinement.image_loss import ImageLoss, loss_view, target_views
 
 
 @pytest.mark.parametrize("shape", [(16, 13), (23, 12)])
@@ -49,26 +49,33 @@ def test_identical_images_have_zero_loss(device, rng):
     assert np.abs(grad.numpy()).max() <= 1e-6
 
 
-@pytest.mark.parametrize("channels", [15, 9])
-def test_blur_sums_in_its_documented_order(device, rng, channels):
+@pytest.mark.parametrize("channels", [6, 9])
+@pytest.mark.parametrize("margin", [(0, 0), (3, 6)])
+def test_blur_sums_in_its_documented_order(device, rng, channels, margin):
     """The separable blur, both directions, bit for bit against float32 numpy summing in the kernel's
-    order: the centre tap, then the other taps that land inside the image, left to right. Away from
-    the edges the kernel runs an unrolled loop, near them a bounded one; both must give these bits
-    (the outputs' bytes, and CPU = CUDA, rest on the order)."""
+    order: the centre tap, then the other taps that land inside the view, left to right. A thread
+    computes RUN pixels side by side: away from the edges in an unrolled loop that shares their loads,
+    near them pixel by pixel in a bounded one; both must give these bits (the outputs' bytes, and
+    CPU = CUDA, rest on the order). The view (37 x 29: no multiple of RUN) in the corner of a stack
+    ``margin`` larger, NaN beyond it: nothing there is read or written."""
     from nanogs_warp.eval.metrics import gaussian_window
     from nanogs_warp.kernels import image_loss as kernels
 
     h, w = 37, 29
-    vec = kernels.vec15 if channels == 15 else kernels.vec9
+    stack_h, stack_w = h + margin[0], w + margin[1]
+    vec = kernels.vec6 if channels == 6 else kernels.vec9
     source = rng.standard_normal((h, w, channels)).astype(np.float32)
+    padded = np.full((1, stack_h, stack_w, channels), np.nan, np.float32)
+    padded[0, :h, :w] = source
     taps = gaussian_window().astype(np.float32)
     radius = len(taps) // 2
-    src = wp.array(source[None], dtype=vec, device=device)
+    src = wp.array(padded, dtype=vec, device=device)
     taps_wp = wp.array(taps, dtype=wp.float32, device=device)
     views = wp.array([loss_view(0, w, h, 0.2, 1.0)], dtype=kernels.LossView, device=device)
     for vertical in (0, 1):
-        target = wp.full((1, h, w), vec(float("nan")), dtype=vec, device=device)
-        wp.launch(kernels.blur, h * w, inputs=[0, src, taps_wp, vertical, views, target], device=device)
+        target = wp.full((1, stack_h, stack_w), vec(float("nan")), dtype=vec, device=device)
+        threads = kernels.blur_threads(1, stack_h, stack_w, vertical)
+        wp.launch(kernels.blur, threads, inputs=[0, src, taps_wp, vertical, views, target], device=device)
         moved = source if vertical == 0 else source.transpose(1, 0, 2)  # blur along axis 1
         expected = taps[radius] * moved
         for j in range(len(taps)):
@@ -83,7 +90,9 @@ def test_blur_sums_in_its_documented_order(device, rng, channels):
             expected = np.where(inside[None, :, None], expected + term, expected)  # float32, in order
         if vertical:
             expected = expected.transpose(1, 0, 2)
-        assert target.numpy().tobytes() == np.ascontiguousarray(expected, dtype=np.float32).tobytes()
+        got = target.numpy()[0]
+        assert got[:h, :w].tobytes() == np.ascontiguousarray(expected, dtype=np.float32).tobytes()
+        assert np.isnan(got[h:]).all() and np.isnan(got[:, w:]).all()
 
 
 @pytest.mark.parametrize("shape", [(256, 192), (37, 29)])
@@ -123,7 +132,11 @@ def test_views_together_give_each_view_its_own_bits(device, rng):
     loss = ImageLoss(height, width, device, views=len(sizes))
     grads = wp.full(images.shape, float("nan"), dtype=wp.float32, device=device)
     specs = [loss_view(k, w, h, 0.2, 0.25) for k, (h, w) in zip(chosen, sizes)]
-    loss.of_views(wp.array(images, dtype=wp.float32, device=device), wp.array(targets, dtype=wp.float32, device=device), grads,
+    target_sizes = [(5, 7)] * len(targets)  # the unused target's: any
+    for k, (h, w) in zip(chosen, sizes):
+        target_sizes[k] = (w, h)
+    stack = target_views(wp.array(targets, dtype=wp.float32, device=device), target_sizes)
+    loss.of_views(wp.array(images, dtype=wp.float32, device=device), stack, grads,
                   wp.array(specs, dtype=kernels.LossView, device=device))  # fmt: skip
     got, shares = grads.numpy(), loss.loss.numpy()
     for v, (h, w) in enumerate(sizes):
@@ -135,3 +148,25 @@ def test_views_together_give_each_view_its_own_bits(device, rng):
         assert shares[v, :h, :w].tobytes() == alone.loss.numpy()[0].tobytes()
         assert np.isnan(got[v, h:]).all() and np.isnan(got[v, :, w:]).all()
         assert not shares[v, h:].any() and not shares[v, :, w:].any()
+
+
+def test_a_targets_blurred_terms_are_its_own_and_made_once(device, rng):
+    """``target_views``: each target's G*Y and G*Y^2 per channel, zero-padded at its own size (views of
+    different sizes in one stack, NaN beyond each: never read), within float32 rounding of the
+    float64 blur; the images are the stack given, not a copy."""
+    from nanogs_warp.kernels import image_loss as kernels
+
+    sizes = [(12, 23), (13, 16), (17, 11)]  # (width, height)
+    height, width = max(h for _, h in sizes), max(w for w, _ in sizes)
+    images = np.full((len(sizes), height, width, 3), np.nan, np.float32)
+    for k, (w, h) in enumerate(sizes):
+        images[k, :h, :w] = rng.uniform(0.0, 1.0, (h, w, 3))
+    given = wp.array(images, dtype=wp.float32, device=device)
+    targets = target_views(given, sizes)
+    assert targets.images is given
+    assert targets.moments.dtype == kernels.vec6 and targets.moments.shape == (len(sizes), height, width)
+    got = targets.moments.numpy()
+    for k, (w, h) in enumerate(sizes):
+        y = images[k, :h, :w].astype(np.float64)
+        expected = np.concatenate([ref.blur_same(y), ref.blur_same(y * y)], axis=-1)
+        assert np.abs(got[k, :h, :w] - expected).max() <= 1e-6

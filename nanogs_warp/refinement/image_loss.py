@@ -1,8 +1,13 @@
 """The training loss of rendered views against their targets, L1 + ssim_weight (1 - SSIM) averaged
 over each view's pixels and channels, and its gradient, on the images' device
-(``kernels/image_loss.py``): one view at a time, or several rendered together in one set of launches."""
+(``kernels/image_loss.py``): one view at a time, or several rendered together in one set of launches.
+A stack of targets is trained toward for many steps, so its own blurred terms are made once
+(``target_views``) and every loss against it reads them."""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -24,6 +29,39 @@ def loss_view(target: int, width: int, height: int, ssim_weight: float, weight: 
     return view
 
 
+@dataclass
+class Targets:
+    """A stack of target views (T, H, W, 3), view k in the top-left corner of [k], and their blurred
+    terms G*Y and G*Y^2 per channel ((T, H, W) of ``vec6``, each at its own view's size)."""
+
+    images: wp.array
+    moments: wp.array
+
+
+def _blur_taps(device) -> wp.array:
+    return wp.array(gaussian_window().astype(np.float32), dtype=wp.float32, device=device)
+
+
+def target_views(images: wp.array, sizes: Sequence[tuple[int, int]]) -> Targets:
+    """``images`` (T, H, W, 3) with their blurred terms: view k of sizes[k] = (width, height) pixels
+    blurred with zero padding at its own edges, one view at a time (the scratch is one view's)."""
+    device = images.device
+    count, height, width = images.shape[0], images.shape[1], images.shape[2]
+    moments = wp.empty((count, height, width), dtype=kernels.vec6, device=device)
+    stack = wp.empty((1, height, width), dtype=kernels.vec6, device=device)
+    half = wp.empty((1, height, width), dtype=kernels.vec6, device=device)
+    taps = _blur_taps(device)
+    specs = wp.array([loss_view(k, w, h, 0.0, 0.0) for k, (w, h) in enumerate(sizes)], dtype=kernels.LossView, device=device)
+    for k in range(count):
+        view = specs[k : k + 1]
+        launch_rows_from(kernels.target_inputs, height * width, [images, view, stack], device, chunks_per_worker=1,
+                         min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
+        for vertical, image, blurred in ((0, stack, half), (1, half, moments[k : k + 1])):
+            launch_rows_from(kernels.blur, kernels.blur_threads(1, height, width, vertical), [image, taps, vertical, view, blurred],
+                             device, chunks_per_worker=1, min_rows=MIN_PIXELS_TO_SPLIT // kernels.RUN)  # fmt: skip
+    return Targets(images, moments)
+
+
 class ImageLoss:
     """Scratch buffers for ``views`` views of at most ``height`` x ``width`` pixels, reused across calls."""
 
@@ -31,12 +69,11 @@ class ImageLoss:
         self.device = wp.get_device(device)
         self.height, self.width, self.views = height, width, views
         d, shape = self.device, (views, height, width)
-        self.taps = wp.array(gaussian_window().astype(np.float32), dtype=wp.float32, device=d)
-        self.stack = wp.empty(shape, dtype=kernels.vec15, device=d)
-        self.half = wp.empty(shape, dtype=kernels.vec15, device=d)
-        self.moments = wp.empty(shape, dtype=kernels.vec15, device=d)
+        self.taps = _blur_taps(d)
+        self.stack = wp.empty(shape, dtype=kernels.vec9, device=d)
+        self.half = wp.empty(shape, dtype=kernels.vec9, device=d)
+        self.moments = wp.empty(shape, dtype=kernels.vec9, device=d)
         self.partials = wp.empty(shape, dtype=kernels.vec9, device=d)
-        self.half9 = wp.empty(shape, dtype=kernels.vec9, device=d)
         self.blurred = wp.empty(shape, dtype=kernels.vec9, device=d)
         self.loss = wp.empty(shape, dtype=wp.float32, device=d)
         wp.load_module(kernels, device=d)
@@ -48,26 +85,30 @@ class ImageLoss:
                          min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
 
     def _blur(self, source, half, target, views) -> None:
-        self._pixels(kernels.blur, [source, self.taps, 0, views, half])
-        self._pixels(kernels.blur, [half, self.taps, 1, views, target])
+        for vertical, image, blurred in ((0, source, half), (1, half, target)):
+            launch_rows_from(kernels.blur, kernels.blur_threads(self.views, self.height, self.width, vertical),
+                             [image, self.taps, vertical, views, blurred], self.device, chunks_per_worker=1,
+                             min_rows=MIN_PIXELS_TO_SPLIT // kernels.RUN)  # fmt: skip
 
-    def of_views(self, images: wp.array, targets: wp.array, grads: wp.array, views: wp.array) -> None:
+    def of_views(self, images: wp.array, targets: Targets, grads: wp.array, views: wp.array) -> None:
         """For each view v of ``images`` (V, H, W, 3) and its ``views[v]`` (``loss_view``: its target
-        in ``targets`` (T, H', W', 3), its size and weights): writes d(its share of L)/dimage into
-        grads[v] and each pixel's share into ``self.loss``. A view's pixels beyond its own size are
-        neither read nor written (their loss is 0)."""
-        self._pixels(kernels.ssim_inputs, [images, targets, views, self.stack])
+        in ``targets`` (``target_views``, (T, H', W', 3), made at the sizes the views give), its size
+        and weights): writes d(its share of L)/dimage into grads[v] and each pixel's share into
+        ``self.loss``. A view's pixels beyond its own size are neither read nor written (their loss is 0)."""
+        target = targets.images
+        self._pixels(kernels.ssim_inputs, [images, target, views, self.stack])
         self._blur(self.stack, self.half, self.moments, views)
-        self._pixels(kernels.ssim_terms, [images, targets, views, self.moments, self.loss, self.partials])
-        self._blur(self.partials, self.half9, self.blurred, views)
-        self._pixels(kernels.loss_gradient, [images, targets, views, self.blurred, grads])
+        self._pixels(kernels.ssim_terms, [images, target, views, self.moments, targets.moments, self.loss, self.partials])
+        self._blur(self.partials, self.half, self.blurred, views)
+        self._pixels(kernels.loss_gradient, [images, target, views, self.blurred, grads])
 
     def __call__(self, image: wp.array, target: wp.array, grad: wp.array, ssim_weight: float, weight: float = 1.0) -> None:
         """One view: writes d(weight L)/dimage into ``grad`` and each pixel's share of weight L into
         ``self.loss``; all three images (H, W, 3). L = mean |image - target| + ssim_weight (1 - mean SSIM)."""
         h, w = self.height, self.width
         views = wp.array([loss_view(0, w, h, ssim_weight, weight)], dtype=kernels.LossView, device=self.device)
-        self.of_views(image.reshape((1, h, w, 3)), target.reshape((1, h, w, 3)), grad.reshape((1, h, w, 3)), views)
+        targets = target_views(target.reshape((1, h, w, 3)), [(w, h)])
+        self.of_views(image.reshape((1, h, w, 3)), targets, grad.reshape((1, h, w, 3)), views)
 
     def value(self) -> float:
         """The loss of the last call (a host read: the sum of the per-pixel shares, in float64)."""

@@ -32,7 +32,7 @@ from ..parallel import launch_rows_from
 from ..splats import SplatSet
 from .cameras import VALIDATION_STREAM, sampled_means, scene_spread, training_cameras
 from .config import RefineConfig
-from .image_loss import MIN_PIXELS_TO_SPLIT, ImageLoss, loss_view
+from .image_loss import MIN_PIXELS_TO_SPLIT, ImageLoss, Targets, loss_view, target_views
 from .render_grad import GradRasteriser, SplatGradients, camera_array
 
 LOSS_VIEWS = 8  # pool views on which the training loss before and after is measured
@@ -40,10 +40,11 @@ VALIDATION_VIEWS = 8  # held-out views (never trained on) that choose which chec
 CHECKPOINTS = (0.25, 0.5, 0.75, 1.0)  # fractions of the run at which the held-out loss is measured
 # Memory a refinement takes on its device, measured on the CPU (the bundled sample, --refine-size 512
 # and 1024): about 930 bytes a pixel of a training view for a step's renders, gradients and SSIM maps
-# (times the views a step renders together), and 12 (RGB float32) a pixel for every reference view
-# kept. 4096-pixel views at the default 128 reference views need about 44 GB.
+# (times the views a step renders together), and 36 a pixel for every reference view kept: its
+# RGB and its blurred terms, G*Y and G*Y^2 (``image_loss.target_views``), in float32. 4096-pixel
+# views at the default 128 reference views need about 103 GB.
 STEP_BYTES_PER_PIXEL = 1000
-VIEW_BYTES_PER_PIXEL = 12
+VIEW_BYTES_PER_PIXEL = 36
 
 
 def check_memory(config: RefineConfig, pool: int, device) -> None:
@@ -127,16 +128,17 @@ def _copy(splats: SplatSet, device) -> SplatSet:
     return splats.clone(device)
 
 
-def _render_views(reference: SplatSet, cameras, device) -> wp.array:
+def _render_views(reference: SplatSet, cameras, device) -> Targets:
     """``reference`` rendered from each camera on a black background into one stack (V, H, W, 3), H
-    and W the largest views': view k in the top-left corner of [k] (zeros beyond its size)."""
+    and W the largest views': view k in the top-left corner of [k] (zeros beyond its size); with its
+    blurred terms (``target_views``)."""
     rasteriser = _Rasteriser(reference)
     black = wp.vec3(0.0, 0.0, 0.0)
     height, width = max(c.height for c in cameras), max(c.width for c in cameras)
     stack = wp.zeros((len(cameras), height, width, 3), dtype=wp.float32, device=device)
     for k, camera in enumerate(cameras):
         rasteriser.render_into(camera, black, stack, k)
-    return stack
+    return target_views(stack, [(c.width, c.height) for c in cameras])
 
 
 class ReferenceViews:
@@ -155,10 +157,10 @@ class ReferenceViews:
         check_memory(config, view_pool(config), self.device)
         self.cameras: list | None = None  # None until rendered
         self.scale, self.offset, self.reference, self.extent = 1.0, None, reference, 1.0
-        self.targets: wp.array | None = None  # the training views' stack (``_render_views``)
+        self.targets: Targets | None = None  # the training views' stack (``_render_views``)
         self.held_out: list = []
-        self.held_out_targets: wp.array | None = None
-        self._halved: tuple[list, wp.array] | None = None
+        self.held_out_targets: Targets | None = None
+        self._halved: tuple[list, Targets] | None = None
 
     def serves(self, reference: SplatSet, config: RefineConfig, device) -> bool:
         """Whether these are the views a refinement of ``config`` toward ``reference`` on ``device``
@@ -166,7 +168,7 @@ class ReferenceViews:
         same_views = view_pool(config) == view_pool(self.config) and (config.size, config.seed) == (self.config.size, self.config.seed)
         return reference is self.source and same_views and wp.get_device(device) == self.device
 
-    def halved(self) -> tuple[list, wp.array]:
+    def halved(self) -> tuple[list, Targets]:
         """The training views at half their size (rendered first where they were not): each camera
         with half the focal lengths, principal point and pixels, and each target its 2x2 pixel blocks
         averaged (pixel i covers [i, i + 1) of the image plane: a block's centre is the half-size
@@ -175,13 +177,14 @@ class ReferenceViews:
         if self._halved is None:
             cameras = [dataclasses.replace(c, fx=0.5 * c.fx, fy=0.5 * c.fy, cx=0.5 * c.cx, cy=0.5 * c.cy,
                                            width=c.width // 2, height=c.height // 2) for c in self.cameras]  # fmt: skip
-            _, height, width, _ = self.targets.shape
+            full = self.targets.images
+            _, height, width, _ = full.shape
             targets = wp.zeros((len(cameras), height // 2, width // 2, 3), dtype=wp.float32, device=self.device)
             for k, c in enumerate(cameras):
                 launch_rows_from(image_kernels.halved, c.height * c.width,
-                                 [self.targets[k][: 2 * c.height, : 2 * c.width], targets[k][: c.height, : c.width]], self.device,
+                                 [full[k][: 2 * c.height, : 2 * c.width], targets[k][: c.height, : c.width]], self.device,
                                  chunks_per_worker=1, min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
-            self._halved = (cameras, targets)
+            self._halved = (cameras, target_views(targets, [(c.width, c.height) for c in cameras]))
         return self._halved
 
     def render(self) -> float:
@@ -264,7 +267,7 @@ class _Refiner:
         """``loss_view`` of view v against targets[chosen[v]], each weighted ``weight``."""
         return [loss_view(k, c.width, c.height, self.config.ssim_weight, weight) for k, c in zip(chosen, cameras)]
 
-    def views_loss(self, cameras, chosen: list[int], targets: wp.array, weight: float, params: wp.array | None = None,
+    def views_loss(self, cameras, chosen: list[int], targets: Targets, weight: float, params: wp.array | None = None,
                    specs: wp.array | None = None, step: bool = False) -> tuple[wp.array, wp.array, ImageLoss]:  # fmt: skip
         """Renders ``cameras`` together and compares view v with targets[chosen[v]], each weighted
         ``weight``; returns the image, dL/dimage and the loss (``backward`` then adds weight
@@ -279,8 +282,8 @@ class _Refiner:
         loss.of_views(image, targets, grad_image, specs)
         return image, grad_image, loss
 
-    def mean_loss(self, cameras, targets: wp.array) -> float:
-        """The mean loss of ``cameras`` against the first of ``targets`` (a stack), one view at a time."""
+    def mean_loss(self, cameras, targets: Targets) -> float:
+        """The mean loss of ``cameras`` against the first of ``targets``, one view at a time."""
         return float(np.mean([self.views_loss([c], [k], targets, 1.0)[2].value() for k, c in enumerate(cameras)]))
 
     def adam(self, step: int) -> None:
@@ -345,7 +348,7 @@ def refine_with_report(
     report.views = pool
     loss_views = min(LOSS_VIEWS, pool) if training_loss else 0
     if loss_views:
-        report.loss_before = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
+        report.loss_before = refiner.mean_loss(cameras[:loss_views], targets)
     # The held-out views: the run returns the checkpoint (or the input) that renders them best,
     # so a run that overfits its training views never hands back a scene worse than it started.
     held_out, held_out_targets = views.held_out, views.held_out_targets
@@ -353,7 +356,7 @@ def refine_with_report(
     best = _copy(refiner.splats, device)
     checkpoints = {max(1, round(f * config.steps)) for f in checkpoints}
 
-    coarse_cameras, coarse_targets = views.halved() if config.coarse_steps > 0 else ([], [])
+    coarse_cameras, coarse_targets = views.halved() if config.coarse_steps > 0 else ([], None)
     weight = 1.0 / config.views_per_step
     # Every step's views, drawn before the first: their cameras and loss weights go to the device
     # in one copy each, not one a step (each copy waits for the device)
@@ -403,7 +406,7 @@ def refine_with_report(
         for target, source in zip(refiner.splats.arrays(), best.arrays()):
             wp.copy(target, source)
     if loss_views:
-        report.loss_after = refiner.mean_loss(cameras[:loss_views], targets[:loss_views])
+        report.loss_after = refiner.mean_loss(cameras[:loss_views], targets)
     out = rescaled(best, 1.0 / views.scale, None if views.offset is None else -views.offset * views.scale)
     wp.synchronize_device(device)
     report.seconds = time.perf_counter() - started
