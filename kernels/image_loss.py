@@ -22,10 +22,12 @@ per target view (``target_inputs``, then ``blur``), and each loss reads them.
 
 Several views at once: X is (V, H, W, 3), Y a stack of targets, and view v compares X[v] with
 target ``views[v].target``, both of its own size ``views[v].width`` x ``views[v].height`` in the
-top-left corner (H, W at least every view's). Every kernel is one thread per pixel of the stack
-(``first`` + tid, view-major, then row-major) writing only its own pixel; a pixel outside its view's
-size is left alone, and the blur reads none (its zero padding is at the view's own edges), so each
-view's loss and gradient are the bits of that view computed alone.
+top-left corner (H, W at least every view's). A loss is four passes of the separable blur, each
+thread RUN pixels side by side along the pass's axis (``blur_threads``; view-major, then row-major),
+the second and fourth also making what the pixel's blurred values give (its SSIM terms, dL/dX), each
+writing only its own pixels; a pixel outside its view's size is left alone, and the blur reads none
+(its zero padding is at the view's own edges), so each view's loss and gradient are the bits of
+that view computed alone.
 """
 
 from typing import Any
@@ -84,36 +86,39 @@ def target_inputs(
     stack[view, py, px] = v
 
 
-@wp.kernel
-def ssim_inputs(
-    first: int,
-    x: wp.array4d(dtype=float),
-    y: wp.array4d(dtype=float),
-    views: wp.array(dtype=LossView),
-    stack: wp.array3d(dtype=vec9),
-):
-    """stack[v, py, px] = (X, X^2, XY), each for channels 0..2 (9 values)."""
-    view, py, px = view_pixel(first + wp.tid(), x.shape[1], x.shape[2])
-    lv = views[view]
-    if px >= lv.width or py >= lv.height:
-        return
-    v = vec9()
-    for ch in range(3):
-        a = x[view, py, px, ch]
-        v[ch] = a
-        v[3 + ch] = a * a
-        v[6 + ch] = a * y[lv.target, py, px, ch]
-    stack[view, py, px] = v
-
-
 RUN = wp.constant(4)  # pixels a blur thread computes, side by side along its axis (they share their loads)
 
 
 def blur_threads(views: int, height: int, width: int, vertical: int) -> int:
-    """The threads ``blur`` runs over a (views, height, width) stack: one a RUN of pixels along the axis."""
+    """The threads a blur pass runs over a (views, height, width) stack: one a RUN of pixels along its
+    axis (``blur``, ``blurred_inputs``, ``ssim_terms``, ``loss_gradient``)."""
     if vertical:
         return views * ((height + RUN - 1) // RUN) * width
     return views * height * ((width + RUN - 1) // RUN)
+
+
+@wp.func
+def run_at(tid: int, height: int, width: int, vertical: int):
+    """(view, row, column) of the first pixel of thread ``tid``'s run (``blur_threads``: view-major,
+    then row-major over the runs)."""
+    rows = height
+    columns = (width + RUN - 1) / RUN
+    if vertical != 0:
+        rows = (height + RUN - 1) / RUN
+        columns = width
+    view = tid / (rows * columns)
+    rest = tid - view * (rows * columns)
+    row = rest / columns
+    column = rest - row * columns
+    if vertical != 0:
+        return view, row * RUN, column
+    return view, row, column * RUN
+
+
+@wp.func
+def inside_run(start: int, length: int) -> bool:
+    """Whether every tap of the RUN pixels from ``start`` on lands inside an axis of ``length`` pixels."""
+    return start >= RADIUS and start + RUN - 1 + RADIUS < length
 
 
 @wp.func
@@ -141,6 +146,42 @@ def tap_sum(
     return acc
 
 
+@wp.func
+def column_sums(source: wp.array3d(dtype=Any), taps: wp.array(dtype=float), view: int, py: int, px: int):
+    """``tap_sum`` down the column at rows py .. py + 3 (``inside_run``), their loads shared."""
+    centre = taps[RADIUS]
+    a0 = centre * source[view, py, px]
+    a1 = centre * source[view, py + 1, px]
+    a2 = centre * source[view, py + 2, px]
+    a3 = centre * source[view, py + 3, px]
+    for j in range(wp.static(2 * RADIUS + 1)):
+        if wp.static(j != RADIUS):
+            tap = taps[j]
+            a0 += tap * source[view, py + j - RADIUS, px]
+            a1 += tap * source[view, py + 1 + j - RADIUS, px]
+            a2 += tap * source[view, py + 2 + j - RADIUS, px]
+            a3 += tap * source[view, py + 3 + j - RADIUS, px]
+    return a0, a1, a2, a3
+
+
+@wp.func
+def row_sums(source: wp.array3d(dtype=Any), taps: wp.array(dtype=float), view: int, py: int, px: int):
+    """``tap_sum`` along the row at columns px .. px + 3 (``inside_run``), their loads shared."""
+    centre = taps[RADIUS]
+    a0 = centre * source[view, py, px]
+    a1 = centre * source[view, py, px + 1]
+    a2 = centre * source[view, py, px + 2]
+    a3 = centre * source[view, py, px + 3]
+    for j in range(wp.static(2 * RADIUS + 1)):
+        if wp.static(j != RADIUS):
+            tap = taps[j]
+            a0 += tap * source[view, py, px + j - RADIUS]
+            a1 += tap * source[view, py, px + 1 + j - RADIUS]
+            a2 += tap * source[view, py, px + 2 + j - RADIUS]
+            a3 += tap * source[view, py, px + 3 + j - RADIUS]
+    return a0, a1, a2, a3
+
+
 @wp.kernel
 def blur(
     first: int,
@@ -152,101 +193,117 @@ def blur(
 ):
     """target[v, py, px] = sum_j taps[j] source[v, py, px + j - 5] (vertically: py + j - 5); zero
     outside view v's own size. The centre tap first, then the others in order (``tap_sum``). A thread
-    computes RUN pixels side by side along the axis (``blur_threads``: view-major, then row-major
-    over the runs); a run whose every tap lands inside the view shares its loads in an unrolled loop
-    (the same sums in the same order), at 2x the speed of a thread a pixel on the CPU."""
-    t = first + wp.tid()
-    rows = source.shape[1]
-    columns = (source.shape[2] + RUN - 1) / RUN
-    if vertical != 0:
-        rows = (source.shape[1] + RUN - 1) / RUN
-        columns = source.shape[2]
-    view = t / (rows * columns)
-    rest = t - view * (rows * columns)
-    row = rest / columns
-    column = rest - row * columns
+    computes RUN pixels side by side along the axis (``blur_threads``); a run whose every tap lands
+    inside the view shares its loads (``row_sums``, ``column_sums``: the same sums in the same order),
+    at twice the speed of a thread a pixel on the CPU."""
+    view, py, px = run_at(first + wp.tid(), source.shape[1], source.shape[2], vertical)
     lv = views[view]
-    py = row
-    px = column * RUN
-    start = px
-    length = lv.width
-    if vertical != 0:
-        py = row * RUN
-        px = column
-        start = py
-        length = lv.height
     if py >= lv.height or px >= lv.width:
         return
-    if start < RADIUS or start + RUN - 1 + RADIUS >= length:  # near an edge: pixel by pixel
-        for i in range(RUN):
-            if start + i < length:
-                if vertical != 0:
-                    target[view, py + i, px] = tap_sum(source, taps, view, py + i, px, vertical, start + i, length)
-                else:
-                    target[view, py, px + i] = tap_sum(source, taps, view, py, px + i, vertical, start + i, length)
-        return
-    centre = taps[RADIUS]
     if vertical != 0:
-        a0 = centre * source[view, py, px]
-        a1 = centre * source[view, py + 1, px]
-        a2 = centre * source[view, py + 2, px]
-        a3 = centre * source[view, py + 3, px]
-        for j in range(wp.static(2 * RADIUS + 1)):
-            if wp.static(j != RADIUS):
-                tap = taps[j]
-                a0 += tap * source[view, py + j - RADIUS, px]
-                a1 += tap * source[view, py + 1 + j - RADIUS, px]
-                a2 += tap * source[view, py + 2 + j - RADIUS, px]
-                a3 += tap * source[view, py + 3 + j - RADIUS, px]
-        target[view, py, px] = a0
-        target[view, py + 1, px] = a1
-        target[view, py + 2, px] = a2
-        target[view, py + 3, px] = a3
+        if inside_run(py, lv.height):
+            a0, a1, a2, a3 = column_sums(source, taps, view, py, px)
+            target[view, py, px] = a0
+            target[view, py + 1, px] = a1
+            target[view, py + 2, px] = a2
+            target[view, py + 3, px] = a3
+        else:
+            for i in range(RUN):
+                if py + i < lv.height:
+                    target[view, py + i, px] = tap_sum(source, taps, view, py + i, px, 1, py + i, lv.height)
     else:
-        a0 = centre * source[view, py, px]
-        a1 = centre * source[view, py, px + 1]
-        a2 = centre * source[view, py, px + 2]
-        a3 = centre * source[view, py, px + 3]
-        for j in range(wp.static(2 * RADIUS + 1)):
-            if wp.static(j != RADIUS):
-                tap = taps[j]
-                a0 += tap * source[view, py, px + j - RADIUS]
-                a1 += tap * source[view, py, px + 1 + j - RADIUS]
-                a2 += tap * source[view, py, px + 2 + j - RADIUS]
-                a3 += tap * source[view, py, px + 3 + j - RADIUS]
-        target[view, py, px] = a0
-        target[view, py, px + 1] = a1
-        target[view, py, px + 2] = a2
-        target[view, py, px + 3] = a3
+        if inside_run(px, lv.width):
+            a0, a1, a2, a3 = row_sums(source, taps, view, py, px)
+            target[view, py, px] = a0
+            target[view, py, px + 1] = a1
+            target[view, py, px + 2] = a2
+            target[view, py, px + 3] = a3
+        else:
+            for i in range(RUN):
+                if px + i < lv.width:
+                    target[view, py, px + i] = tap_sum(source, taps, view, py, px + i, 0, px + i, lv.width)
 
 
 wp.overload(blur, {"source": wp.array3d(dtype=vec6), "target": wp.array3d(dtype=vec6)})
 wp.overload(blur, {"source": wp.array3d(dtype=vec9), "target": wp.array3d(dtype=vec9)})
 
 
+@wp.func
+def inputs_at(x: wp.array4d(dtype=float), y: wp.array4d(dtype=float), view: int, target: int, py: int, px: int):
+    """(X, X^2, XY) at a pixel, each for channels 0..2 (9 values)."""
+    v = vec9()
+    for ch in range(3):
+        a = x[view, py, px, ch]
+        v[ch] = a
+        v[3 + ch] = a * a
+        v[6 + ch] = a * y[target, py, px, ch]
+    return v
+
+
 @wp.kernel
-def ssim_terms(
+def blurred_inputs(
     first: int,
     x: wp.array4d(dtype=float),
     y: wp.array4d(dtype=float),
+    taps: wp.array(dtype=float),
     views: wp.array(dtype=LossView),
-    moments: wp.array3d(dtype=vec9),
+    half: wp.array3d(dtype=vec9),
+):
+    """The horizontal pass of ``blur`` over the view's (X, X^2, XY) (``inputs_at``), made as it is read:
+    the same sums of the same float32 products."""
+    view, py, px = run_at(first + wp.tid(), x.shape[1], x.shape[2], 0)
+    lv = views[view]
+    if py >= lv.height or px >= lv.width:
+        return
+    target = lv.target
+    centre = taps[RADIUS]
+    if inside_run(px, lv.width):
+        a0 = centre * inputs_at(x, y, view, target, py, px)
+        a1 = centre * inputs_at(x, y, view, target, py, px + 1)
+        a2 = centre * inputs_at(x, y, view, target, py, px + 2)
+        a3 = centre * inputs_at(x, y, view, target, py, px + 3)
+        for j in range(wp.static(2 * RADIUS + 1)):
+            if wp.static(j != RADIUS):
+                tap = taps[j]
+                a0 += tap * inputs_at(x, y, view, target, py, px + j - RADIUS)
+                a1 += tap * inputs_at(x, y, view, target, py, px + 1 + j - RADIUS)
+                a2 += tap * inputs_at(x, y, view, target, py, px + 2 + j - RADIUS)
+                a3 += tap * inputs_at(x, y, view, target, py, px + 3 + j - RADIUS)
+        half[view, py, px] = a0
+        half[view, py, px + 1] = a1
+        half[view, py, px + 2] = a2
+        half[view, py, px + 3] = a3
+        return
+    for i in range(RUN):
+        position = px + i
+        if position < lv.width:
+            acc = centre * inputs_at(x, y, view, target, py, position)
+            lo = wp.max(0, RADIUS - position)
+            hi = wp.min(2 * RADIUS, lv.width - 1 - position + RADIUS)
+            for j in range(lo, hi + 1):
+                if j != RADIUS:
+                    acc += taps[j] * inputs_at(x, y, view, target, py, position + j - RADIUS)
+            half[view, py, position] = acc
+
+
+@wp.func
+def ssim_at(
+    x: wp.array4d(dtype=float),
+    y: wp.array4d(dtype=float),
+    lv: LossView,
+    view: int,
+    py: int,
+    px: int,
+    mo: vec9,
     target_moments: wp.array3d(dtype=vec6),
     loss: wp.array3d(dtype=float),
     partials: wp.array3d(dtype=vec9),
 ):
-    """Per pixel: its loss terms (summed over channels, 0 outside its view) and dL/d(mx, G*X^2, G*XY)
-    per channel, with its view's weights. ``moments``: the view's G*(X, X^2, XY); ``target_moments``:
-    each target's G*(Y, Y^2), read at ``views[v].target``."""
-    view, py, px = view_pixel(first + wp.tid(), x.shape[1], x.shape[2])
-    lv = views[view]
-    if px >= lv.width or py >= lv.height:
-        loss[view, py, px] = 0.0
-        return
+    """A pixel's loss terms (summed over channels) and dL/d(mx, G*X^2, G*XY) per channel, with its
+    view's weights, from ``mo``, its G*(X, X^2, XY), and its target's G*(Y, Y^2)."""
     l1_weight = lv.l1_weight
     ssim_weight = lv.ssim_weight
     total = float(0.0)
-    mo = moments[view, py, px]
     tm = target_moments[lv.target, py, px]
     out = vec9()
     for ch in range(3):
@@ -270,20 +327,47 @@ def ssim_terms(
 
 
 @wp.kernel
-def loss_gradient(
+def ssim_terms(
     first: int,
     x: wp.array4d(dtype=float),
     y: wp.array4d(dtype=float),
     views: wp.array(dtype=LossView),
-    blurred: wp.array3d(dtype=vec9),
-    grad: wp.array4d(dtype=float),
+    half: wp.array3d(dtype=vec9),
+    taps: wp.array(dtype=float),
+    target_moments: wp.array3d(dtype=vec6),
+    loss: wp.array3d(dtype=float),
+    partials: wp.array3d(dtype=vec9),
 ):
-    """dL/dX = G*(dL/dmx) + 2 X G*(dL/dG*X^2) + Y G*(dL/dG*XY) + l1_weight sign(X - Y)."""
-    view, py, px = view_pixel(first + wp.tid(), x.shape[1], x.shape[2])
+    """The vertical pass of ``blur`` over ``half`` (``blurred_inputs``), giving the view's G*(X, X^2, XY),
+    and at each pixel its loss terms and partials (``ssim_at``; ``target_moments``: each target's
+    G*(Y, Y^2), read at ``views[v].target``). The loss is 0 outside the view."""
+    view, py, px = run_at(first + wp.tid(), x.shape[1], x.shape[2], 1)
     lv = views[view]
     if px >= lv.width or py >= lv.height:
+        for i in range(RUN):
+            if py + i < x.shape[1]:
+                loss[view, py + i, px] = 0.0
         return
-    bl = blurred[view, py, px]
+    if inside_run(py, lv.height):
+        a0, a1, a2, a3 = column_sums(half, taps, view, py, px)
+        ssim_at(x, y, lv, view, py, px, a0, target_moments, loss, partials)
+        ssim_at(x, y, lv, view, py + 1, px, a1, target_moments, loss, partials)
+        ssim_at(x, y, lv, view, py + 2, px, a2, target_moments, loss, partials)
+        ssim_at(x, y, lv, view, py + 3, px, a3, target_moments, loss, partials)
+        return
+    for i in range(RUN):
+        if py + i < lv.height:
+            mo = tap_sum(half, taps, view, py + i, px, 1, py + i, lv.height)
+            ssim_at(x, y, lv, view, py + i, px, mo, target_moments, loss, partials)
+        elif py + i < x.shape[1]:
+            loss[view, py + i, px] = 0.0
+
+
+@wp.func
+def gradient_at(x: wp.array4d(dtype=float), y: wp.array4d(dtype=float), lv: LossView, view: int, py: int, px: int, bl: vec9,
+                grad: wp.array4d(dtype=float)):  # fmt: skip
+    """dL/dX = G*(dL/dmx) + 2 X G*(dL/dG*X^2) + Y G*(dL/dG*XY) + l1_weight sign(X - Y) at a pixel,
+    ``bl`` its G*(dL/dmx, dL/dG*X^2, dL/dG*XY)."""
     for ch in range(3):
         a = x[view, py, px, ch]
         b = y[lv.target, py, px, ch]
@@ -293,6 +377,34 @@ def loss_gradient(
         elif a < b:
             g -= lv.l1_weight
         grad[view, py, px, ch] = g
+
+
+@wp.kernel
+def loss_gradient(
+    first: int,
+    x: wp.array4d(dtype=float),
+    y: wp.array4d(dtype=float),
+    views: wp.array(dtype=LossView),
+    half: wp.array3d(dtype=vec9),
+    taps: wp.array(dtype=float),
+    grad: wp.array4d(dtype=float),
+):
+    """The vertical pass of ``blur`` over ``half`` (the partials' horizontal pass), and at each pixel
+    dL/dX (``gradient_at``)."""
+    view, py, px = run_at(first + wp.tid(), x.shape[1], x.shape[2], 1)
+    lv = views[view]
+    if px >= lv.width or py >= lv.height:
+        return
+    if inside_run(py, lv.height):
+        a0, a1, a2, a3 = column_sums(half, taps, view, py, px)
+        gradient_at(x, y, lv, view, py, px, a0, grad)
+        gradient_at(x, y, lv, view, py + 1, px, a1, grad)
+        gradient_at(x, y, lv, view, py + 2, px, a2, grad)
+        gradient_at(x, y, lv, view, py + 3, px, a3, grad)
+        return
+    for i in range(RUN):
+        if py + i < lv.height:
+            gradient_at(x, y, lv, view, py + i, px, tap_sum(half, taps, view, py + i, px, 1, py + i, lv.height), grad)
 
 
 @wp.kernel

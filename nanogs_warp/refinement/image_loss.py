@@ -70,37 +70,29 @@ class ImageLoss:
         self.height, self.width, self.views = height, width, views
         d, shape = self.device, (views, height, width)
         self.taps = _blur_taps(d)
-        self.stack = wp.empty(shape, dtype=kernels.vec9, device=d)
-        self.half = wp.empty(shape, dtype=kernels.vec9, device=d)
-        self.moments = wp.empty(shape, dtype=kernels.vec9, device=d)
+        self.half = wp.empty(shape, dtype=kernels.vec9, device=d)  # a blur's horizontal pass
         self.partials = wp.empty(shape, dtype=kernels.vec9, device=d)
-        self.blurred = wp.empty(shape, dtype=kernels.vec9, device=d)
         self.loss = wp.empty(shape, dtype=wp.float32, device=d)
         wp.load_module(kernels, device=d)
 
-    def _pixels(self, kernel, inputs: list) -> None:
+    def _runs(self, kernel, vertical: int, inputs: list) -> None:
         # one chunk a CPU worker: every pixel costs the same, and each further chunk is a launch's
         # overhead (at 128 x 128 four a worker took 5.6 ms a loss against 1.8; docs/performance.md)
-        launch_rows_from(kernel, self.views * self.height * self.width, inputs, self.device, chunks_per_worker=1,
-                         min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
-
-    def _blur(self, source, half, target, views) -> None:
-        for vertical, image, blurred in ((0, source, half), (1, half, target)):
-            launch_rows_from(kernels.blur, kernels.blur_threads(self.views, self.height, self.width, vertical),
-                             [image, self.taps, vertical, views, blurred], self.device, chunks_per_worker=1,
-                             min_rows=MIN_PIXELS_TO_SPLIT // kernels.RUN)  # fmt: skip
+        threads = kernels.blur_threads(self.views, self.height, self.width, vertical)
+        launch_rows_from(kernel, threads, inputs, self.device, chunks_per_worker=1, min_rows=MIN_PIXELS_TO_SPLIT // kernels.RUN)
 
     def of_views(self, images: wp.array, targets: Targets, grads: wp.array, views: wp.array) -> None:
         """For each view v of ``images`` (V, H, W, 3) and its ``views[v]`` (``loss_view``: its target
         in ``targets`` (``target_views``, (T, H', W', 3), made at the sizes the views give), its size
         and weights): writes d(its share of L)/dimage into grads[v] and each pixel's share into
-        ``self.loss``. A view's pixels beyond its own size are neither read nor written (their loss is 0)."""
-        target = targets.images
-        self._pixels(kernels.ssim_inputs, [images, target, views, self.stack])
-        self._blur(self.stack, self.half, self.moments, views)
-        self._pixels(kernels.ssim_terms, [images, target, views, self.moments, targets.moments, self.loss, self.partials])
-        self._blur(self.partials, self.half, self.blurred, views)
-        self._pixels(kernels.loss_gradient, [images, target, views, self.blurred, grads])
+        ``self.loss``. A view's pixels beyond its own size are neither read nor written (their loss is 0).
+        Four passes: the blur's two of the view's (X, X^2, XY), the second also making each pixel's
+        terms and partials, then the partials' two, the second also making dL/dimage."""
+        target, taps, half = targets.images, self.taps, self.half
+        self._runs(kernels.blurred_inputs, 0, [images, target, taps, views, half])
+        self._runs(kernels.ssim_terms, 1, [images, target, views, half, taps, targets.moments, self.loss, self.partials])
+        self._runs(kernels.blur, 0, [self.partials, taps, 0, views, half])
+        self._runs(kernels.loss_gradient, 1, [images, target, views, half, taps, grads])
 
     def __call__(self, image: wp.array, target: wp.array, grad: wp.array, ssim_weight: float, weight: float = 1.0) -> None:
         """One view: writes d(weight L)/dimage into ``grad`` and each pixel's share of weight L into
