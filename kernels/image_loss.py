@@ -41,6 +41,7 @@ wp.set_module_options(PORTABLE)  # the same bits on every device: portable_math.
 SSIM_C1 = wp.constant(0.0001)
 SSIM_C2 = wp.constant(0.0009)
 RADIUS = wp.constant(5)
+TAPS = wp.constant(11)  # 2 RADIUS + 1: a loop over a constant range is unrolled
 
 vec6 = wp.types.vector(length=6, dtype=wp.float32)  # a target's Y, Y^2 for 3 channels
 vec9 = wp.types.vector(length=9, dtype=wp.float32)  # X, X^2, XY; or dL/d(mx, G*X^2, G*XY); for 3 channels
@@ -154,8 +155,8 @@ def column_sums(source: wp.array3d(dtype=Any), taps: wp.array(dtype=float), view
     a1 = centre * source[view, py + 1, px]
     a2 = centre * source[view, py + 2, px]
     a3 = centre * source[view, py + 3, px]
-    for j in range(wp.static(2 * RADIUS + 1)):
-        if wp.static(j != RADIUS):
+    for j in range(TAPS):
+        if j != RADIUS:
             tap = taps[j]
             a0 += tap * source[view, py + j - RADIUS, px]
             a1 += tap * source[view, py + 1 + j - RADIUS, px]
@@ -172,8 +173,8 @@ def row_sums(source: wp.array3d(dtype=Any), taps: wp.array(dtype=float), view: i
     a1 = centre * source[view, py, px + 1]
     a2 = centre * source[view, py, px + 2]
     a3 = centre * source[view, py, px + 3]
-    for j in range(wp.static(2 * RADIUS + 1)):
-        if wp.static(j != RADIUS):
+    for j in range(TAPS):
+        if j != RADIUS:
             tap = taps[j]
             a0 += tap * source[view, py, px + j - RADIUS]
             a1 += tap * source[view, py, px + 1 + j - RADIUS]
@@ -262,8 +263,8 @@ def blurred_inputs(
         a1 = centre * inputs_at(x, y, view, target, py, px + 1)
         a2 = centre * inputs_at(x, y, view, target, py, px + 2)
         a3 = centre * inputs_at(x, y, view, target, py, px + 3)
-        for j in range(wp.static(2 * RADIUS + 1)):
-            if wp.static(j != RADIUS):
+        for j in range(TAPS):
+            if j != RADIUS:
                 tap = taps[j]
                 a0 += tap * inputs_at(x, y, view, target, py, px + j - RADIUS)
                 a1 += tap * inputs_at(x, y, view, target, py, px + 1 + j - RADIUS)
