@@ -18,7 +18,8 @@ and as the zero-padded Gaussian correlation is its own transpose,
     dL/dX = G*(dL/dmx) + 2 X G*(dL/dG*X^2) + Y G*(dL/dG*XY) + l1_weight sign(X - Y).
 
 The target's terms, my and G*Y^2, do not change while it is trained toward: they are blurred once
-per target view (``target_inputs``, then ``blur``), and each loss reads them.
+per target view (``target_inputs``, then ``blur``), and each loss reads them; where they are not
+kept (memory), each loss blurs its own views' targets the same way.
 
 Several views at once: X is (V, H, W, 3), Y a stack of targets, and view v compares X[v] with
 target ``views[v].target``, both of its own size ``views[v].width`` x ``views[v].height`` in the
@@ -296,16 +297,15 @@ def ssim_at(
     py: int,
     px: int,
     mo: vec9,
-    target_moments: wp.array3d(dtype=vec6),
+    tm: vec6,
     loss: wp.array3d(dtype=float),
     partials: wp.array3d(dtype=vec9),
 ):
     """A pixel's loss terms (summed over channels) and dL/d(mx, G*X^2, G*XY) per channel, with its
-    view's weights, from ``mo``, its G*(X, X^2, XY), and its target's G*(Y, Y^2)."""
+    view's weights, from ``mo``, its G*(X, X^2, XY), and ``tm``, its target's G*(Y, Y^2)."""
     l1_weight = lv.l1_weight
     ssim_weight = lv.ssim_weight
     total = float(0.0)
-    tm = target_moments[lv.target, py, px]
     out = vec9()
     for ch in range(3):
         mx = mo[ch]
@@ -336,12 +336,14 @@ def ssim_terms(
     half: wp.array3d(dtype=vec9),
     taps: wp.array(dtype=float),
     target_moments: wp.array3d(dtype=vec6),
+    by_view: int,
     loss: wp.array3d(dtype=float),
     partials: wp.array3d(dtype=vec9),
 ):
     """The vertical pass of ``blur`` over ``half`` (``blurred_inputs``), giving the view's G*(X, X^2, XY),
     and at each pixel its loss terms and partials (``ssim_at``; ``target_moments``: each target's
-    G*(Y, Y^2), read at ``views[v].target``). The loss is 0 outside the view."""
+    G*(Y, Y^2), read at ``views[v].target``, or with ``by_view`` view v's target's at v). The loss
+    is 0 outside the view."""
     view, py, px = run_at(first + wp.tid(), x.shape[1], x.shape[2], 1)
     lv = views[view]
     if px >= lv.width or py >= lv.height:
@@ -349,17 +351,20 @@ def ssim_terms(
             if py + i < x.shape[1]:
                 loss[view, py + i, px] = 0.0
         return
+    t = lv.target
+    if by_view != 0:
+        t = view
     if inside_run(py, lv.height):
         a0, a1, a2, a3 = column_sums(half, taps, view, py, px)
-        ssim_at(x, y, lv, view, py, px, a0, target_moments, loss, partials)
-        ssim_at(x, y, lv, view, py + 1, px, a1, target_moments, loss, partials)
-        ssim_at(x, y, lv, view, py + 2, px, a2, target_moments, loss, partials)
-        ssim_at(x, y, lv, view, py + 3, px, a3, target_moments, loss, partials)
+        ssim_at(x, y, lv, view, py, px, a0, target_moments[t, py, px], loss, partials)
+        ssim_at(x, y, lv, view, py + 1, px, a1, target_moments[t, py + 1, px], loss, partials)
+        ssim_at(x, y, lv, view, py + 2, px, a2, target_moments[t, py + 2, px], loss, partials)
+        ssim_at(x, y, lv, view, py + 3, px, a3, target_moments[t, py + 3, px], loss, partials)
         return
     for i in range(RUN):
         if py + i < lv.height:
             mo = tap_sum(half, taps, view, py + i, px, 1, py + i, lv.height)
-            ssim_at(x, y, lv, view, py + i, px, mo, target_moments, loss, partials)
+            ssim_at(x, y, lv, view, py + i, px, mo, target_moments[t, py + i, px], loss, partials)
         elif py + i < x.shape[1]:
             loss[view, py + i, px] = 0.0
 

@@ -139,6 +139,14 @@ def test_views_together_give_each_view_its_own_bits(device, rng):
     loss.of_views(wp.array(images, dtype=wp.float32, device=device), stack, grads,
                   wp.array(specs, dtype=kernels.LossView, device=device))  # fmt: skip
     got, shares = grads.numpy(), loss.loss.numpy()
+    # targets whose blurred terms are not kept: each loss blurs its views' own, the same bits
+    unkept = target_views(stack.images, target_sizes, moments=False)
+    assert unkept.moments is None
+    again = wp.full(images.shape, float("nan"), dtype=wp.float32, device=device)
+    loss.loss.fill_(float("nan"))
+    loss.of_views(wp.array(images, dtype=wp.float32, device=device), unkept, again,
+                  wp.array(specs, dtype=kernels.LossView, device=device))  # fmt: skip
+    assert np.array_equal(again.numpy(), got, equal_nan=True) and loss.loss.numpy().tobytes() == shares.tobytes()
     for v, (h, w) in enumerate(sizes):
         alone = ImageLoss(h, w, device)
         grad = wp.full((h, w, 3), float("nan"), dtype=wp.float32, device=device)

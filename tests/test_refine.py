@@ -293,3 +293,27 @@ def test_the_memory_check_counts_every_view_a_step_renders(monkeypatch):
     for views in (1, 4):
         refine_module.check_memory(RefineConfig(size=64, views_per_step=views), 10, wp.get_device("cpu"))
     assert needs[1] - needs[0] == 3 * 64 * 64 * refine_module.STEP_BYTES_PER_PIXEL
+
+
+def test_views_whose_blurred_terms_do_not_fit_refine_to_the_same_bytes(device, monkeypatch):
+    """Reference views keep their targets' blurred terms (G*Y, G*Y^2) where their 24 bytes a pixel
+    more fit the device; where they do not, each step blurs its own views' targets: the same bytes,
+    coarse steps and held-out views included."""
+    import nanogs_warp.refinement.refine as refine_module
+
+    reference = SplatSet.from_numpy(**_toy_scene(7, device), device=device)
+    small = simplify(reference, count=15)
+    config = RefineConfig(steps=6, size=48, reference_views=4, coarse_steps=3)
+    kept = refine_module.ReferenceViews(reference, config)
+    refined, report = refine_with_report(small, reference, config, views=kept)
+    assert kept.moments and kept.targets.moments is not None and kept.halved()[1].moments is not None
+    short = refine_module.memory_short
+    monkeypatch.setattr(refine_module, "memory_short", lambda need, device: 0 if need > 10**12 else short(need, device))
+    monkeypatch.setattr(refine_module, "MOMENT_BYTES_PER_PIXEL", 10**12)
+    unkept = refine_module.ReferenceViews(reference, config)
+    again, report_again = refine_with_report(small, reference, config, views=unkept)
+    assert not unkept.moments and unkept.targets.moments is None and unkept.halved()[1].moments is None
+    for key, value in refined.to_numpy().items():
+        assert value.tobytes() == again.to_numpy()[key].tobytes(), key
+    assert (report.loss_before, report.loss_after, report.validation_after) == (
+        report_again.loss_before, report_again.loss_after, report_again.validation_after)

@@ -32,34 +32,45 @@ def loss_view(target: int, width: int, height: int, ssim_weight: float, weight: 
 @dataclass
 class Targets:
     """A stack of target views (T, H, W, 3), view k in the top-left corner of [k], and their blurred
-    terms G*Y and G*Y^2 per channel ((T, H, W) of ``vec6``, each at its own view's size)."""
+    terms G*Y and G*Y^2 per channel ((T, H, W) of ``vec6``, each at its own view's size), or None:
+    each loss then blurs its own views' targets (the same bits)."""
 
     images: wp.array
-    moments: wp.array
+    moments: wp.array | None
 
 
 def _blur_taps(device) -> wp.array:
     return wp.array(gaussian_window().astype(np.float32), dtype=wp.float32, device=device)
 
 
-def target_views(images: wp.array, sizes: Sequence[tuple[int, int]]) -> Targets:
-    """``images`` (T, H, W, 3) with their blurred terms: view k of sizes[k] = (width, height) pixels
-    blurred with zero padding at its own edges, one view at a time (the scratch is one view's)."""
+def target_views(images: wp.array, sizes: Sequence[tuple[int, int]], moments: bool = True) -> Targets:
+    """``images`` (T, H, W, 3) with their blurred terms (none without ``moments``): view k of sizes[k]
+    = (width, height) pixels blurred with zero padding at its own edges, one view at a time (the
+    scratch is one view's)."""
+    if not moments:
+        return Targets(images, None)
     device = images.device
     count, height, width = images.shape[0], images.shape[1], images.shape[2]
-    moments = wp.empty((count, height, width), dtype=kernels.vec6, device=device)
-    stack = wp.empty((1, height, width), dtype=kernels.vec6, device=device)
-    half = wp.empty((1, height, width), dtype=kernels.vec6, device=device)
+    blurred = wp.empty((count, height, width), dtype=kernels.vec6, device=device)
+    scratch = (wp.empty((1, height, width), dtype=kernels.vec6, device=device),
+               wp.empty((1, height, width), dtype=kernels.vec6, device=device))  # fmt: skip
     taps = _blur_taps(device)
     specs = wp.array([loss_view(k, w, h, 0.0, 0.0) for k, (w, h) in enumerate(sizes)], dtype=kernels.LossView, device=device)
     for k in range(count):
-        view = specs[k : k + 1]
-        launch_rows_from(kernels.target_inputs, height * width, [images, view, stack], device, chunks_per_worker=1,
-                         min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
-        for vertical, image, blurred in ((0, stack, half), (1, half, moments[k : k + 1])):
-            launch_rows_from(kernels.blur, kernels.blur_threads(1, height, width, vertical), [image, taps, vertical, view, blurred],
-                             device, chunks_per_worker=1, min_rows=MIN_PIXELS_TO_SPLIT // kernels.RUN)  # fmt: skip
-    return Targets(images, moments)
+        _blur_targets(images, specs[k : k + 1], taps, scratch, blurred[k : k + 1])
+    return Targets(images, blurred)
+
+
+def _blur_targets(images: wp.array, views: wp.array, taps: wp.array, scratch: tuple, blurred: wp.array) -> None:
+    """blurred[v] = G*(Y, Y^2) of target ``views[v].target`` of ``images``, at view v's size."""
+    device = images.device
+    count, height, width = blurred.shape
+    stack, half = scratch
+    launch_rows_from(kernels.target_inputs, count * height * width, [images, views, stack], device, chunks_per_worker=1,
+                     min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
+    for vertical, image, target in ((0, stack, half), (1, half, blurred)):
+        launch_rows_from(kernels.blur, kernels.blur_threads(count, height, width, vertical), [image, taps, vertical, views, target],
+                         device, chunks_per_worker=1, min_rows=MIN_PIXELS_TO_SPLIT // kernels.RUN)  # fmt: skip
 
 
 class ImageLoss:
@@ -72,6 +83,7 @@ class ImageLoss:
         self.taps = _blur_taps(d)
         self.half = wp.empty(shape, dtype=kernels.vec9, device=d)  # a blur's horizontal pass
         self.partials = wp.empty(shape, dtype=kernels.vec9, device=d)
+        self.target_scratch: tuple | None = None  # the views' targets' blurred terms, where ``Targets`` lacks them
         self.loss = wp.empty(shape, dtype=wp.float32, device=d)
         wp.load_module(kernels, device=d)
 
@@ -89,8 +101,16 @@ class ImageLoss:
         Four passes: the blur's two of the view's (X, X^2, XY), the second also making each pixel's
         terms and partials, then the partials' two, the second also making dL/dimage."""
         target, taps, half = targets.images, self.taps, self.half
+        moments, by_view = targets.moments, 0
+        if moments is None:  # each view's target blurred here, into row v
+            if self.target_scratch is None:
+                shape = (self.views, self.height, self.width)
+                self.target_scratch = tuple(wp.empty(shape, dtype=kernels.vec6, device=self.device) for _ in range(3))
+            *scratch, moments = self.target_scratch
+            _blur_targets(target, views, taps, scratch, moments)
+            by_view = 1
         self._runs(kernels.blurred_inputs, 0, [images, target, taps, views, half])
-        self._runs(kernels.ssim_terms, 1, [images, target, views, half, taps, targets.moments, self.loss, self.partials])
+        self._runs(kernels.ssim_terms, 1, [images, target, views, half, taps, moments, by_view, self.loss, self.partials])
         self._runs(kernels.blur, 0, [self.partials, taps, 0, views, half])
         self._runs(kernels.loss_gradient, 1, [images, target, views, half, taps, grads])
 

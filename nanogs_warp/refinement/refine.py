@@ -40,18 +40,24 @@ VALIDATION_VIEWS = 8  # held-out views (never trained on) that choose which chec
 CHECKPOINTS = (0.25, 0.5, 0.75, 1.0)  # fractions of the run at which the held-out loss is measured
 # Memory a refinement takes on its device, measured on the CPU (the bundled sample, --refine-size 512
 # and 1024): about 930 bytes a pixel of a training view for a step's renders, gradients and SSIM maps
-# (times the views a step renders together), and 36 a pixel for every reference view kept: its
-# RGB and its blurred terms, G*Y and G*Y^2 (``image_loss.target_views``), in float32. 4096-pixel
-# views at the default 128 reference views need about 103 GB.
+# (times the views a step renders together), and 12 (RGB float32) a pixel for every reference view
+# kept. 4096-pixel views at the default 128 reference views need about 44 GB. Where they fit, each
+# reference view also keeps its blurred terms, G*Y and G*Y^2 (``image_loss.target_views``), 24 bytes
+# a pixel more, which a step then need not blur again: the same bits, sooner.
 STEP_BYTES_PER_PIXEL = 1000
-VIEW_BYTES_PER_PIXEL = 36
+VIEW_BYTES_PER_PIXEL = 12
+MOMENT_BYTES_PER_PIXEL = 24
+
+
+def _need(config: RefineConfig, pool: int, view_bytes: int) -> int:
+    views = pool + VALIDATION_VIEWS
+    return config.size * config.size * (STEP_BYTES_PER_PIXEL * config.views_per_step + view_bytes * views)
 
 
 def check_memory(config: RefineConfig, pool: int, device) -> None:
     """Refuses, before any rendering, a refinement whose views would not fit ``device``'s memory
     (a GPU's free memory, the host's available memory for the CPU)."""
-    pixels = config.size * config.size
-    need = pixels * (STEP_BYTES_PER_PIXEL * config.views_per_step + VIEW_BYTES_PER_PIXEL * (pool + VALIDATION_VIEWS))
+    need = _need(config, pool, VIEW_BYTES_PER_PIXEL)
     available = memory_short(need, device)
     if available is not None:
         memory = "memory" if device.is_cpu else f"{device}'s memory"
@@ -128,17 +134,17 @@ def _copy(splats: SplatSet, device) -> SplatSet:
     return splats.clone(device)
 
 
-def _render_views(reference: SplatSet, cameras, device) -> Targets:
+def _render_views(reference: SplatSet, cameras, device, moments: bool = True) -> Targets:
     """``reference`` rendered from each camera on a black background into one stack (V, H, W, 3), H
     and W the largest views': view k in the top-left corner of [k] (zeros beyond its size); with its
-    blurred terms (``target_views``)."""
+    blurred terms where ``moments`` (``target_views``)."""
     rasteriser = _Rasteriser(reference)
     black = wp.vec3(0.0, 0.0, 0.0)
     height, width = max(c.height for c in cameras), max(c.width for c in cameras)
     stack = wp.zeros((len(cameras), height, width, 3), dtype=wp.float32, device=device)
     for k, camera in enumerate(cameras):
         rasteriser.render_into(camera, black, stack, k)
-    return target_views(stack, [(c.width, c.height) for c in cameras])
+    return target_views(stack, [(c.width, c.height) for c in cameras], moments)
 
 
 class ReferenceViews:
@@ -161,6 +167,7 @@ class ReferenceViews:
         self.held_out: list = []
         self.held_out_targets: Targets | None = None
         self._halved: tuple[list, Targets] | None = None
+        self.moments = True  # whether the views keep their blurred terms (``render``: where they fit)
 
     def serves(self, reference: SplatSet, config: RefineConfig, device) -> bool:
         """Whether these are the views a refinement of ``config`` toward ``reference`` on ``device``
@@ -184,7 +191,7 @@ class ReferenceViews:
                 launch_rows_from(image_kernels.halved, c.height * c.width,
                                  [full[k][: 2 * c.height, : 2 * c.width], targets[k][: c.height, : c.width]], self.device,
                                  chunks_per_worker=1, min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
-            self._halved = (cameras, target_views(targets, [(c.width, c.height) for c in cameras]))
+            self._halved = (cameras, target_views(targets, [(c.width, c.height) for c in cameras], self.moments))
         return self._halved
 
     def render(self) -> float:
@@ -207,11 +214,12 @@ class ReferenceViews:
         self.extent = 2.2 * p90  # the scene's extent, which scales the means' learning rate
         pool = view_pool(c)
         check_memory(c, pool, self.device)
+        self.moments = memory_short(_need(c, pool, VIEW_BYTES_PER_PIXEL + MOMENT_BYTES_PER_PIXEL), self.device) is None
         cameras = training_cameras(means, pool, c.size, c.seed)
-        self.targets = _render_views(self.reference, cameras, self.device)
+        self.targets = _render_views(self.reference, cameras, self.device, self.moments)
         # held-out views, drawn like the training views from another stream
         self.held_out = training_cameras(means, VALIDATION_VIEWS, c.size, c.seed, VALIDATION_STREAM)
-        self.held_out_targets = _render_views(self.reference, self.held_out, self.device)
+        self.held_out_targets = _render_views(self.reference, self.held_out, self.device, self.moments)
         wp.synchronize_device(self.device)
         self.cameras = cameras
         return time.perf_counter() - started
