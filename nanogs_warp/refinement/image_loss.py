@@ -2,7 +2,8 @@
 over each view's pixels and channels, and its gradient, on the images' device
 (``kernels/image_loss.py``): one view at a time, or several rendered together in one set of launches.
 A stack of targets is trained toward for many steps, so its own blurred terms are made once
-(``target_views``) and every loss against it reads them."""
+(``target_views``) and every loss against it reads them; where they are not kept (memory), each
+loss blurs its own views' targets, the same bits."""
 
 from __future__ import annotations
 
