@@ -88,7 +88,7 @@ def target_inputs(
     stack[view, py, px] = v
 
 
-RUN = wp.constant(4)  # pixels a blur thread computes, side by side along its axis (they share their loads)
+RUN = wp.constant(4)  # pixels a blur thread computes side by side along its axis (``row_sums`` and ``column_sums`` write out four)
 
 
 def blur_threads(views: int, height: int, width: int, vertical: int) -> int:
