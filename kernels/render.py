@@ -578,21 +578,35 @@ def pixel_of(tile: int, local: int, tiles_x: int):
 
 
 @wp.func
-def alpha_at(p: wp.vec2, co: wp.vec4, faint: float, fpx: float, fpy: float):
-    """An entry's alpha at pixel (fpx, fpy) as INRIA's renderCUDA computes it, min(0.99, o G) (centre
-    ``p``, conic and opacity ``co``); 0 where a walk skips the entry: power > 0, power below ``faint``
-    (alpha < 1/255 there: no exp) or alpha < 1/255 (``walked_chunk``, ``chunk_product``; refinement's
-    ``entry_at_pixel`` returns its terms too). The entry's values are passed in and there is one
-    return: a GPU's walk through a function that took the entry arrays and returned early ran
-    ``composite`` about 8 % slower (docs/performance.md)."""
+def entry_at_pixel(p: wp.vec2, co: wp.vec4, faint: float, fpx: float, fpy: float):
+    """(dx, dy, G, o G, alpha) of an entry (centre ``p``, conic and opacity ``co``) at pixel (fpx, fpy),
+    alpha = min(0.99, o G) as INRIA's renderCUDA computes it; alpha 0 where a walk skips the entry:
+    power > 0, power below ``faint`` (alpha < ALPHA_MIN there: no exp, as ``composite_tiles`` skips
+    it) or alpha < ALPHA_MIN. The entry's values are passed in and there is one return: a GPU's walk
+    through a function that took the entry arrays and returned early ran ``composite`` about 8 %
+    slower (docs/performance.md)."""
     dx = p[0] - fpx
     dy = p[1] - fpy
     power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
+    gauss = float(0.0)
+    raw = float(0.0)
     alpha = float(0.0)
-    if not (power > 0.0 or power < faint):
-        alpha = wp.min(ALPHA_MAX, co[3] * exp32(power))
+    if power > 0.0 or power < faint:
+        alpha = 0.0
+    else:
+        gauss = exp32(power)
+        raw = co[3] * gauss
+        alpha = wp.min(ALPHA_MAX, raw)
         if alpha < ALPHA_MIN:
             alpha = 0.0
+    return dx, dy, gauss, raw, alpha
+
+
+@wp.func
+def alpha_at(p: wp.vec2, co: wp.vec4, faint: float, fpx: float, fpy: float):
+    """An entry's alpha at pixel (fpx, fpy) (``entry_at_pixel``'s; the walks' ``walked_chunk`` and
+    ``chunk_product``, where refinement's backward takes its other terms too)."""
+    dx, dy, gauss, raw, alpha = entry_at_pixel(p, co, faint, fpx, fpy)
     return alpha
 
 

@@ -77,6 +77,7 @@ from .render import (
     chunk_end,
     chunk_own_step,
     chunk_product,
+    entry_at_pixel,
     merged_chunks,
     gram,
     matrix_product,
@@ -109,28 +110,6 @@ def order_entries(
     slot = values[k]
     entry_splat[k] = slot_splat[slot]
     entry_of_slot[slot] = k
-
-
-@wp.func
-def entry_at_pixel(p: wp.vec2, co: wp.vec4, faint: float, fpx: float, fpy: float):
-    """(dx, dy, G, o G, alpha) of an entry at pixel (fpx, fpy), alpha = min(0.99, o G); alpha 0 where
-    the walk skips the entry: power > 0, power below ``faint`` (alpha < ALPHA_MIN there: no exp, as
-    ``composite_tiles`` skips it) or alpha < ALPHA_MIN."""
-    dx = p[0] - fpx
-    dy = p[1] - fpy
-    power = -0.5 * (co[0] * dx * dx + co[2] * dy * dy) - co[1] * dx * dy
-    gauss = float(0.0)
-    raw = float(0.0)
-    alpha = float(0.0)
-    if power > 0.0 or power < faint:
-        alpha = 0.0
-    else:
-        gauss = exp32(power)
-        raw = co[3] * gauss
-        alpha = wp.min(ALPHA_MAX, raw)
-        if alpha < ALPHA_MIN:
-            alpha = 0.0
-    return dx, dy, gauss, raw, alpha
 
 
 @wp.func
