@@ -25,7 +25,7 @@ Several views at once: X is (V, H, W, 3), Y a stack of targets, and view v compa
 target ``views[v].target``, both of its own size ``views[v].width`` x ``views[v].height`` in the
 top-left corner (H, W at least every view's). A loss is four passes of the separable blur, each
 thread RUN pixels side by side along the pass's axis (``blur_threads``; view-major, then row-major),
-the second and fourth also making what the pixel's blurred values give (its SSIM terms, dL/dX), each
+over the view's (X, X^2, XY) (``ssim_inputs``) and then the partials, the second and fourth also making what the pixel's blurred values give (its SSIM terms, dL/dX), each
 writing only its own pixels; a pixel outside its view's size is left alone, and the blur reads none
 (its zero padding is at the view's own edges), so each view's loss and gradient are the bits of
 that view computed alone.
@@ -93,7 +93,7 @@ RUN = wp.constant(4)  # pixels a blur thread computes side by side along its axi
 
 def blur_threads(views: int, height: int, width: int, vertical: int) -> int:
     """The threads a blur pass runs over a (views, height, width) stack: one a RUN of pixels along its
-    axis (``blur``, ``blurred_inputs``, ``ssim_terms``, ``loss_gradient``)."""
+    axis (``blur``, ``ssim_terms``, ``loss_gradient``)."""
     if vertical:
         return views * ((height + RUN - 1) // RUN) * width
     return views * height * ((width + RUN - 1) // RUN)
@@ -230,62 +230,26 @@ wp.overload(blur, {"source": wp.array3d(dtype=vec6), "target": wp.array3d(dtype=
 wp.overload(blur, {"source": wp.array3d(dtype=vec9), "target": wp.array3d(dtype=vec9)})
 
 
-@wp.func
-def inputs_at(x: wp.array4d(dtype=float), y: wp.array4d(dtype=float), view: int, target: int, py: int, px: int):
-    """(X, X^2, XY) at a pixel, each for channels 0..2 (9 values)."""
+@wp.kernel
+def ssim_inputs(
+    first: int,
+    x: wp.array4d(dtype=float),
+    y: wp.array4d(dtype=float),
+    views: wp.array(dtype=LossView),
+    stack: wp.array3d(dtype=vec9),
+):
+    """stack[v, py, px] = (X, X^2, XY), each for channels 0..2 (9 values)."""
+    view, py, px = view_pixel(first + wp.tid(), x.shape[1], x.shape[2])
+    lv = views[view]
+    if px >= lv.width or py >= lv.height:
+        return
     v = vec9()
     for ch in range(3):
         a = x[view, py, px, ch]
         v[ch] = a
         v[3 + ch] = a * a
-        v[6 + ch] = a * y[target, py, px, ch]
-    return v
-
-
-@wp.kernel
-def blurred_inputs(
-    first: int,
-    x: wp.array4d(dtype=float),
-    y: wp.array4d(dtype=float),
-    taps: wp.array(dtype=float),
-    views: wp.array(dtype=LossView),
-    half: wp.array3d(dtype=vec9),
-):
-    """The horizontal pass of ``blur`` over the view's (X, X^2, XY) (``inputs_at``), made as it is read:
-    the same sums of the same float32 products."""
-    view, py, px = run_at(first + wp.tid(), x.shape[1], x.shape[2], 0)
-    lv = views[view]
-    if py >= lv.height or px >= lv.width:
-        return
-    target = lv.target
-    centre = taps[RADIUS]
-    if inside_run(px, lv.width):
-        a0 = centre * inputs_at(x, y, view, target, py, px)
-        a1 = centre * inputs_at(x, y, view, target, py, px + 1)
-        a2 = centre * inputs_at(x, y, view, target, py, px + 2)
-        a3 = centre * inputs_at(x, y, view, target, py, px + 3)
-        for j in range(TAPS):
-            if j != RADIUS:
-                tap = taps[j]
-                a0 += tap * inputs_at(x, y, view, target, py, px + j - RADIUS)
-                a1 += tap * inputs_at(x, y, view, target, py, px + 1 + j - RADIUS)
-                a2 += tap * inputs_at(x, y, view, target, py, px + 2 + j - RADIUS)
-                a3 += tap * inputs_at(x, y, view, target, py, px + 3 + j - RADIUS)
-        half[view, py, px] = a0
-        half[view, py, px + 1] = a1
-        half[view, py, px + 2] = a2
-        half[view, py, px + 3] = a3
-        return
-    for i in range(RUN):
-        position = px + i
-        if position < lv.width:
-            acc = centre * inputs_at(x, y, view, target, py, position)
-            lo = wp.max(0, RADIUS - position)
-            hi = wp.min(2 * RADIUS, lv.width - 1 - position + RADIUS)
-            for j in range(lo, hi + 1):
-                if j != RADIUS:
-                    acc += taps[j] * inputs_at(x, y, view, target, py, position + j - RADIUS)
-            half[view, py, position] = acc
+        v[6 + ch] = a * y[lv.target, py, px, ch]
+    stack[view, py, px] = v
 
 
 @wp.func
@@ -340,7 +304,8 @@ def ssim_terms(
     loss: wp.array3d(dtype=float),
     partials: wp.array3d(dtype=vec9),
 ):
-    """The vertical pass of ``blur`` over ``half`` (``blurred_inputs``), giving the view's G*(X, X^2, XY),
+    """The vertical pass of ``blur`` over ``half`` (the horizontal pass of ``ssim_inputs``' stack), giving
+    the view's G*(X, X^2, XY),
     and at each pixel its loss terms and partials (``ssim_at``; ``target_moments``: each target's
     G*(Y, Y^2), read at ``views[v].target``, or with ``by_view`` view v's target's at v). The loss
     is 0 outside the view."""

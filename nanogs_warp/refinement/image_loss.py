@@ -82,6 +82,7 @@ class ImageLoss:
         self.height, self.width, self.views = height, width, views
         d, shape = self.device, (views, height, width)
         self.taps = _blur_taps(d)
+        self.stack = wp.empty(shape, dtype=kernels.vec9, device=d)  # the view's (X, X^2, XY)
         self.half = wp.empty(shape, dtype=kernels.vec9, device=d)  # a blur's horizontal pass
         self.partials = wp.empty(shape, dtype=kernels.vec9, device=d)
         self.target_scratch: tuple | None = None  # the views' targets' blurred terms, where ``Targets`` lacks them
@@ -99,8 +100,8 @@ class ImageLoss:
         in ``targets`` (``target_views``, (T, H', W', 3), made at the sizes the views give), its size
         and weights): writes d(its share of L)/dimage into grads[v] and each pixel's share into
         ``self.loss``. A view's pixels beyond its own size are neither read nor written (their loss is 0).
-        Four passes: the blur's two of the view's (X, X^2, XY), the second also making each pixel's
-        terms and partials, then the partials' two, the second also making dL/dimage."""
+        The blur's two passes over the view's (X, X^2, XY), the second also making each pixel's terms
+        and partials, then the partials' two, the second also making dL/dimage."""
         target, taps, half = targets.images, self.taps, self.half
         moments, by_view = targets.moments, 0
         if moments is None:  # each view's target blurred here, into row v
@@ -110,7 +111,9 @@ class ImageLoss:
             *scratch, moments = self.target_scratch
             _blur_targets(target, views, taps, scratch, moments)
             by_view = 1
-        self._runs(kernels.blurred_inputs, 0, [images, target, taps, views, half])
+        launch_rows_from(kernels.ssim_inputs, self.views * self.height * self.width, [images, target, views, self.stack],
+                         self.device, chunks_per_worker=1, min_rows=MIN_PIXELS_TO_SPLIT)  # fmt: skip
+        self._runs(kernels.blur, 0, [self.stack, taps, 0, views, half])
         self._runs(kernels.ssim_terms, 1, [images, target, views, half, taps, moments, by_view, self.loss, self.partials])
         self._runs(kernels.blur, 0, [self.partials, taps, 0, views, half])
         self._runs(kernels.loss_gradient, 1, [images, target, views, half, taps, grads])

@@ -167,7 +167,11 @@ class ReferenceViews:
         self.held_out: list = []
         self.held_out_targets: Targets | None = None
         self._halved: tuple[list, Targets] | None = None
-        self.moments = True  # whether the views keep their blurred terms (``render``: where they fit)
+
+    @property
+    def moments(self) -> bool:
+        """Whether the views keep their targets' blurred terms (``render`` keeps them where they fit)."""
+        return self.targets is None or self.targets.moments is not None
 
     def serves(self, reference: SplatSet, config: RefineConfig, device) -> bool:
         """Whether these are the views a refinement of ``config`` toward ``reference`` on ``device``
@@ -214,12 +218,12 @@ class ReferenceViews:
         self.extent = 2.2 * p90  # the scene's extent, which scales the means' learning rate
         pool = view_pool(c)
         check_memory(c, pool, self.device)
-        self.moments = memory_short(_need(c, pool, VIEW_BYTES_PER_PIXEL + MOMENT_BYTES_PER_PIXEL), self.device) is None
+        moments = memory_short(_need(c, pool, VIEW_BYTES_PER_PIXEL + MOMENT_BYTES_PER_PIXEL), self.device) is None
         cameras = training_cameras(means, pool, c.size, c.seed)
-        self.targets = _render_views(self.reference, cameras, self.device, self.moments)
+        self.targets = _render_views(self.reference, cameras, self.device, moments)
         # held-out views, drawn like the training views from another stream
         self.held_out = training_cameras(means, VALIDATION_VIEWS, c.size, c.seed, VALIDATION_STREAM)
-        self.held_out_targets = _render_views(self.reference, self.held_out, self.device, self.moments)
+        self.held_out_targets = _render_views(self.reference, self.held_out, self.device, moments)
         wp.synchronize_device(self.device)
         self.cameras = cameras
         return time.perf_counter() - started
