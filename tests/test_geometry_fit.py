@@ -20,10 +20,11 @@ APPEARANCE = ("opacities", "features", "extras", "integer_extras")
 
 def test_the_default_fits_the_small_outputs_geometry_and_nothing_else(device):
     """Against the size fit alone: the 10 % output unchanged, the 1 % and 0.5 % ones with other
-    centres, rotations and scales, their opacities and colours the same bits."""
+    centres, rotations and scales, their opacities and colours the same bits (the colour fit, which
+    follows and may keep new colours and opacities in either run, left out of both)."""
     splats = blob(3000, 15, device, log_scale=(-4.0, -2.5))
-    fitted = simplify(splats, ratio=[0.1, 0.01, 0.005])
-    sized = simplify(splats, ratio=[0.1, 0.01, 0.005], config=SimplifyConfig(fit_geometry=False))
+    fitted = simplify(splats, ratio=[0.1, 0.01, 0.005], config=SimplifyConfig(fit_colour=False))
+    sized = simplify(splats, ratio=[0.1, 0.01, 0.005], config=SimplifyConfig(fit_geometry=False, fit_colour=False))
     for name in GEOMETRY + APPEARANCE:
         np.testing.assert_array_equal(getattr(fitted[0], name).numpy(), getattr(sized[0], name).numpy())
     for f, s in zip(fitted[1:], sized[1:]):
@@ -31,7 +32,7 @@ def test_the_default_fits_the_small_outputs_geometry_and_nothing_else(device):
         for name in APPEARANCE:
             np.testing.assert_array_equal(getattr(f, name).numpy(), getattr(s, name).numpy())
         assert np.isfinite(f.means.numpy()).all() and np.isfinite(f.log_scales.numpy()).all()
-    again = simplify(splats, ratio=[0.1, 0.01, 0.005])  # the same bytes every run
+    again = simplify(splats, ratio=[0.1, 0.01, 0.005], config=SimplifyConfig(fit_colour=False))  # the same bytes every run
     for a, b in zip(fitted, again):
         for name in GEOMETRY:
             assert getattr(a, name).numpy().tobytes() == getattr(b, name).numpy().tobytes()

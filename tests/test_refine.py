@@ -178,6 +178,22 @@ def test_refinement_returns_its_best_held_out_checkpoint():
     assert report.kept_step > 0, "a sane run should improve on views it never trained on"
 
 
+@pytest.mark.parametrize("last, kept", [((0.85, 0.7), 4), ((0.85, 0.9), 2)])
+def test_a_checkpoint_is_kept_only_where_every_background_s_held_out_views_render_better(monkeypatch, last, kept):
+    """The held-out losses of each background (``background_losses``, black then white) at the four
+    checkpoints of a four-step run, scripted: a checkpoint better on one background and worse on the
+    other is not kept, one better on both than the last kept one is, and its mean is reported."""
+    import nanogs_warp.refinement.refine as refine_module
+
+    scripted = iter([(1.0, 1.0), (0.5, 1.2), (0.9, 0.8), (0.95, 0.5), last])
+    monkeypatch.setattr(refine_module._Refiner, "background_losses", lambda *a: np.array(next(scripted)))
+    reference = SplatSet.from_numpy(**_toy_scene(3, "cpu"), device="cpu")
+    small = simplify(reference, count=20)
+    _, report = refine_with_report(small, reference, RefineConfig(steps=4, size=40, reference_views=4))
+    assert report.kept_step == kept and report.validation_before == 1.0
+    assert report.validation_after == pytest.approx(np.mean(last if kept == 4 else (0.9, 0.8)))
+
+
 @pytest.mark.parametrize("exponent", [-70, 70])
 def test_a_scene_in_tiny_or_huge_units_refines_as_at_unit_size(exponent):
     """The rasteriser works in float32 (squares of ~1e21 overflow, of ~1e-21 vanish): a scene in
@@ -317,3 +333,82 @@ def test_views_whose_blurred_terms_do_not_fit_refine_to_the_same_bytes(device, m
         assert value.tobytes() == again.to_numpy()[key].tobytes(), key
     assert (report.loss_before, report.loss_after, report.validation_after) == (
         report_again.loss_before, report_again.loss_after, report_again.validation_after)
+
+
+@pytest.mark.parametrize("pool, views_per_step", [(1, 2), (2, 1), (5, 2), (40, 8)])
+def test_each_step_trains_on_views_of_one_background(pool, views_per_step):
+    """``step_views``: step s draws its views from those of background s mod 2 (view k is on
+    ``view_background(k)``; a pool of one is all black), each background's views in permutations of
+    their own: each of them is drawn once before any is drawn again. Seeded: the same views again,
+    other ones for another seed."""
+    import nanogs_warp.refinement.refine as refine_module
+
+    steps = 30
+    drawn = refine_module.step_views(pool, steps, views_per_step, seed=3)
+    assert drawn == refine_module.step_views(pool, steps, views_per_step, seed=3)
+    backgrounds = min(pool, len(refine_module.BACKGROUNDS))
+    for step, chosen in enumerate(drawn):
+        assert len(chosen) == views_per_step and all(k % backgrounds == step % backgrounds for k in chosen), (step, chosen)
+    for b in range(backgrounds):
+        members = list(range(b, pool, backgrounds))
+        sequence = [k for step, chosen in enumerate(drawn) if step % backgrounds == b for k in chosen]
+        for start in range(0, len(sequence) - len(members) + 1, len(members)):
+            assert sorted(sequence[start : start + len(members)]) == members
+    if pool > backgrounds:  # some background has views to order
+        assert drawn != refine_module.step_views(pool, steps, views_per_step, seed=4)
+
+
+def test_reference_views_are_rendered_on_black_and_white(device):
+    """The training and held-out views of ``ReferenceViews``: view k is the original rendered on
+    ``view_background(k)``, black and white in turn, bit for bit what the renderer gives alone."""
+    import nanogs_warp.refinement.refine as refine_module
+    from nanogs_warp.eval.render import render_views_on_device
+
+    reference = SplatSet.from_numpy(**_toy_scene(9, device), device=device)
+    views = refine_module.ReferenceViews(reference, RefineConfig(steps=8, size=40, reference_views=4))
+    views.render()
+    assert [tuple(refine_module.view_background(k)) for k in range(3)] == [(0.0, 0.0, 0.0), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)]
+    for cameras, targets in ((views.cameras, views.targets), (views.held_out, views.held_out_targets)):
+        images = targets.images.numpy()
+        for k, camera in enumerate(cameras):
+            alone = render_views_on_device(reference, [camera], tuple(refine_module.view_background(k))).numpy()[0]
+            shown = images[k][: camera.height, : camera.width]  # the view's own size, top left
+            assert shown.tobytes() == alone.tobytes(), k
+            # pixels the splats miss show the background
+            assert (shown == float(k % 2)).all(axis=2).any(), k
+
+
+def _one_colour_splats(opacity: float, colour: float, device) -> SplatSet:
+    """Eight round splats of one opacity and grey colour on the corners of a cube."""
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float32)
+    arrays = random_splat_arrays(8, seed=11)
+    arrays["means"] = corners
+    arrays["log_scales"] = np.full((8, 3), np.log(0.3), np.float32)
+    arrays["opacities"] = np.full(8, np.log(opacity / (1.0 - opacity)), np.float32)
+    arrays["features"] = np.full((8, 3), (colour - 0.5) / 0.28209479177387814, np.float32)
+    return SplatSet.from_numpy(**arrays, device=device)
+
+
+def test_a_fit_tells_a_splat_s_opacity_from_its_colour(device, monkeypatch):
+    """On black a splat of opacity a and colour c shows a c G at every pixel (a G below the 0.99
+    clamp), so a fit on black views alone sees only the product: from (0.9, 0.3) toward a
+    reference's (0.5, 0.8) it raises both, and the opacity ends above where it started. On white the
+    splat shows 1 - a G (1 - c) as well, and a fit on both backgrounds brings the opacity down toward
+    0.5. The fit's backward takes the background from the rendered colour, so only the targets and
+    the forward's background differ."""
+    import nanogs_warp.refinement.refine as refine_module
+
+    reference = _one_colour_splats(0.5, 0.8, device)
+    start = _one_colour_splats(0.9, 0.3, device)
+    config = RefineConfig(steps=40, size=48, reference_views=8, lr_means=0.0, lr_rotations=0.0, lr_log_scales=0.0,
+                          lr_opacities=0.1, lr_features_dc=0.05)  # fmt: skip
+
+    def opacity_after():
+        out, report = refine_with_report(start, reference, config)
+        assert report.kept_step > 0
+        return float(np.mean(1.0 / (1.0 + np.exp(-out.to_numpy()["opacities"]))))
+
+    both = opacity_after()
+    monkeypatch.setattr(refine_module, "BACKGROUNDS", ((0.0, 0.0, 0.0),))
+    black = opacity_after()
+    assert black > 0.93 and both < 0.85, (black, both)

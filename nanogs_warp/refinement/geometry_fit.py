@@ -7,7 +7,8 @@ back-propagated together, at SIZE pixels, trained on VIEWS views of the input fr
 opacity and colour stay the merge's. Refining opacity and colour as well gains more on the orbit
 but loses on close views of semi-transparent strands (docs/quality.md); so does training on fewer
 or smaller views. The result is kept only where it renders the held-out views of the input better
-than the size-fitted output did (``refine``'s checkpoint rule, one checkpoint at the end).
+(those on black and those on white alike: ``refine``'s backgrounds) than the size-fitted output
+did (``refine``'s checkpoint rule, one checkpoint at the end).
 
 The smallest outputs (at most LONG_BELOW of the input's splats, each splat standing for a thousand
 originals or more) are fitted longer: LONG_STEPS steps of LONG_VIEWS views each (rendered and

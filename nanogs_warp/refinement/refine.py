@@ -4,7 +4,8 @@ Each step renders the simplified scene from a few training cameras (``cameras``)
 with the original's render of the same camera by L1 + 0.2 (1 - SSIM) (``image_loss``), back-propagates
 through the rasteriser (``render_grad``) and takes an Adam step on every parameter group with 3DGS's
 per-group learning rates (the means' scaled by the scene's extent and decayed tenfold over the run).
-The original's renders are made once, for a pool of cameras the steps then draw from. No splat is
+The original's renders are made once, for a pool of cameras the steps then draw from, half of them
+on a black background and half on white (``BACKGROUNDS``). No splat is
 added or removed; after each step quaternions are renormalised and log-scales and opacity logits are
 clamped to finite ranges. Everything stays on the splats' device; the host reads one scalar per
 progress report. The same inputs, seed and device give the same bytes.
@@ -38,6 +39,12 @@ from .render_grad import GradRasteriser, SplatGradients, camera_array
 LOSS_VIEWS = 8  # pool views on which the training loss before and after is measured
 VALIDATION_VIEWS = 8  # held-out views (never trained on) that choose which checkpoint to return
 CHECKPOINTS = (0.25, 0.5, 0.75, 1.0)  # fractions of the run at which the held-out loss is measured
+# View k of a set of reference views (training or held out) is rendered on BACKGROUNDS[k % 2], and a
+# step trains on views of one background (``step_views``). On black alone, a pixel that one splat
+# covers shows only its opacity times its colour, so a fit may trade one for the other unseen there
+# and show it on every other background; on white the pixel shows the opacity too (docs/quality.md,
+# "The fits trained on black and white backgrounds").
+BACKGROUNDS = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
 # Memory a refinement takes on its device, measured on the CPU (the bundled sample, --refine-size 512
 # and 1024): about 930 bytes a pixel of a training view for a step's renders, gradients and SSIM maps
 # (times the views a step renders together), and 12 (RGB float32) a pixel for every reference view
@@ -134,16 +141,20 @@ def _copy(splats: SplatSet, device) -> SplatSet:
     return splats.clone(device)
 
 
+def view_background(k: int) -> wp.vec3:
+    """The background of view k of a set of reference views (``BACKGROUNDS``)."""
+    return wp.vec3(*BACKGROUNDS[k % len(BACKGROUNDS)])
+
+
 def _render_views(reference: SplatSet, cameras, device, moments: bool = True) -> Targets:
-    """``reference`` rendered from each camera on a black background into one stack (V, H, W, 3), H
-    and W the largest views': view k in the top-left corner of [k] (zeros beyond its size); with its
+    """``reference`` rendered from each camera k on ``view_background(k)`` into one stack (V, H, W, 3),
+    H and W the largest views': view k in the top-left corner of [k] (zeros beyond its size); with its
     blurred terms where ``moments`` (``target_views``)."""
     rasteriser = _Rasteriser(reference)
-    black = wp.vec3(0.0, 0.0, 0.0)
     height, width = max(c.height for c in cameras), max(c.width for c in cameras)
     stack = wp.zeros((len(cameras), height, width, 3), dtype=wp.float32, device=device)
     for k, camera in enumerate(cameras):
-        rasteriser.render_into(camera, black, stack, k)
+        rasteriser.render_into(camera, view_background(k), stack, k)
     return target_views(stack, [(c.width, c.height) for c in cameras], moments)
 
 
@@ -281,13 +292,14 @@ class _Refiner:
 
     def views_loss(self, cameras, chosen: list[int], targets: Targets, weight: float, params: wp.array | None = None,
                    specs: wp.array | None = None, step: bool = False) -> tuple[wp.array, wp.array, ImageLoss]:  # fmt: skip
-        """Renders ``cameras`` together and compares view v with targets[chosen[v]], each weighted
-        ``weight``; returns the image, dL/dimage and the loss (``backward`` then adds weight
-        dL/dparams of each view, view after view). ``params`` and ``specs``: the cameras'
+        """Renders ``cameras`` together on the background of targets[chosen[0]] (``view_background``:
+        every chosen view's, ``step_views``) and compares view v with targets[chosen[v]], each weighted
+        ``weight``; returns the image, dL/dimage and the loss (``backward`` then adds weight dL/dparams
+        of each view, view after view). ``params`` and ``specs``: the cameras'
         ``camera_array`` and ``loss_views`` already on the device (else copied there here, each copy
         a wait for the device). ``step``: a training step's views, which ``backward`` follows."""
         image, grad_image, loss = self.buffers(cameras)
-        self.rasteriser.forward(cameras, wp.vec3(0.0, 0.0, 0.0), image, params, keep_weights=step and self.colours_only,
+        self.rasteriser.forward(cameras, view_background(chosen[0]), image, params, keep_weights=step and self.colours_only,
                                 walked_back=step)  # fmt: skip
         if specs is None:
             specs = wp.array(self.loss_views(cameras, chosen, weight), dtype=image_kernels.LossView, device=self.device)
@@ -297,6 +309,13 @@ class _Refiner:
     def mean_loss(self, cameras, targets: Targets) -> float:
         """The mean loss of ``cameras`` against the first of ``targets``, one view at a time."""
         return float(np.mean([self.views_loss([c], [k], targets, 1.0)[2].value() for k, c in enumerate(cameras)]))
+
+    def background_losses(self, cameras, targets: Targets) -> np.ndarray:
+        """The mean loss of each background's views of ``cameras`` (view k on ``view_background(k)``)
+        against the first of ``targets``, one view at a time: float64, one a background."""
+        losses = [self.views_loss([c], [k], targets, 1.0)[2].value() for k, c in enumerate(cameras)]
+        backgrounds = min(len(losses), len(BACKGROUNDS))
+        return np.array([np.mean(losses[b::backgrounds]) for b in range(backgrounds)])
 
     def adam(self, step: int) -> None:
         c = self.config
@@ -315,6 +334,25 @@ class _Refiner:
             adam_kernels.constrain_splats, s.count,
             [lo, hi + math.log(self.extent), *c.logit_range, s.rotations, s.log_scales, s.opacities], self.device,
         )  # fmt: skip
+
+
+def step_views(pool: int, steps: int, views_per_step: int, seed: int) -> list[list[int]]:
+    """The pool views each step trains on: step s on ``views_per_step`` views of background s mod 2
+    (``view_background``; all of them black in a pool of one), each background's views drawn in
+    permutations of their own, so that every one of them is drawn once before any is drawn again."""
+    rng = np.random.default_rng([seed, 0xADA])
+    backgrounds = min(pool, len(BACKGROUNDS))
+    orders: list[list[int]] = [[] for _ in range(backgrounds)]
+    steps_views = []
+    for step in range(steps):
+        order, members = orders[step % backgrounds], range(step % backgrounds, pool, backgrounds)
+        chosen = []
+        for _ in range(views_per_step):
+            if not order:
+                order.extend(members[i] for i in rng.permutation(len(members)).tolist())
+            chosen.append(order.pop())
+        steps_views.append(chosen)
+    return steps_views
 
 
 def refine_with_report(
@@ -362,9 +400,12 @@ def refine_with_report(
     if loss_views:
         report.loss_before = refiner.mean_loss(cameras[:loss_views], targets)
     # The held-out views: the run returns the checkpoint (or the input) that renders them best,
-    # so a run that overfits its training views never hands back a scene worse than it started.
+    # so a run that overfits its training views never hands back a scene worse than it started;
+    # best on each background's views (``background_losses``), so that it never buys the likeness
+    # on one background with the other's.
     held_out, held_out_targets = views.held_out, views.held_out_targets
-    report.validation_before = report.validation_after = refiner.mean_loss(held_out, held_out_targets)
+    kept_losses = refiner.background_losses(held_out, held_out_targets)
+    report.validation_before = report.validation_after = float(np.mean(kept_losses))
     best = _copy(refiner.splats, device)
     checkpoints = {max(1, round(f * config.steps)) for f in checkpoints}
 
@@ -372,15 +413,8 @@ def refine_with_report(
     weight = 1.0 / config.views_per_step
     # Every step's views, drawn before the first: their cameras and loss weights go to the device
     # in one copy each, not one a step (each copy waits for the device)
-    rng = np.random.default_rng([config.seed, 0xADA])
-    order: list[int] = []
     schedule = []
-    for step in range(config.steps):
-        chosen = []
-        for _ in range(config.views_per_step):
-            if not order:
-                order = rng.permutation(pool).tolist()
-            chosen.append(order.pop())
+    for step, chosen in enumerate(step_views(pool, config.steps, config.views_per_step, config.seed)):
         step_cameras = coarse_cameras if step < config.coarse_steps else cameras
         schedule.append((chosen, [step_cameras[k] for k in chosen]))
     step_params = camera_array([c for _, step_cameras in schedule for c in step_cameras], device)
@@ -407,9 +441,9 @@ def refine_with_report(
         sync()
         report.seconds_optimiser += time.perf_counter() - t4
         if step + 1 in checkpoints:
-            held_out_loss = refiner.mean_loss(held_out, held_out_targets)
-            if held_out_loss < report.validation_after:
-                report.validation_after, report.kept_step = held_out_loss, step + 1
+            losses = refiner.background_losses(held_out, held_out_targets)
+            if (losses < kept_losses).all():
+                kept_losses, report.validation_after, report.kept_step = losses, float(np.mean(losses)), step + 1
                 for target, source in zip(best.arrays(), refiner.splats.arrays()):
                     wp.copy(target, source)
         if on_step is not None:
