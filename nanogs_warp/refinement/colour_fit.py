@@ -7,9 +7,9 @@ A merge averages its pair's colours with weights, and the merged splat's colour 
 of what the pair showed; an input splat that no merge touched has the colour the input was trained
 to. So the fit is the geometry fit's short refinement (``geometry_fit.STEPS`` steps of
 ``geometry_fit.STEP_VIEWS`` views on the same views of the input, kept only where its held-out
-views render better, on black and on white alike) with every rate at 0 but the colours' (3DGS's, ``RefineConfig``'s
-defaults); of its result only the merged rows' colours are taken: every row that no merge made keeps
-its own colour, and no other value changes. In an output whose geometry was fitted (at most
+views render better, on black and on white alike) with every rate at 0 but the colours' (3DGS's,
+``RefineConfig``'s defaults); of its result only the merged rows' colours are taken: every row that
+no merge made keeps its own colour, and no other value changes. In an output whose geometry was fitted (at most
 ``size_fit.GEOMETRY_FIT_BELOW`` of the input) the merged rows' opacities are fitted and taken too
 (3DGS's opacity rate), in OPACITY_STEPS steps: a splat moved and reshaped to what the input shows
 keeps an opacity the merge chose for its old shape. There it gained in every scene and camera set

@@ -306,14 +306,18 @@ class _Refiner:
         loss.of_views(image, targets, grad_image, specs)
         return image, grad_image, loss
 
+    def view_losses(self, cameras, targets: Targets) -> list[float]:
+        """The loss of each of ``cameras`` against the first of ``targets``, one view at a time."""
+        return [self.views_loss([c], [k], targets, 1.0)[2].value() for k, c in enumerate(cameras)]
+
     def mean_loss(self, cameras, targets: Targets) -> float:
-        """The mean loss of ``cameras`` against the first of ``targets``, one view at a time."""
-        return float(np.mean([self.views_loss([c], [k], targets, 1.0)[2].value() for k, c in enumerate(cameras)]))
+        """The mean of ``view_losses``."""
+        return float(np.mean(self.view_losses(cameras, targets)))
 
     def background_losses(self, cameras, targets: Targets) -> np.ndarray:
-        """The mean loss of each background's views of ``cameras`` (view k on ``view_background(k)``)
-        against the first of ``targets``, one view at a time: float64, one a background."""
-        losses = [self.views_loss([c], [k], targets, 1.0)[2].value() for k, c in enumerate(cameras)]
+        """The mean of ``view_losses`` over each background's views (view k on ``view_background(k)``):
+        float64, one a background."""
+        losses = self.view_losses(cameras, targets)
         backgrounds = min(len(losses), len(BACKGROUNDS))
         return np.array([np.mean(losses[b::backgrounds]) for b in range(backgrounds)])
 
