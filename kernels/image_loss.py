@@ -25,8 +25,9 @@ Several views at once: X is (V, H, W, 3), Y a stack of targets, and view v compa
 target ``views[v].target``, both of its own size ``views[v].width`` x ``views[v].height`` in the
 top-left corner (H, W at least every view's). A loss is four passes of the separable blur, each
 thread RUN pixels side by side along the pass's axis (``blur_threads``; view-major, then row-major),
-over the view's (X, X^2, XY) (``ssim_inputs``) and then the partials, the second and fourth also making what the pixel's blurred values give (its SSIM terms, dL/dX), each
-writing only its own pixels; a pixel outside its view's size is left alone, and the blur reads none
+over the view's (X, X^2, XY) (``ssim_inputs``) and then the partials, the second and fourth also
+making what the pixel's blurred values give (its SSIM terms, dL/dX), each writing only its own
+pixels; a pixel outside its view's size is left alone, and the blur reads none
 (its zero padding is at the view's own edges), so each view's loss and gradient are the bits of
 that view computed alone.
 """

@@ -146,6 +146,12 @@ def view_background(k: int) -> wp.vec3:
     return wp.vec3(*BACKGROUNDS[k % len(BACKGROUNDS)])
 
 
+def backgrounds_of(views: int) -> int:
+    """How many backgrounds a set of ``views`` reference views shows (``view_background``): a set of
+    one is all black."""
+    return min(views, len(BACKGROUNDS))
+
+
 def _render_views(reference: SplatSet, cameras, device, moments: bool = True) -> Targets:
     """``reference`` rendered from each camera k on ``view_background(k)`` into one stack (V, H, W, 3),
     H and W the largest views': view k in the top-left corner of [k] (zeros beyond its size); with its
@@ -318,7 +324,7 @@ class _Refiner:
         """The mean of ``view_losses`` over each background's views (view k on ``view_background(k)``):
         float64, one a background."""
         losses = self.view_losses(cameras, targets)
-        backgrounds = min(len(losses), len(BACKGROUNDS))
+        backgrounds = backgrounds_of(len(losses))
         return np.array([np.mean(losses[b::backgrounds]) for b in range(backgrounds)])
 
     def adam(self, step: int) -> None:
@@ -345,7 +351,7 @@ def step_views(pool: int, steps: int, views_per_step: int, seed: int) -> list[li
     (``view_background``; all of them black in a pool of one), each background's views drawn in
     permutations of their own, so that every one of them is drawn once before any is drawn again."""
     rng = np.random.default_rng([seed, 0xADA])
-    backgrounds = min(pool, len(BACKGROUNDS))
+    backgrounds = backgrounds_of(pool)
     orders: list[list[int]] = [[] for _ in range(backgrounds)]
     steps_views = []
     for step in range(steps):
