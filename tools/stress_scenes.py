@@ -3,7 +3,7 @@ of, made deterministically (seeded) so that anyone can rebuild them; nothing is 
 
     python tools/stress_scenes.py OUT_DIR [--scale 1.0]
 
-Writes five INRIA 3DGS PLY files (SH degree 1, sizes and opacities in the ranges of trained scenes:
+Writes seven INRIA 3DGS PLY files (SH degree 1, sizes and opacities in the ranges of trained scenes:
 log-scales about -7 to -2, opacities from faint to opaque; the unbounded scene's distant splats up
 to about one unit, as trainers make a capture's far background):
 
@@ -15,9 +15,15 @@ to about one unit, as trainers make a capture's far background):
   splats fewer and larger with distance), a far shell of large opaque splats (sky and a tree line)
   and a detailed centre (a striped ball and a semi-transparent bush). Up is -y, as ``eval``'s
   default; ``eval``'s orbit lies between the ground's edge and the shell.
+- ``stress_texture.ply``: printed and patterned surfaces (a picture with lettering on a wall, a rug, a
+  labelled can), their splats as a trainer leaves them: sizes spread about the spacing, stretched
+  and layered, a third of them faint.
+- ``stress_glossy.ply``: shiny objects (a ball, a torus, a box) whose highlight moves with the view:
+  degree-1 SH terms as large as 0.45 in colour.
 
 ``--scale`` multiplies every splat count (1.0: 60k to 120k splats a scene). The first four scenes
-are those of the measurements in docs/quality.md before the fifth was added.
+are those of the measurements in docs/quality.md before the fifth was added, the first five those
+before the last two were.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import numpy as np
 
 SH_DEGREE = 1
 SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199  # the degree-1 real SH basis' factor
 R_GROUND = 3.0  # the unbounded scene's ground radius; its far shell lies at 12 to 18
 
 
@@ -216,7 +223,121 @@ def unbounded(rng, scale: float) -> dict[str, np.ndarray]:
     return _concat([ball, bush, ground, far])
 
 
-SCENES = {"stress_fur": fur, "stress_grass": grass, "stress_panels": panels, "stress_backdrop": backdrop, "stress_unbounded": unbounded}
+def _value_noise(u: np.ndarray, v: np.ndarray, freq: float, seed: int) -> np.ndarray:
+    """Smooth value noise in [0, 1] at (u, v): random values on a grid of ``freq`` cells a unit
+    (hashed from the cell and ``seed``), blended with smoothstep weights."""
+    x, y = u * freq, v * freq
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = x - x0, y - y0
+    fx, fy = fx * fx * (3 - 2 * fx), fy * fy * (3 - 2 * fy)
+
+    def cell(i, j):
+        k = (i * 73856093) ^ (j * 19349663) ^ (seed * 83492791)
+        k = (k ^ (k >> 13)) * 1274126177
+        return ((k ^ (k >> 16)) & 0xFFFF) / 65535.0
+
+    a, b, c, d = cell(x0, y0), cell(x0 + 1, y0), cell(x0, y0 + 1), cell(x0 + 1, y0 + 1)
+    return (a * (1 - fx) + b * fx) * (1 - fy) + (c * (1 - fx) + d * fx) * fy
+
+
+def _printed(u: np.ndarray, v: np.ndarray, seed: int, palette: np.ndarray) -> np.ndarray:
+    """The colour of a printed picture at surface coordinates (u, v) in [0, 1]^2: regions of the
+    palette's colours from four octaves of value noise, rows of thin dark bars like lettering, and
+    a sharp-edged frame."""
+    octaves = [3, 7, 17, 41]
+    t = sum(_value_noise(u, v, f, seed + o) / (o + 1) for o, f in enumerate(octaves)) / sum(1 / (o + 1) for o in range(len(octaves)))
+    index = np.clip((t * len(palette)).astype(int), 0, len(palette) - 1)
+    rgb = palette[index] * (0.85 + 0.3 * (t * len(palette) - index))[:, None]
+    row = np.floor(v * 24)
+    lettering = ((v * 24 - row) < 0.35) & (row % 3 == 1) & (_value_noise(u * 3.0, row / 24.0, 9, seed + 9) > 0.5)
+    rgb = np.where(lettering[:, None], [0.08, 0.07, 0.06], rgb)
+    frame = (u < 0.04) | (u > 0.96) | (v < 0.04) | (v > 0.96)
+    return np.clip(np.where(frame[:, None], [0.55, 0.4, 0.15], rgb), 0, 1)
+
+
+def _trained_surface(rng, means, normals, spacing: float, rgb) -> dict[str, np.ndarray]:
+    """Splats on a surface as a trainer leaves them: sizes log-normal about the centres' spacing,
+    stretched up to 3:1 in the surface at random, thin along the normal, a few layers deep; about a
+    third of them faint (opacity 0.05 to 0.5), the rest nearly opaque."""
+    n = len(means)
+    means = means + normals * rng.normal(scale=0.15 * spacing, size=(n, 1))
+    size = spacing * np.exp(rng.normal(scale=0.45, size=n))
+    stretch = np.exp(rng.uniform(0, np.log(3.0), n))
+    log_scales = np.log(np.stack([size * np.sqrt(stretch), size / np.sqrt(stretch), 0.05 * size], 1))
+    opacity = np.where(rng.random(n) < 0.35, rng.uniform(0.05, 0.5, n), rng.uniform(0.75, 0.99, n))
+    return _splats(means, normals, log_scales, opacity, np.clip(rgb + rng.normal(scale=0.03, size=rgb.shape), 0, 1), rng)
+
+
+def texture(rng, scale: float) -> dict[str, np.ndarray]:
+    """Printed and patterned surfaces: a picture on a wall, a rug on the floor and a labelled can
+    standing on it (up -y), each a ``_trained_surface`` coloured by ``_printed``."""
+    palettes = [
+        np.array([[0.8, 0.2, 0.15], [0.95, 0.85, 0.6], [0.2, 0.35, 0.6], [0.3, 0.55, 0.3], [0.9, 0.6, 0.2]]),
+        np.array([[0.55, 0.1, 0.12], [0.85, 0.75, 0.55], [0.15, 0.2, 0.35], [0.7, 0.45, 0.25]]),
+        np.array([[0.95, 0.95, 0.92], [0.85, 0.1, 0.1], [0.1, 0.1, 0.1], [0.95, 0.8, 0.1]]),
+    ]
+    n = int(45000 * scale)  # the picture: z = -0.5, x in [-1, 1], y in [-0.7, 0.7]
+    uv = rng.random((n, 2))
+    means = np.stack([uv[:, 0] * 2 - 1, uv[:, 1] * 1.4 - 0.7, np.full(n, -0.5)], 1)
+    picture = _trained_surface(rng, means, np.tile([0, 0, 1.0], (n, 1)), np.sqrt(2.8 / n), _printed(uv[:, 0], uv[:, 1], 1, palettes[0]))
+    n = int(35000 * scale)  # the rug: y = 0.6
+    uv = rng.random((n, 2))
+    means = np.stack([uv[:, 0] * 1.6 - 0.8, np.full(n, 0.6), uv[:, 1] * 1.2 - 0.4], 1)
+    rug = _trained_surface(rng, means, np.tile([0, 1.0, 0], (n, 1)), np.sqrt(1.92 / n), _printed(uv[:, 0], uv[:, 1], 2, palettes[1]))
+    n = int(20000 * scale)  # the can: radius 0.2, height 0.5
+    uv = rng.random((n, 2))
+    angle = uv[:, 0] * 2 * np.pi
+    normals = np.stack([np.cos(angle), np.zeros(n), np.sin(angle)], 1)
+    means = np.stack([0.2 * np.cos(angle) + 0.3, 0.6 - uv[:, 1] * 0.5, 0.2 * np.sin(angle) + 0.1], 1)
+    can = _trained_surface(rng, means, normals, np.sqrt(2 * np.pi * 0.2 * 0.5 / n), _printed(uv[:, 0], uv[:, 1], 3, palettes[2]))
+    return _concat([picture, rug, can])
+
+
+def _shiny(rng, means, normals, spacing: float, base) -> dict[str, np.ndarray]:
+    """A ``_trained_surface`` of one base colour whose degree-1 SH terms add a white highlight that
+    follows the view: strength (d . l) for a fixed direction l, strength 0.25 to 0.45 times how far
+    the surface faces l (the degree-1 basis in the INRIA order is (-C1 y, C1 z, -C1 x))."""
+    n = len(means)
+    out = _trained_surface(rng, means, normals, spacing, np.tile(base, (n, 1)))
+    light = np.array([0.5, -0.7, 0.5]) / np.linalg.norm([0.5, -0.7, 0.5])
+    strength = rng.uniform(0.25, 0.45, n) * np.clip(normals @ light + 0.3, 0, None)
+    coefficients = np.array([-light[1], light[2], -light[0]]) / SH_C1
+    rest = out["features"][:, 3:].reshape(n, 3, 3)  # f_rest is channel-major: (channel, coefficient)
+    rest += (strength[:, None, None] * coefficients[None, None, :]).astype(np.float32)
+    out["features"][:, 3:] = rest.reshape(n, 9)
+    return out
+
+
+def glossy(rng, scale: float) -> dict[str, np.ndarray]:
+    """Shiny objects whose colour changes with the view (``_shiny``): a ball, a torus and a box."""
+    n = int(40000 * scale)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ball = _shiny(rng, d * 0.35 + [-0.45, 0, 0], d, 0.35 * np.sqrt(4 * np.pi / n), [0.6, 0.1, 0.1])
+    n = int(40000 * scale)
+    a, b = rng.uniform(0, 2 * np.pi, n), rng.uniform(0, 2 * np.pi, n)
+    big, small = 0.3, 0.1
+    normals = np.stack([np.cos(a) * np.cos(b), np.sin(b), np.sin(a) * np.cos(b)], 1)
+    centres = np.stack([big * np.cos(a), np.zeros(n), big * np.sin(a)], 1) + small * normals + [0.45, 0, 0]
+    torus = _shiny(rng, centres, normals, np.sqrt(4 * np.pi**2 * big * small / n), [0.15, 0.3, 0.65])
+    n = int(30000 * scale)
+    face = rng.integers(0, 6, n)
+    uv = rng.uniform(-1, 1, (n, 2))
+    points, normals = np.zeros((n, 3)), np.zeros((n, 3))
+    for axis in range(3):
+        on = face % 3 == axis
+        sign = np.where(face[on] < 3, 1.0, -1.0)
+        others = [o for o in range(3) if o != axis]
+        points[on, axis] = normals[on, axis] = sign
+        points[on, others[0]], points[on, others[1]] = uv[on, 0], uv[on, 1]
+    box = _shiny(rng, points * 0.2 + [0, 0.2, 0.5], normals, 0.2 * np.sqrt(24 / n), [0.75, 0.65, 0.2])
+    return _concat([ball, torus, box])
+
+
+SCENES = {
+    "stress_fur": fur, "stress_grass": grass, "stress_panels": panels, "stress_backdrop": backdrop, "stress_unbounded": unbounded,
+    "stress_texture": texture, "stress_glossy": glossy,
+}  # fmt: skip
 
 
 def write_scene(arrays: dict[str, np.ndarray], path: Path) -> None:
