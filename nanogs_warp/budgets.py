@@ -69,7 +69,7 @@ def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
         raise InputError("give exactly one of --ratio or --count")
     text = ratio if ratio is not None else count
     tokens = [t.strip() for t in text.split(",")]
-    if not tokens or any(not t or not t.isascii() for t in tokens):
+    if not tokens or any(not t or not t.isascii() or "_" in t for t in tokens):  # Python's 1_000 is no number a user types
         raise InputError(f"cannot read budgets from {text!r}: expected comma-separated numbers")
     budgets = []
     for token in tokens:

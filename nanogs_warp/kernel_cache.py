@@ -11,6 +11,7 @@ several GPU generations once it holds a binary for each.
 
 from __future__ import annotations
 
+import errno
 import importlib
 import json
 import os
@@ -226,6 +227,10 @@ def _force_load(modules: list, devices: list, to_compile: int) -> None:
         wp.force_load(device=devices, modules=modules, max_workers=workers if workers > 1 else 0)
     except json.JSONDecodeError as e:  # a module's metadata file in the cache is not JSON
         raise RuntimeError(f"Failed to load a kernel module: its metadata in the cache is not JSON ({e})") from e
+    except OSError as e:  # the cache's disk is full: not the command's output, which a bare ENOSPC would say
+        if e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EIO):
+            raise InputError(f"kernel cache {wp.config.kernel_cache_dir}: cannot write the compiled kernels: {e.strerror}") from e
+        raise
 
 
 def damaged_cache(error: BaseException) -> str | None:

@@ -455,12 +455,19 @@ def test_errors_about_names_and_json_stay_one_line(scene, tmp_path):
     assert result.exit_code == 2 and "is not a plain file name" in result.stderr and result.stderr.count("\n") == 1
 
 
-def test_a_closed_stdout_is_not_an_error(scene, tmp_path):
-    """Started with stdout closed (>&-), a command runs and exits 0 (a traceback and exit 1 before);
-    with stdout on a full disk, one line and exit 2."""
+def test_output_that_cannot_be_written_is_one_line_and_exit_code_2(scene, tmp_path):
+    """Started with stdout closed (>&-), a command with something to print says that it cannot and
+    exits 2, its outputs in place (it exited 0, the printout lost, and a traceback before that); one
+    that prints nothing (-q) exits 0. With stdout on a full disk, one line and exit 2."""
     command = [sys.executable, "-m", "nanogs_warp", "info", str(scene)]
     closed = subprocess.run(["bash", "-c", '"$@" >&-', "_", *command], capture_output=True, text=True, timeout=120)
-    assert closed.returncode == 0 and closed.stderr == ""
+    assert closed.returncode == 2 and closed.stderr == "nanogs-warp: error: cannot write the command's output: standard output is closed\n"
+    out = tmp_path / "o.ply"
+    simplify = [sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out), "--ratio", "0.5", "--device", "cpu"]
+    summary = subprocess.run(["bash", "-c", '"$@" >&-', "_", *simplify, "--json"], capture_output=True, text=True, timeout=300)
+    assert summary.returncode == 2 and summary.stderr.count("\n") == 1 and out.exists()
+    quiet = subprocess.run(["bash", "-c", '"$@" >&-', "_", *simplify, "-w", "-q"], capture_output=True, text=True, timeout=300)
+    assert quiet.returncode == 0 and quiet.stderr == ""
     if os.path.exists("/dev/full"):
         with open("/dev/full", "w") as full:
             result = subprocess.run(command, stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
@@ -481,7 +488,7 @@ def test_a_command_started_with_every_standard_stream_closed_reads_its_input(sce
     """<&- >&- 2>&-: the input file was opened as descriptor 2, which Warp's start then pointed at a
     file of its own and back, so the read found "the file is empty" (exit 2, no output)."""
     out = tmp_path / "o.ply"
-    command = [sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out), "--ratio", "0.5", "--device", "cpu"]
+    command = [sys.executable, "-m", "nanogs_warp", "simplify", str(scene), "-o", str(out), "--ratio", "0.5", "--device", "cpu", "-q"]
     closed = subprocess.run(["bash", "-c", '"$@" <&- >&- 2>&-', "_", *command], capture_output=True, text=True, timeout=300)
     assert closed.returncode == 0 and out.exists()
     # the race, made certain: the first file opened after the console script's start is not on 0-2

@@ -17,6 +17,7 @@ from pathlib import Path
 from ..budgets import Budget, parse_budgets
 from ..config import SimplifyConfig
 from ..errors import InputError
+from ..io.open_file import file_identity
 from ..refinement.config import RefineConfig
 
 RECORD_SUFFIX = ".nanogs.json"
@@ -106,7 +107,7 @@ def find_scenes(
     path = Path(input)
     out_dir = Path(out_dir)
     if path.is_dir():
-        if path.resolve() == out_dir.resolve():
+        if path.resolve() == out_dir.resolve() or _same_folder(path, out_dir):
             raise InputError(f"the output directory {out_dir} is the input directory; choose another one")
         root, entries = path, [(p, {}) for p in _walk_ply(path, skip=out_dir)]
         what = f"no .ply files under {path} (nor .spz, .sog or .splat files)"
@@ -118,9 +119,7 @@ def find_scenes(
         what = f"{path.name}: the manifest lists no scenes"
     elif _GLOB_CHARS & set(input):
         root = _glob_root(input)
-        skip = out_dir.resolve()
-        entries = [(Path(p), {}) for p in _glob(input)
-                   if _is_scene(p) and Path(p).is_file() and skip not in Path(p).resolve().parents]  # fmt: skip
+        entries = [(Path(p), {}) for p in _glob(input) if _is_scene(p) and Path(p).is_file() and not _inside(Path(p), out_dir)]
         what = f"no .ply files match {input!r} (nor .spz, .sog or .splat files)"
     else:
         raise InputError(f"{input}: no such file, directory or glob pattern")
@@ -186,13 +185,39 @@ def largest_first(jobs: list[SceneJob]) -> list[SceneJob]:
 # ----------------------------------------------------------------------------------------------
 
 
-def _walk_ply(root: Path, skip: Path) -> list[Path]:
-    skip = skip.resolve()
+def _walk_ply(root: Path, skip: Path | None = None) -> list[Path]:
+    """The scene files below ``root`` (hidden files and folders left out), leaving out the folder
+    ``skip`` (the output folder) however it is reached."""
+    skip_ids = {file_identity(skip)} - {None} if skip is not None else set()
     found = []
     for directory, subdirs, files in os.walk(root):
-        subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and (Path(directory) / d).resolve() != skip)
+        subdirs[:] = sorted(d for d in subdirs if not d.startswith(".") and file_identity(Path(directory) / d) not in skip_ids)
         found += [Path(directory) / f for f in files if _is_scene(f) and not f.startswith(".")]
     return found
+
+
+def _same_folder(a: Path, b: Path) -> bool:
+    """Whether two paths name the same existing folder, by identity (``file_identity``)."""
+    identity = file_identity(a)
+    return identity is not None and identity == file_identity(b)
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    """Whether ``path`` lies inside ``folder`` (by the identity of each of its resolved parents)."""
+    identity = file_identity(folder)
+    return identity is not None and any(file_identity(parent) == identity for parent in Path(os.path.realpath(path)).parents)
+
+
+def scenes_left_out(input: str, out_dir: Path, jobs: list[SceneJob]) -> list[Path]:
+    """The scene files of a folder ``input`` that the batch leaves out because they lie inside the
+    output folder ``out_dir`` (which is inside ``input``), other than the batch's own outputs: a
+    folder of outputs inside the input is skipped, so that its outputs are never read as scenes,
+    and with it whatever else is there."""
+    path = Path(input)
+    if not path.is_dir() or not out_dir.is_dir() or not _inside(out_dir, path):
+        return []
+    own = {os.path.realpath(p) for job in jobs for p in (job.record_path, *(job.output_path(b) for b in job.budgets))}
+    return [p for p in _walk_ply(out_dir) if os.path.realpath(p) not in own]
 
 
 def _is_scene(name: str) -> bool:
@@ -382,9 +407,11 @@ def _check_unique(jobs: list[SceneJob]) -> None:
             raise InputError(f"{seen[key]} and {job.relative} would write the same outputs ({job.out_dir / job.stem}_*)")
         seen[key] = job.relative
     inputs = {os.path.realpath(job.input): job.relative for job in jobs}
+    identities = {file_identity(job.input): job.relative for job in jobs}  # the same file by another path (a folder mounted twice)
+    identities.pop(None, None)
     for job in jobs:
         for path in (job.record_path, *(job.output_path(b) for b in job.budgets)):
-            scene = inputs.get(os.path.realpath(path))
+            scene = inputs.get(os.path.realpath(path)) or identities.get(file_identity(path))
             if scene is not None:
                 raise InputError(f"{job.relative}'s output {path} is the scene {scene} of this batch; "
                                  "choose an output folder outside the scenes")  # fmt: skip

@@ -146,6 +146,9 @@ def simplify(
     if lod_set and _is_folder(output):
         output = str(Path(output) / "lod-meta.json")
     elif lod_set:  # the set's file is lod-meta.json, whatever case the name was given in
+        if Path(output).name.lower() != "lod-meta.json":  # never a file of another name, nor one nobody named
+            raise InputError(f"{Path(output).name}: --format lod writes a level-of-detail set as lod-meta.json beside "
+                             "its levels; name the output lod-meta.json or give a folder")  # fmt: skip
         output = str(Path(output).with_name("lod-meta.json"))
     if fmt == "sog" and Path(output).suffix.lower() == ".json" and len(budgets) > 1:
         raise InputError(f"{Path(output).name}: several budgets cannot share one unbundled SOG folder; "
@@ -452,18 +455,24 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
     or exist as anything but a regular file. ``folder`` (from -o DIR/) may be created: its parent
     must exist."""
     from ..io import input_files
-    from ..io.open_file import open_regular
+    from ..io.open_file import file_identity, open_regular
 
     from ..io.ply_write import check_name_length
 
     for path in written:  # written beside a temporary ".<name>.<pid>-<12 hex>.tmp"
         check_name_length(path)
+    if not input.exists():  # a missing input is the error to report, not an output named like it
+        open_regular(input).close()  # says why in one line
     try:
         input_resolved = input.resolve()
-        inputs = {p.resolve() for p in input_files(input)}
+        input_paths = input_files(input)
+        inputs = {Path(os.path.realpath(p)) for p in input_paths}  # never raises: a member's link loop is the read's to report
     except (OSError, RuntimeError):  # a loop of symbolic links (a RuntimeError before Python 3.13)
         open_regular(input).close()  # says why in one line
         raise
+    # the same files reached by other paths (a folder mounted twice) by their identities
+    input_id = file_identity(input)
+    input_ids = {file_identity(p) for p in input_paths} - {None}
 
     def resolved(path: Path) -> Path:
         try:
@@ -477,7 +486,7 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
         if not resolved(folder).parent.is_dir():
             raise InputError(f"output folder {folder} cannot be created: {resolved(folder).parent} does not exist")
     for path in outputs:
-        if resolved(path) == input_resolved:
+        if resolved(path) == input_resolved or input_id is not None and file_identity(path) == input_id:
             raise InputError(f"output {path} is the input file; choose another output path")
         parent = resolved(path).parent
         if folder is not None and not folder.is_dir():
@@ -489,7 +498,7 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
         if path.is_dir():
             raise InputError(f"output {path} is a directory")
     for path in written:
-        if resolved(path) in inputs:
+        if resolved(path) in inputs or file_identity(path) in input_ids:
             raise InputError(f"output {path} is one of the input's files; choose another output path")
         if path.exists() and not overwrite:
             raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it")
@@ -541,6 +550,10 @@ def main() -> None:
         for stream in (sys.stdout, sys.stderr):
             try:
                 stream.flush()
-            except OSError:  # a closed pipe or a full disk: what was not written is lost
+            except OSError as e:  # a closed pipe or a full disk: what was not written is lost
+                if not code and stream is sys.stdout:  # said once, as a command's own error would be
+                    with contextlib.suppress(OSError):
+                        sys.stderr.write(f"nanogs-warp: error: cannot write the command's output: {e.strerror}\n")
+                        sys.stderr.flush()
                 code = code or 2
         os._exit(code or 0)

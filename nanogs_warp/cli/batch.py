@@ -64,7 +64,7 @@ def batch_command(
     drop_invalid: Annotated[bool, typer.Option(help="Drop rows with NaN/Inf values, zero quaternions or log-scales beyond +-100 instead of failing the scene.")] = False,
     refine: opts.Refine = False,
     refine_steps: opts.RefineSteps = None,
-    refine_size: opts.RefineSize = RefineConfig.size,
+    refine_size: opts.RefineSizeImplied = None,
     output_format: Annotated[Optional[str], typer.Option("--format", show_default=False, metavar="OUTPUT_FORMAT", help="Output format: ply (default), compressed-ply, spz, sog or splat.")] = None,
     sh_degree: opts.ShDegree = None,
     dry_run: Annotated[bool, typer.Option("--dry-run", help="List the scenes (of this shard) and what a run would do with each: simplify it (and why), skip it as up to date, or fail; records are read and inputs hashed as a run does, the devices are not checked, nothing is written.")] = False,
@@ -75,7 +75,7 @@ def batch_command(
     of a Slurm array, or a Ray cluster. Finished scenes are skipped when run again; one failing
     scene is reported and the others go on (exit code 1 if any failed)."""
     from ..batch.run import BatchProgress, find_scenes, format_summary, parse_shard, plan_batch, run_batch, select_shard, summary_json
-    from ..batch.scenes import OUTPUT_SUFFIXES, SceneDefaults
+    from ..batch.scenes import OUTPUT_SUFFIXES, SceneDefaults, scenes_left_out
     from ..budgets import parse_budgets
 
     started = time.perf_counter()
@@ -103,15 +103,20 @@ def batch_command(
     fmt = output_format or "ply"
     if fmt not in OUTPUT_SUFFIXES:
         raise InputError(f"--format {fmt!r}: batch writes one of {', '.join(OUTPUT_SUFFIXES)}")
-    refine_config = RefineConfig(steps=0, size=refine_size)  # a scene of a manifest may still ask for steps
-    if refine or refine_steps is not None:
-        refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=refine_size)
+    size = RefineConfig.size if refine_size is None else refine_size
+    refine_config = RefineConfig(steps=0, size=size)  # a scene of a manifest may still ask for steps
+    if refine or refine_steps is not None or refine_size is not None:
+        refine_config = RefineConfig(steps=RefineConfig.steps if refine_steps is None else refine_steps, size=size)
         refine_config.validate()
     defaults = SceneDefaults(
         tuple((name, value) for name, value in method_options.items() if value is not None),
         sh_degree, refine_config.steps, refine_config.size,
     )  # fmt: skip
     jobs = find_scenes(input, output, budgets, config, drop_invalid, fmt, defaults)
+    left_out = scenes_left_out(input, output, jobs)
+    if left_out and not quiet:
+        typer.echo(f"nanogs-warp: warning: {len(left_out)} scene file(s) inside the output folder {output} left out "
+                   f"(it lies inside {input}; e.g. {left_out[0]}): give an output folder outside the scenes to simplify them", err=True)  # fmt: skip
     selected = select_shard(jobs, shard_index, shard_count)
     if dry_run:
         _print_plan(plan_batch(selected, force), output, (shard_index, shard_count), json_output)

@@ -7,6 +7,8 @@ Python's garbage collector is paused first, for the command's imports (:mod:`.gc
 interpreter's built-in modules are imported here, so that a Ctrl-C during the imports ends the
 command quietly (exit code 130) instead of with a traceback."""
 
+import errno
+import io
 import os
 import signal
 import sys
@@ -28,9 +30,31 @@ def _open_standard_descriptors() -> None:
             os.fstat(fd)
         except OSError:
             os.open(os.devnull, os.O_RDWR)  # the lowest free descriptor: this one
-    for name in ("stdout", "stderr"):  # what goes to a stream the command was started without is discarded
-        if getattr(sys, name) is None:
-            setattr(sys, name, open(os.devnull, "w"))  # noqa: SIM115 - the process's own stream
+    if sys.stdout is None:  # the command's output cannot be written: printing it fails (exit code 2)
+        sys.stdout = _ClosedOutput()
+    if sys.stderr is None:  # nowhere to say anything: what goes there is discarded, the exit code says it
+        sys.stderr = open(os.devnull, "w")  # noqa: SIM115 - the process's own stream
+
+
+class _ClosedOutput(io.TextIOBase):
+    """Standard output for a command started without one (``>&-``): what is printed is discarded, and
+    flushing after anything was printed fails as a closed descriptor does (EBADF), so that a command
+    with something to print (``info``, a ``--json`` summary) ends, its outputs in place, with exit
+    code 2 and one line on stderr instead of losing it silently; one that prints nothing (``-q``)
+    ends as usual."""
+
+    lost = False
+
+    def writable(self) -> bool:
+        return True
+
+    def write(self, text: str) -> int:
+        self.lost = self.lost or bool(text)
+        return len(text)
+
+    def flush(self) -> None:
+        if self.lost:
+            raise OSError(errno.EBADF, "standard output is closed")
 
 
 def main() -> None:

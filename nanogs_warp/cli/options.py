@@ -88,5 +88,4 @@ def method_config(preset: str, **options):
     return SimplifyConfig.preset(preset, **{name: value for name, value in options.items() if value is not None})
 Refine = Annotated[bool, typer.Option("--refine", help=f"Refine each output toward the input's appearance ({RefineConfig.steps} steps of Adam on renders from training cameras; the count is kept).")]
 RefineSteps = Annotated[Optional[int], typer.Option("--refine-steps", help=f"Refinement steps (implies --refine) [default: {RefineConfig.steps}].", show_default=False, metavar="STEPS")]
-RefineSize = Annotated[int, typer.Option("--refine-size", help=f"Longest side in pixels of the training views of refinement, {MIN_REFINE_SIZE} to {MAX_REFINE_SIZE}.", metavar="PIXELS")]
 RefineSizeImplied = Annotated[Optional[int], typer.Option("--refine-size", help=f"Longest side in pixels of the training views of refinement, {MIN_REFINE_SIZE} to {MAX_REFINE_SIZE} (implies --refine) [default: {RefineConfig.size}].", show_default=False, metavar="PIXELS")]

@@ -20,6 +20,7 @@ from . import compressed_ply, lod, sog, spz, splat
 from .common import check_decoded_memory, dropped_parts, plain_layout, read_file_bytes, top_level_keys
 from .open_file import open_regular
 from .ply import PlyArrays, checked_rows, normalize_quaternions, read_ply_arrays, read_splats, refuse_empty, save_ply, splats_from_host
+from .ply_header import MAX_HEADER_BYTES
 from .ply_layout import PlyLayout
 from .ply_write import OutputSet, atomic_write
 
@@ -63,7 +64,7 @@ def detect_format(path) -> str:
         raise InputError(f"{name}: is a directory without meta.json or lod-meta.json")
     try:
         with open_regular(path) as f:
-            head = f.read(1 << 16)
+            head = f.read(MAX_HEADER_BYTES)  # as much as a PLY header may hold: a long one's elements are past 64 KiB
             size = f.seek(0, 2)
     except OSError as e:
         raise InputError(f"{name}: cannot read the file: {e.strerror or e}") from e

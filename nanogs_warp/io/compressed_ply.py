@@ -11,6 +11,7 @@ precision depends on chunks being compact); rotation components are in PLY order
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,8 @@ from .common import (
 )
 from .ply_header import check_sizes, parse_header
 
+_NEWLINES = re.compile(rb"\r\n|\r|\n")
+
 CHUNK = 256
 MAX_SH_DEGREE = 3
 BOUNDS = ("min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
@@ -41,7 +44,7 @@ SCALE_LIMIT = 20.0  # chunk scale bounds are clamped to [-20, 20], as PlayCanvas
 def looks_compressed(head: bytes) -> bool:
     """Whether a PLY header (the file's first bytes) is a compressed.ply one."""
     end = head.find(b"end_header")
-    lines = [line.split() for line in head[: end if end >= 0 else len(head)].split(b"\n")]
+    lines = [line.split() for line in _NEWLINES.split(head[: end if end >= 0 else len(head)])]  # CR-only lines too
     return any(words[:2] == [b"element", b"chunk"] for words in lines) and any(
         words[:1] == [b"property"] and words[-1:] == [b"packed_position"] for words in lines
     )

@@ -277,6 +277,8 @@ def _read(path, digest, file_hash, threads, prepare: bool, upload=None) -> PlyAr
             header = parse_header(f.read(MAX_HEADER_BYTES), name)
             vertex_h = check_structure(header, name)
             check_sizes(header, file_bytes, name)
+            if header.format == "ascii":
+                check_ascii_numbers(f, header.length, name)
             ply = plyfile.PlyData.read(str(path), mmap="r")
             check_agreement(header, ply, name)
             with np.errstate(all="ignore"):
@@ -293,6 +295,14 @@ def _read(path, digest, file_hash, threads, prepare: bool, upload=None) -> PlyAr
         if isinstance(e, plyfile.PlyElementParseError) and _looks_truncated(e, header, path):
             raise InputError(f"{name}: truncated file ({one_line(e)})") from e
         raise InputError(f"{name}: malformed PLY file: {one_line(e)}") from e
+
+
+def check_ascii_numbers(f, start: int, name: str) -> None:
+    """Refuses an ASCII body whose numbers hold an underscore: Python (and so plyfile) reads 1_0 as
+    10 where C's strtod, and most readers, read 1; no PLY writer puts one there."""
+    for offset in range(start, os.fstat(f.fileno()).st_size, 1 << 24):
+        if b"_" in os.pread(f.fileno(), 1 << 24, offset):
+            raise InputError(f"{name}: malformed PLY file: a number with an underscore in the ASCII data")
 
 
 def check_values(arrays: dict[str, np.ndarray], extra_names: list[str] | None = None) -> ValueCheck:

@@ -44,6 +44,7 @@ _TYPES = {
     **dict.fromkeys(("float64", "double", "f8"), "f8"),
 }
 MAX_HEADER_BYTES = 1 << 20
+_INTEGER = re.compile(r"[+-]?[0-9]+")
 _END_HEADER = re.compile(rb"(?:\r\n|\r|\n)end_header(?:\r\n|\r|\n)")
 _NEWLINE = re.compile(r"\r\n|\r|\n")
 
@@ -118,10 +119,9 @@ def parse_header(head: bytes, name: str) -> Header:
         elif keyword == "element":
             if len(fields) != 2:
                 fail(lineno, "expected 'element NAME COUNT'")
-            try:
-                count = int(fields[1])
-            except ValueError:
+            if not _INTEGER.fullmatch(fields[1]):  # digits only: Python's int() also takes 6_4, which C readers read as 6
                 fail(lineno, f"element count {fields[1]!r} is not an integer")
+            count = int(fields[1])
             if count < 0:
                 fail(lineno, f"element {fields[0]!r} has a negative count")
             if fields[0] in element_names:

@@ -170,7 +170,7 @@ def read_bundled(path: Path) -> dict[str, np.ndarray]:
                 with archive.open(info) as f:
                     data = f.read(limit + 1)
             except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError, RuntimeError) as e:
-                raise InputError(f"{name}: cannot read {member} from the archive ({e})") from None
+                raise InputError(f"{name}: cannot read {member} from the archive ({_short(e)})") from None
             if len(data) > limit:
                 raise InputError(f"{name}: {member} holds more than {limit} bytes")
             return data
@@ -369,4 +369,5 @@ def _is_number(v) -> bool:
 
 def _short(e: BaseException) -> str:
     text = re.sub(r" ?<[^<>]* object at 0x[0-9a-fA-F]+>", "", " ".join(str(e).split()))  # no object reprs
+    text = re.sub(r"<ZipInfo filename='([^']*)'[^<>]*>", r"\1", text)  # zipfile's own: its member's name
     return (text[:120] + "...") if len(text) > 120 else (text or type(e).__name__)
