@@ -5,8 +5,9 @@
 Seeds: the given scene (the shipped sample, nanogs_warp/data/plant_crop.ply, in the suite) and a
 generated scene with SH degree 3 (clustered splats, seeded). Per seed, the families:
 
-  header    vertex counts, property types, formats, missing / repeated / list properties, unknown
-            elements, CRLF line ends, very long headers, missing magic or end_header
+  header    vertex counts (one written with an underscore), property types, formats, missing /
+            repeated / list properties, unknown elements, CRLF and CR line ends, very long headers,
+            missing magic or end_header
   truncate  cuts inside the header, right after it, and across the body
   corrupt   1-40 random body bytes overwritten
   extreme   one row or a tenth of the rows of one property set to a denormal, 1e-38, 1e20,
@@ -113,7 +114,8 @@ def header_cases(data: bytes, n: int, rng: np.random.Generator) -> Iterator[Case
 
     for count in [0, 1, 2, n - 1, n + 1, 2 * n, -1, 2**31, 2**64 + 1]:
         yield Case("header", f"vertex count {count}", join(with_line(vertex, b"element vertex %d" % count), body))
-    for text in (b"1e3", b"x", b""):
+    digits = b"%d" % n
+    for text in (b"1e3", b"x", b"", digits[:1] + b"_" + digits[1:]):  # the last: Python's int() reads it, C's readers not
         yield Case("header", f"vertex count {text!r}", join(with_line(vertex, b"element vertex " + text), body))
     for name in (b"x", b"opacity", b"scale_0", b"rot_0", b"f_dc_2"):
         for new_type in (b"uchar", b"int", b"double", b"list uchar float", b"float128"):
@@ -148,6 +150,7 @@ def header_cases(data: bytes, n: int, rng: np.random.Generator) -> Iterator[Case
         out[vertex:vertex] = additions
         yield Case("header", f"unknown element before vertex: {element.decode()}", join(out, extra + body))
     yield Case("header", "CRLF line ends", join(lines, body, b"\r\n"))
+    yield Case("header", "CR line ends", join(lines, body, b"\r"))
     for comments in (1000, 40000):
         out = list(lines)
         out[2:2] = [b"comment " + b"z" * 40] * comments
