@@ -1,8 +1,9 @@
 """Input files that a seventh round of hostile use found read wrongly: a compressed PLY whose header
 holds more than 64 KiB of comments or ends its lines in CR alone (taken for a plain PLY that lacks
 every 3DGS property), numbers written as Python writes them (6_4, 1_0) that C readers read
-otherwise, an unbundled SOG whose image is a link to itself (an internal error from simplify), and
-an encrypted SOG archive named by a Python object's repr."""
+otherwise, an unbundled SOG whose image is a link to itself (an internal error from simplify), an
+encrypted SOG archive named by a Python object's repr, and a folder without a name of its own (".")
+named as nothing."""
 
 from __future__ import annotations
 
@@ -91,3 +92,9 @@ def test_an_encrypted_sog_member_is_named_without_a_repr(tmp_path):
     with pytest.raises(InputError) as raised:
         read_splat_arrays(path)
     assert "ZipInfo" not in str(raised.value) and "is encrypted" in str(raised.value)
+
+
+def test_a_folder_without_a_name_of_its_own_is_named(tmp_path):
+    """``info ''`` reads the current folder (Path('') is '.'): the message began ": is a directory"."""
+    result = subprocess.run([sys.executable, "-m", "nanogs_warp", "info", ""], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert result.returncode == 2 and result.stderr == "nanogs-warp: error: .: is a directory without meta.json or lod-meta.json\n"

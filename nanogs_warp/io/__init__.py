@@ -56,7 +56,7 @@ def detect_format(path) -> str:
     """The format of an existing file (or SOG/LOD folder), by content; the extension decides only
     when the content has no signature (.splat has none)."""
     path = Path(path)
-    name = path.name
+    name = path.name or str(path)  # "." (an empty argument reads as it) or "/" has no name of its own
     if path.is_dir():
         for inner, fmt in (("lod-meta.json", "lod"), ("meta.json", "sog")):
             if (path / inner).is_file():
