@@ -52,6 +52,11 @@ def format_for_path(path, format: str | None = None) -> str:
     return "ply"
 
 
+# How much of a JSON file is scanned for its top-level keys (``detect_format``): a scan in Python, byte
+# by byte; a lod-meta.json or meta.json names its kind in its first keys.
+JSON_HEAD_BYTES = 1 << 16
+
+
 def detect_format(path) -> str:
     """The format of an existing file (or SOG/LOD folder), by content; the extension decides only
     when the content has no signature (.splat has none)."""
@@ -77,7 +82,7 @@ def detect_format(path) -> str:
     if sog.looks_bundled(head):
         return "sog"
     if head.lstrip()[:1] == b"{":
-        keys = top_level_keys(head)
+        keys = top_level_keys(head[: JSON_HEAD_BYTES])
         if "lodLevels" in keys:
             return "lod"
         if {"means", "quats"} <= keys:

@@ -144,7 +144,10 @@ def top_level_keys(head: bytes) -> set[str]:
             end = at + 1
             while end < n and head[end] != 0x22:
                 end += 2 if head[end] == 0x5C else 1
-            if depth == 1 and head[end + 1 :].lstrip()[:1] == b":":
+            colon = end + 1
+            while colon < n and head[colon] in b" \t\r\n":  # no copy of the rest: a scan in linear time
+                colon += 1
+            if depth == 1 and colon < n and head[colon] == 0x3A:
                 keys.add(head[at + 1 : end].decode("ascii", "replace"))
             at = end + 1
             continue
