@@ -19,7 +19,7 @@ from scene_factory import random_splats_ply
 from nanogs_warp import InputError
 from nanogs_warp.batch.scenes import find_scenes, scenes_left_out
 from nanogs_warp.budgets import parse_budgets
-from nanogs_warp.io.open_file import file_identity
+from nanogs_warp.file_identity import file_identity
 from nanogs_warp.pipeline import SimplifyConfig
 
 FAST = ("--device", "cpu", "--no-fit-geometry", "--no-fit-colour")

@@ -17,7 +17,7 @@ from pathlib import Path
 from ..budgets import Budget, parse_budgets
 from ..config import SimplifyConfig
 from ..errors import InputError
-from ..io.open_file import file_identity
+from ..file_identity import file_identity
 from ..refinement.config import RefineConfig
 
 RECORD_SUFFIX = ".nanogs.json"

@@ -455,7 +455,8 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
     or exist as anything but a regular file. ``folder`` (from -o DIR/) may be created: its parent
     must exist."""
     from ..io import input_files
-    from ..io.open_file import file_identity, open_regular
+    from ..file_identity import file_identity
+    from ..io.open_file import open_regular
 
     from ..io.ply_write import check_name_length
 

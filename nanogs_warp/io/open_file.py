@@ -38,14 +38,3 @@ def open_regular(path: Path):
         os.close(fd)
         raise
 
-
-def file_identity(path) -> tuple[int, int] | None:
-    """(device, inode) of what ``path`` names, links followed; None where nothing is there or it
-    cannot be told. Two paths name the same file or folder exactly when these agree, whatever bind
-    mounts or links lie between them (a volume mounted twice in a container, ``mount --bind``),
-    where comparing resolved paths would not see it."""
-    try:
-        st = os.stat(path)
-    except (OSError, ValueError):  # missing, unreadable, a link loop, a NUL in the name
-        return None
-    return st.st_dev, st.st_ino
