@@ -107,7 +107,7 @@ def find_scenes(
     path = Path(input)
     out_dir = Path(out_dir)
     if path.is_dir():
-        if path.resolve() == out_dir.resolve() or _same_folder(path, out_dir):
+        if _same_folder(path, out_dir):
             raise InputError(f"the output directory {out_dir} is the input directory; choose another one")
         root, entries = path, [(p, {}) for p in _walk_ply(path, skip=out_dir)]
         what = f"no .ply files under {path} (nor .spz, .sog or .splat files)"

@@ -454,8 +454,8 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
     levels besides), none of which may be one of the input's files, exist without ``overwrite``,
     or exist as anything but a regular file. ``folder`` (from -o DIR/) may be created: its parent
     must exist."""
-    from ..io import input_files
     from ..file_identity import file_identity
+    from ..io import input_files
     from ..io.open_file import open_regular
 
     from ..io.ply_write import check_name_length
@@ -465,13 +465,12 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
     if not input.exists():  # a missing input is the error to report, not an output named like it
         open_regular(input).close()  # says why in one line
     try:
-        input_resolved = input.resolve()
         input_paths = input_files(input)
-        inputs = {Path(os.path.realpath(p)) for p in input_paths}  # never raises: a member's link loop is the read's to report
-    except (OSError, RuntimeError):  # a loop of symbolic links (a RuntimeError before Python 3.13)
+    except OSError:
         open_regular(input).close()  # says why in one line
         raise
-    # the same files reached by other paths (a folder mounted twice) by their identities
+    inputs = {Path(os.path.realpath(p)) for p in input_paths}  # never raises: a member's link loop is the read's to report
+    # by identity, the input is the same file whatever path reaches it (a folder mounted twice, a link)
     input_id = file_identity(input)
     input_ids = {file_identity(p) for p in input_paths} - {None}
 
@@ -487,7 +486,7 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
         if not resolved(folder).parent.is_dir():
             raise InputError(f"output folder {folder} cannot be created: {resolved(folder).parent} does not exist")
     for path in outputs:
-        if resolved(path) == input_resolved or input_id is not None and file_identity(path) == input_id:
+        if input_id is not None and file_identity(path) == input_id:
             raise InputError(f"output {path} is the input file; choose another output path")
         parent = resolved(path).parent
         if folder is not None and not folder.is_dir():

@@ -37,4 +37,3 @@ def open_regular(path: Path):
     except BaseException:
         os.close(fd)
         raise
-
