@@ -178,6 +178,17 @@ def test_a_set_of_files_gets_its_own_folder(scene, tmp_path):
     assert plain.exit_code == 2 and "does not exist" in plain.stderr and not (tmp_path / "nd").exists()
 
 
+def test_a_lod_set_into_a_new_folder(scene, tmp_path):
+    """--format lod -o NEW/ was refused as a file not named lod-meta.json: only a folder that
+    already existed was taken for one, where every other output takes -o NEW/ as a folder to make."""
+    result = run("simplify", scene, "-o", f"{tmp_path / 'new'}/", "--format", "lod", "--ratio", "0.5,0.1", "--device", "cpu", "--json")
+    assert result.exit_code == 0, result.output
+    assert {Path(o["path"]) for o in json.loads(result.stdout)["outputs"]} == {tmp_path / "new" / "lod-meta.json"}
+    assert (tmp_path / "new" / "0_0" / "meta.json").is_file() and (tmp_path / "new" / "1_0" / "meta.json").is_file()
+    named = run("simplify", scene, "-o", tmp_path / "other", "--format", "lod", "--ratio", "0.5", "--device", "cpu")
+    assert named.exit_code == 2 and "name the output lod-meta.json or give a folder" in named.stderr
+
+
 def test_a_lod_set_named_in_capitals_and_refine_size_alone(scene, tmp_path):
     """-o LOD-META.JSON wrote lod-meta.json but reported LOD-META.JSON, which no reader found; and
     --refine-size without --refine was silently ignored (it implies --refine, as --refine-steps does)."""

@@ -143,7 +143,7 @@ def simplify(
         raise InputError("give an output path with -o/--output (a file, or a folder ending in /)")
     fmt = format_for_path(output, output_format)
     lod_set = fmt == "lod"
-    if lod_set and _is_folder(output):
+    if lod_set and (output.endswith(("/", os.sep)) or _is_folder(output)):  # a folder, made if new (as -o DIR/ is)
         output = str(Path(output) / "lod-meta.json")
     elif lod_set:  # the set's file is lod-meta.json, whatever case the name was given in
         if Path(output).name.lower() != "lod-meta.json":  # never a file of another name, nor one nobody named
