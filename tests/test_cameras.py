@@ -134,6 +134,12 @@ def test_load_cameras_json_round_trips_the_inria_pose(tmp_path, rng):
         assert (camera.width, camera.height, camera.fx, camera.fy) == (1600, 1040, 1190.0, 1200.0)
 
 
+def test_load_cameras_json_reads_a_near_plane_where_one_is_given(tmp_path, rng):
+    path = tmp_path / "cameras.json"
+    path.write_text(json.dumps([inria_entry(rng, 0), inria_entry(rng, 1) | {"near": 0.004}]))
+    assert [c.near for c in load_cameras_json(path)] == [0.2, 0.004]
+
+
 def test_load_cameras_json_rescales_to_the_longest_side(tmp_path, rng):
     path = tmp_path / "cameras.json"
     path.write_text(json.dumps([inria_entry(rng, 0)]))
@@ -172,6 +178,11 @@ def test_load_cameras_json_rejects_bad_files(tmp_path, text, message):
         ({"width": 10, "height": 10}, "renders 10 x 10 pixels"),  # SSIM's window is 11 a side
         ({"width": 9000, "height": 100}, "renders 9000 x 100 pixels"),
         ({"width": 10**30}, "declares 1000000000000000000000000000000 x 100 pixels, beyond"),
+        ({"near": 0.0}, "near plane must be a positive number"),
+        ({"near": -0.5}, "near plane must be a positive number"),
+        ({"near": float("inf")}, "near plane must be a positive number"),
+        ({"near": float("nan")}, "near plane must be a positive number"),
+        ({"near": "close"}, "malformed"),
     ],
 )
 def test_load_cameras_json_rejects_cameras_no_render_can_use(tmp_path, rng, change, message):

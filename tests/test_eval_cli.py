@@ -233,3 +233,27 @@ def test_each_test_scene_gets_its_own_images_folder_inside_images(scenes, tmp_pa
     assert result.exit_code == 0, result.output
     assert (tmp_path / "run" / "view_000.png").read_text() == "mine" and sorted(p.name for p in (tmp_path / "run").iterdir()) == ["imgs", "view_000.png"]
     assert (tmp_path / "run" / "imgs" / "scene_1" / "view_000.png").is_file()
+
+
+def test_cameras_for_a_scene_in_small_units_carry_their_near_plane(tmp_path):
+    """Cameras a few millimetres from a scene stored in metres lie inside INRIA's 0.2 near plane:
+    every view rendered bare background and eval reported the scenes identical without a word. A
+    cameras file may give each camera's ``near`` (``tools/refine_quality.py`` writes it); without
+    one, a reference that renders as bare background in every view is said in one warning line."""
+    from scene_factory import in_units, random_splat_arrays, write_splats_ply
+
+    arrays = in_units(random_splat_arrays(300, seed=5), -10)  # about a millimetre across
+    write_splats_ply(tmp_path / "ref.ply", arrays)
+    write_splats_ply(tmp_path / "test.ply", {k: v[:150] for k, v in arrays.items()})
+    camera = {"id": 0, "img_name": "a", "width": 40, "height": 30, "fx": 30.0, "fy": 30.0,
+              "position": [0.0, 0.0, -0.005], "rotation": np.eye(3).tolist()}  # fmt: skip
+    (tmp_path / "inria.json").write_text(json.dumps([camera]))
+    (tmp_path / "near.json").write_text(json.dumps([camera | {"near": 0.0005}]))
+    plain = run(tmp_path / "ref.ply", tmp_path / "test.ply", "--cameras", tmp_path / "inria.json", "--device", "cpu", "--json")
+    assert plain.exit_code == 0, plain.output
+    assert json.loads(plain.stdout)["tests"][0]["identical"]
+    assert plain.stderr.count("\n") == 1 and "renders as bare background in every view" in plain.stderr
+    assert "(0.2 world units)" in plain.stderr
+    near = run(tmp_path / "ref.ply", tmp_path / "test.ply", "--cameras", tmp_path / "near.json", "--device", "cpu", "--json")
+    assert near.exit_code == 0, near.output
+    assert near.stderr == "" and 5.0 < json.loads(near.stdout)["tests"][0]["psnr"]["mean"] < 60.0

@@ -69,10 +69,11 @@ def sorted_log_scale_change(before, after) -> list[float]:
 
 
 def cameras_json(cameras: list[Camera]) -> list[dict]:
-    """The INRIA trainer's cameras.json entries (rotation: camera-to-world, rows)."""
+    """The INRIA trainer's cameras.json entries (rotation: camera-to-world, rows), with each camera's
+    near plane (``near``, which ``eval --cameras`` reads: a scene in small units has a nearer one)."""
     return [
         {"id": k, "img_name": c.name, "width": c.width, "height": c.height, "position": c.centre.tolist(),
-         "rotation": np.asarray(c.rotation, np.float64).T.tolist(), "fx": c.fx, "fy": c.fy}
+         "rotation": np.asarray(c.rotation, np.float64).T.tolist(), "fx": c.fx, "fy": c.fy, "near": c.near}
         for k, c in enumerate(cameras)
     ]  # fmt: skip
 

@@ -49,6 +49,8 @@ def eval_command(
 ) -> None:
     """Render the reference and each test scene from identical cameras and report PSNR, SSIM,
     foreground PSNR and colour shift (mean and worst view)."""
+    import numpy as np
+
     from ..device import resolve_device
     from ..eval.cameras import load_cameras_json, orbit_cameras, parse_up
     from ..eval.evaluate import check_host_memory, evaluate, format_table, write_images
@@ -100,6 +102,9 @@ def eval_command(
     result = evaluate(ref_splats, test_splats, camera_list, target, bg, names=[str(p) for p in tests], images=rendered,
                       progress=progress)  # fmt: skip
     progress.done()
+    if not quiet and all(np.abs(view - np.asarray(bg, np.float32)).max() < 0.5 / 255.0 for view in rendered["reference"]):
+        print("nanogs-warp: warning: the reference renders as bare background in every view: nothing lies in front of "
+              f"the cameras' near plane ({camera_list[0].near:g} world units) within their view", file=sys.stderr)  # fmt: skip
     labels = scene_labels(tests)
     result["reference"]["path"] = str(reference.resolve())
     result["cameras"] = str(cameras.resolve()) if cameras is not None else {"orbit": {"views": views, "size": size, "up": up}}

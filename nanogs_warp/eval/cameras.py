@@ -173,7 +173,9 @@ MAX_DECLARED_SIDE = 1 << 31  # a camera's own image side, before --size scales i
 def load_cameras_json(path: Path | str, size: int | None = None) -> list[Camera]:
     """Cameras from the ``cameras.json`` the INRIA trainer writes: a list of {id, img_name, width,
     height, position, rotation (3x3 camera-to-world, rows), fx, fy}, principal point at the image
-    centre. With ``size``, each camera is rescaled so that its longer side is ``size`` pixels."""
+    centre. An entry may also give ``near``, its near plane in world units (INRIA's 0.2 otherwise):
+    cameras made for a scene in small units need a nearer one. With ``size``, each camera is
+    rescaled so that its longer side is ``size`` pixels."""
     path = Path(path)
     try:
         entries = json.loads(read_file_bytes(path).decode("utf-8"))
@@ -198,8 +200,11 @@ def load_cameras_json(path: Path | str, size: int | None = None) -> list[Camera]
             position = np.asarray(entry["position"], np.float64).reshape(3)
             c2w = np.asarray(entry["rotation"], np.float64).reshape(3, 3)
             name = str(entry.get("img_name", entry.get("id", k)))
+            near = float(entry.get("near", NEAR))
         except (KeyError, TypeError, ValueError, OverflowError) as e:
             raise InputError(f"cameras {path}: camera {k} is malformed ({type(e).__name__}: {e})") from None
+        if not 0 < near < limit:
+            raise InputError(f"cameras {path}: camera {k}'s near plane must be a positive number of world units, got {near}")
         if width < 1 or height < 1 or not (0 < fx < limit and 0 < fy < limit) or not np.isfinite(np.r_[position, c2w.ravel()]).all():
             raise InputError(f"cameras {path}: camera {k} has a non-positive size or focal length or a non-finite pose")
         if np.abs(position).max() >= limit or np.abs(c2w @ c2w.T - np.eye(3)).max() > 1e-3 or np.linalg.det(c2w) < 0:
@@ -215,7 +220,7 @@ def load_cameras_json(path: Path | str, size: int | None = None) -> list[Camera]
             raise InputError(f"cameras {path}: camera {k} renders {width} x {height} pixels; eval needs {MIN_SIDE} to "
                              f"{MAX_SIDE} a side (--size sets the longer side)")  # fmt: skip
         rotation = c2w.T
-        cameras.append(Camera(rotation, -rotation @ position, fx, fy, width / 2.0, height / 2.0, width, height, name))
+        cameras.append(Camera(rotation, -rotation @ position, fx, fy, width / 2.0, height / 2.0, width, height, name, near))
     check_pixels(sum(c.width * c.height for c in cameras))
     return cameras
 
