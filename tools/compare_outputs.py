@@ -10,7 +10,7 @@ later passes diverge, the distance from each splat centre to the nearest centre 
 
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -40,9 +40,12 @@ def compare(a_path: Path, b_path: Path) -> str:
 
 
 def main() -> None:
-    a_dir, b_dir = Path(sys.argv[1]), Path(sys.argv[2])
-    for a_path in sorted(a_dir.glob("*.ply")):
-        b_path = b_dir / a_path.name
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("a_dir", type=Path, help="a folder of outputs (e.g. the CPU's)")
+    parser.add_argument("b_dir", type=Path, help="a folder of the same outputs made otherwise (e.g. the GPU's)")
+    args = parser.parse_args()
+    for a_path in sorted(args.a_dir.glob("*.ply")):
+        b_path = args.b_dir / a_path.name
         if b_path.exists():
             print(compare(a_path, b_path), flush=True)
 

@@ -332,6 +332,7 @@ fake.uint32 = int_
 fake.uint64 = int_
 fake.vec3d = _vec(F)
 fake.vec4d = _vec(F, 4)
+fake.vec4i = _vec(int_, 4)
 fake.vec3 = _vec(F32)
 fake.vec4 = lambda *a: Vec(F32(x) for x in a)
 fake.quat = lambda *a: Vec(F32(x) for x in a)

@@ -56,6 +56,7 @@ def main() -> None:
             pass
     splats = load_ply(args.input)
     out_dir = args.out_dir or Path(tempfile.gettempdir())
+    out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f".io_bench_{os.getpid()}.ply"
 
     reads, hashed_reads, writes, read_cpu, write_cpu = [], [], [], [], []
