@@ -88,7 +88,7 @@ class _PassProgress:
 @user_errors
 def simplify(
     input: Annotated[Optional[Path], typer.Argument(help="Input scene (or --sample): INRIA or compressed .ply, .spz, .sog, meta.json, lod-meta.json or .splat.", show_default=False, metavar="SCENE")] = None,
-    output: Annotated[Optional[str], typer.Option("-o", "--output", help="Output path; its name picks the format (.ply, .compressed.ply, .spz, .sog, meta.json, .splat, lod-meta.json). With several budgets OUT_<budget>.<ext> is written for each (a name without an extension takes --format's); lod-meta.json writes them as one level-of-detail set. A folder (ending in /, or an existing one) receives <input name>_<budget>.ply (or --format's extension).", show_default=False, metavar="PATH")] = None,
+    output: Annotated[Optional[str], typer.Option("-o", "--output", help="Output path; its name picks the format (.ply, .compressed.ply, .spz, .sog, meta.json, .splat, lod-meta.json). With several budgets OUT_<budget>.<ext> is written for each (a name without an extension takes --format's; an unbundled SOG, meta.json, holds one budget); lod-meta.json writes them as one level-of-detail set. A folder (ending in /, or an existing one) receives <input name>_<budget>.ply (or --format's extension).", show_default=False, metavar="PATH")] = None,
     ratio: opts.Ratio = None,
     count: opts.Count = None,
     device: Annotated[str, typer.Option("--device", help="auto (first GPU, else CPU), cpu, cuda or cuda:N.", metavar="DEVICE")] = "auto",
