@@ -3,7 +3,7 @@ of, made deterministically (seeded) so that anyone can rebuild them; nothing is 
 
     python tools/stress_scenes.py OUT_DIR [--scale 1.0]
 
-Writes seven INRIA 3DGS PLY files (SH degree 1, sizes and opacities in the ranges of trained scenes:
+Writes eight INRIA 3DGS PLY files (SH degree 1, sizes and opacities in the ranges of trained scenes:
 log-scales about -7 to -2, opacities from faint to opaque; the unbounded scene's distant splats up
 to about one unit, as trainers make a capture's far background):
 
@@ -20,10 +20,13 @@ to about one unit, as trainers make a capture's far background):
   and layered, a third of them faint.
 - ``stress_glossy.ply``: shiny objects (a ball, a torus, a box) whose highlight moves with the view:
   degree-1 SH terms as large as 0.45 in colour.
+- ``stress_wires.ply``: thin structures in front of a patterned wall: a picket fence with posts and
+  rails, sagging cables and a spoked wheel, each wire a run of needles along it with a faint halo,
+  as a trainer leaves them (radii 0.0025 to 0.02, the wall 2.6 wide).
 
-``--scale`` multiplies every splat count (1.0: 60k to 120k splats a scene). The first four scenes
+``--scale`` multiplies every splat count (1.0: 55k to 120k splats a scene). The first four scenes
 are those of the measurements in docs/quality.md before the fifth was added, the first five those
-before the last two were.
+before the texture and glossy kinds were, the first seven those before the wires were.
 """
 
 from __future__ import annotations
@@ -334,9 +337,79 @@ def glossy(rng, scale: float) -> dict[str, np.ndarray]:
     return _concat([ball, torus, box])
 
 
+def _wires(rng, paths: list[np.ndarray], radius: float, rgb, density: float) -> dict[str, np.ndarray]:
+    """Thin round structures (cables, spokes, pickets) as a trainer leaves them: along each polyline of
+    ``paths``, needles whose long axis follows the wire (standard deviations 2 to 4 radii along it
+    and about one across it), about ``density`` of them per radius of length, jittered within the
+    wire; a quarter of them a faint halo three times as wide and as long (opacity 0.03 to 0.25), the
+    rest opaque."""
+    points, tangents = [], []
+    for path in paths:
+        step = np.linalg.norm(np.diff(path, axis=0), axis=1)
+        arc = np.concatenate([[0.0], np.cumsum(step)])
+        count = max(2, int(arc[-1] / radius * density))
+        at = np.sort(rng.uniform(0.0, arc[-1], count))
+        segment = np.clip(np.searchsorted(arc, at, side="right") - 1, 0, len(step) - 1)
+        t = ((at - arc[segment]) / np.maximum(step[segment], 1e-12))[:, None]
+        points.append(path[segment] * (1 - t) + path[segment + 1] * t)
+        tangents.append((path[segment + 1] - path[segment]) / np.maximum(step[segment], 1e-12)[:, None])
+    means, x = np.concatenate(points), np.concatenate(tangents)
+    n = len(means)
+    z = np.cross(x, rng.normal(size=(n, 3)))
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    halo = rng.random(n) < 0.25
+    wide = np.where(halo, 3.0, 1.0)
+    across = radius * wide * np.exp(rng.normal(scale=0.2, size=n))
+    along = radius * wide * rng.uniform(2.0, 4.0, n)
+    means = means + np.cross(x, z) * rng.normal(scale=0.4 * radius, size=(n, 1)) + z * rng.normal(scale=0.4 * radius, size=(n, 1))
+    rest = rng.normal(scale=0.05, size=(n, 3 * ((SH_DEGREE + 1) ** 2 - 1)))
+    colour = np.clip(np.asarray(rgb) + rng.normal(scale=0.03, size=(n, 3)), 0, 1)
+    opacity = np.where(halo, rng.uniform(0.03, 0.25, n), rng.uniform(0.7, 0.99, n))
+    return {
+        "means": means.astype(np.float32),
+        "rotations": _quat_from_axes(x, z).astype(np.float32),
+        "log_scales": np.log(np.stack([along, across, across], 1)).astype(np.float32),
+        "opacities": np.log(opacity / (1.0 - opacity)).astype(np.float32),
+        "features": np.concatenate([(colour - 0.5) / SH_C0, rest], 1).astype(np.float32),
+    }
+
+
+def wires(rng, scale: float) -> dict[str, np.ndarray]:
+    """Thin structures in front of a patterned wall (up -y): a picket fence with posts and rails,
+    four sagging cables and a spoked wheel (``_wires``), the wall a ``_trained_surface``."""
+    line = lambda a, b: np.stack([a, b]).astype(float)  # noqa: E731
+    fence = [line([x, 0.6, 0.0], [x, -0.35, 0.0]) for x in np.linspace(-1.0, 1.0, 5)]
+    rails = [line([-1.0, y, 0.02], [1.0, y, 0.02]) for y in (0.45, -0.2)]
+    pickets = [line([x, 0.55, 0.035], [x, -0.3, 0.035]) for x in np.linspace(-0.97, 0.97, 40)]
+    t = np.linspace(-1.0, 1.0, 64)[:, None]
+    cables = [np.concatenate([1.25 * t, -0.75 + 0.18 * (np.cosh(1.2 * t) - 1) / (np.cosh(1.2) - 1) + 0.06 * k, np.full_like(t, 0.25 + 0.1 * k)], 1)
+              for k in range(4)]  # fmt: skip
+    angle = np.linspace(0.0, 2 * np.pi, 97)
+    centre, wheel = np.array([0.35, 0.05, 0.45]), 0.3
+    plane_u, plane_v = np.array([0.8, 0.0, -0.6]), np.array([0.0, 1.0, 0.0])
+    rim = [centre + wheel * (np.cos(angle)[:, None] * plane_u + np.sin(angle)[:, None] * plane_v)]
+    spokes = [line(centre + 0.02 * (np.cos(a) * plane_u + np.sin(a) * plane_v), centre + wheel * (np.cos(a) * plane_u + np.sin(a) * plane_v))
+              for a in np.linspace(0.0, 2 * np.pi, 32, endpoint=False)]  # fmt: skip
+    density = 2.0 * scale
+    parts = [
+        _wires(rng, fence, 0.02, [0.45, 0.3, 0.18], density),
+        _wires(rng, rails, 0.012, [0.5, 0.35, 0.2], density),
+        _wires(rng, pickets, 0.006, [0.9, 0.9, 0.85], density),
+        _wires(rng, cables, 0.004, [0.08, 0.08, 0.09], density),
+        _wires(rng, rim, 0.01, [0.1, 0.1, 0.1], density),
+        _wires(rng, spokes, 0.0025, [0.75, 0.75, 0.78], density),
+    ]
+    n = int(30000 * scale)  # the wall: z = -0.6, x in [-1.3, 1.3], y in [-1, 0.7]
+    uv = rng.random((n, 2))
+    means = np.stack([uv[:, 0] * 2.6 - 1.3, uv[:, 1] * 1.7 - 1.0, np.full(n, -0.6)], 1)
+    palette = np.array([[0.75, 0.72, 0.65], [0.6, 0.62, 0.7], [0.8, 0.65, 0.5], [0.55, 0.5, 0.45]])
+    parts.append(_trained_surface(rng, means, np.tile([0, 0, 1.0], (n, 1)), np.sqrt(4.42 / n), _printed(uv[:, 0], uv[:, 1], 4, palette)))
+    return _concat(parts)
+
+
 SCENES = {
     "stress_fur": fur, "stress_grass": grass, "stress_panels": panels, "stress_backdrop": backdrop, "stress_unbounded": unbounded,
-    "stress_texture": texture, "stress_glossy": glossy,
+    "stress_texture": texture, "stress_glossy": glossy, "stress_wires": wires,
 }  # fmt: skip
 
 
