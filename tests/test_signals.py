@@ -126,6 +126,31 @@ def test_a_batch_worker_given_two_signals_at_once_ends_quietly():
     assert result.returncode == 0 and result.stdout.split() == ["ended", "130"] and result.stderr == "", result.stderr
 
 
+def test_a_batch_workers_signal_swallowed_by_a_finaliser_still_ends_it_quietly():
+    """The handler's SystemExit raised inside a finaliser (Warp's ``array.__del__``) is only printed
+    ("Exception ignored in ..."), and the worker went on with its scenes, its handlers by then
+    ignoring the batch's SIGTERM: a batch's Ctrl-C took 62 s to end, or never. It is now raised
+    again between passes and scenes (``_end_if_signalled``), and not printed."""
+    code = (
+        "import os, signal, time\n"
+        "from nanogs_warp.batch.local import _end_if_signalled, _end_on_signals\n"
+        "_end_on_signals()\n"
+        "class Slow:\n"
+        "    def __del__(self):\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "        time.sleep(0.2)  # the handler runs here, inside the finaliser\n"
+        "slow = Slow()\n"
+        "del slow\n"
+        "print('went on')\n"
+        "try:\n"
+        "    _end_if_signalled()\n"
+        "except SystemExit as e:\n"
+        "    print('ended', e.code)\n"
+    )  # fmt: skip
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and result.stdout.split() == ["went", "on", "ended", "130"] and result.stderr == "", result
+
+
 def test_ctrl_c_between_the_package_and_the_command_ends_quietly_only_in_the_command():
     """``python -m nanogs_warp`` runs the package, then its ``__main__``, then the command's start;
     a Ctrl-C in between was a traceback. As the command (its console script's name in argv[0]) the

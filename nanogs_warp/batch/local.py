@@ -287,7 +287,29 @@ def worker_main(name: str, device: str, visible_gpu: str | None, conn, force: bo
     """A worker process: pins its GPU, initialises Warp, then simplifies the scenes it is sent
     until it is sent None or its parent (process ``parent``) is gone; each input is read on
     ``readers`` threads. SIGTERM, SIGHUP and SIGINT stop it, the scene being written finished first
-    (``_end_on_signals``)."""
+    (``_end_on_signals``). The process then ends at once with its code, without the interpreter's
+    teardown: every output is written by then, and the teardown joins the read pool's threads, which
+    a signal arriving during it could leave waiting for ever (a worker orphaned, never ending)."""
+    code = 0
+    try:
+        _work(name, device, visible_gpu, conn, force, readers, parent)
+    except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else 1
+    except BaseException:  # noqa: BLE001 - an internal error: its traceback, then the exit code the parent reports
+        import traceback
+
+        traceback.print_exc()
+        code = 1
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError, AttributeError):  # a closed pipe, a closed file, or none
+                pass
+        os._exit(code)
+
+
+def _work(name: str, device: str, visible_gpu: str | None, conn, force: bool, readers: int, parent: int | None) -> None:
     _end_on_signals()
     if parent is not None:
         _stop_with_parent(parent)
@@ -365,6 +387,7 @@ def _serve(device: str, warp_device, conn, force: bool) -> None:
     last = [0.0]
 
     def on_pass(report):
+        _end_if_signalled()
         now = time.monotonic()
         if now - last[0] >= _PASS_EVENT_EVERY_S:
             last[0] = now
@@ -372,6 +395,7 @@ def _serve(device: str, warp_device, conn, force: bool) -> None:
 
     try:
         while (scene := read.get()) is not None:
+            _end_if_signalled()
             free_slot.release()
             send(("started", scene.job.relative))
             simplify_scene(scene, warp_device, on_pass)
@@ -381,12 +405,25 @@ def _serve(device: str, warp_device, conn, force: bool) -> None:
         threads[2].join()
 
 
+_signalled: list[int] = []  # the exit code of the first ending signal a worker received
+
+
+def _end_if_signalled() -> None:
+    """Raises the first ending signal's SystemExit again. The handler's own can be swallowed: raised
+    inside a finaliser (Warp's ``array.__del__``), it is only printed, and the worker went on with its
+    scenes, its handlers by then ignoring the batch's SIGTERM. ``_serve`` calls this between merge
+    passes and between scenes."""
+    if _signalled:
+        raise SystemExit(_signalled[0])
+
+
 def _end_on_signals() -> None:
     """SIGTERM, SIGHUP and SIGINT end the worker as SystemExit(128 + signal) the first time and are
-    ignored after that, so that ``_serve`` finishes the scene being written before the process ends.
-    A process group's Ctrl-C, ``timeout`` or ``scancel`` reaches the workers too, and by default they
-    died at once, leaving the temporary files of the outputs they were writing. SIGHUP and SIGINT
-    stay ignored where the batch was started with them ignored."""
+    ignored after that, so that ``_serve`` finishes the scene being written before the process ends
+    (``_end_if_signalled`` raises it again where the first was swallowed). A process group's Ctrl-C,
+    ``timeout`` or ``scancel`` reaches the workers too, and by default they died at once, leaving the
+    temporary files of the outputs they were writing. SIGHUP and SIGINT stay ignored where the batch
+    was started with them ignored."""
     names = [name for name in ("SIGTERM", "SIGHUP", "SIGINT") if hasattr(signal, name)]
 
     def ignore(signum, frame):
@@ -398,8 +435,16 @@ def _end_on_signals() -> None:
         # place of the SystemExit, and the worker ended with a traceback, its scene unfinished
         for name in names:
             signal.signal(getattr(signal, name), ignore)
+        _signalled.append(128 + signum)
         raise SystemExit(128 + signum)
 
+    printed = sys.unraisablehook
+
+    def unraisable(report) -> None:  # the handler's SystemExit swallowed by a finaliser: raised again later, not printed
+        if not (isinstance(report.exc_value, SystemExit) and _signalled):
+            printed(report)
+
+    sys.unraisablehook = unraisable
     for name in names:
         number = getattr(signal, name)
         if name != "SIGTERM" and signal.getsignal(number) == signal.SIG_IGN:
