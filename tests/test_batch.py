@@ -254,6 +254,27 @@ def test_an_output_name_too_long_to_write_fails_its_scene_in_the_dry_run_too(tmp
     assert summary["short.ply"]["status"] == "done"
 
 
+def test_outputs_no_run_could_write_fail_their_scene_in_the_dry_run_too(tmp_path):
+    """An output path that is a folder or a FIFO, or a record path that is a folder: the dry run
+    said 'run', and the run refused the path only after the scene's work."""
+    root, out = tmp_path / "in", tmp_path / "out"
+    root.mkdir()
+    for k, name in enumerate(("folder", "fifo", "record", "fine")):
+        random_splats_ply(root / f"{name}.ply", 30, seed=k)
+    out.mkdir()
+    (out / "folder_0.1.ply").mkdir()
+    os.mkfifo(out / "fifo_0.1.ply")
+    (out / "record.nanogs.json").mkdir()
+    expected = {"folder.ply": "folder_0.1.ply: is a directory", "fifo.ply": "fifo_0.1.ply: exists and is not a regular file",
+                "record.ply": f"its record {out / 'record.nanogs.json'} is a folder; move it away"}  # fmt: skip
+    plan = run(root, "-o", out, "--ratio", "0.1", "--dry-run", "--json", "--devices", "cpu")
+    actions = {s["relative"]: (s["action"], s["reason"]) for s in json.loads(plan.stdout)["scenes"]}
+    assert actions == {**{k: ("fail", v) for k, v in expected.items()}, "fine.ply": ("run", "no record")}
+    summary = run_json(root, "-o", out, "--ratio", "0.1", code=1)
+    assert {k: summary[k]["error"] for k in expected} == expected and summary["fine.ply"]["status"] == "done"
+    assert all(summary[k]["input_count"] in (None, 0) for k in expected)  # refused before the scene was read
+
+
 def test_a_dry_run_says_what_a_run_would_do_and_writes_nothing(scenes, tmp_path):
     out = tmp_path / "out"
 

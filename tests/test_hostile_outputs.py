@@ -11,6 +11,7 @@ import os
 import subprocess
 import sys
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import plyfile
@@ -25,7 +26,8 @@ from nanogs_warp.batch.scenes import find_scenes
 from nanogs_warp.budgets import parse_budgets
 from nanogs_warp.cli.app import app
 from nanogs_warp.io import load_splats, save_levels, save_splats
-from nanogs_warp.io.ply_write import atomic_write
+from nanogs_warp.io.ply_write import OutputSet, atomic_write
+from nanogs_warp.temporaries import process_space, remove_stale_temporaries, temporary_path
 from nanogs_warp.pipeline import SimplifyConfig, simplify
 
 
@@ -107,6 +109,67 @@ def test_a_record_that_cannot_be_written_leaves_no_outputs(tmp_path, monkeypatch
     monkeypatch.undo()
     result = work.process_scene(job, wp.get_device("cpu"))
     assert result.status == "failed" and result.error.endswith("cannot create the directory: File exists"), result.error
+
+
+def test_another_nodes_outputs_are_never_taken_back(tmp_path, monkeypatch):
+    """Two nodes writing one shared folder: a node whose record (or whose second output) cannot be
+    written took back its outputs by name, deleting the files the other node had put there since,
+    though the other's record listed them. Only a file that is still this run's is removed."""
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    random_splats_ply(scenes / "a.ply", 200, seed=3)
+    job = _job(tmp_path, scenes)
+
+    def other_node_then_full(path, data):  # the other node publishes its outputs, then this node's record fails
+        for budget in job.budgets:
+            theirs = job.out_dir / f".theirs_{budget.label}"
+            theirs.write_bytes(b"the other node's output")
+            os.replace(theirs, job.output_path(budget))
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(work, "write_json_atomic", other_node_then_full)
+    result = work.process_scene(job, wp.get_device("cpu"))
+    assert result.status == "failed" and "cannot write its record" in result.error
+    assert all(job.output_path(b).read_bytes() == b"the other node's output" for b in job.budgets)
+
+    files = OutputSet()  # an output set whose second file cannot be moved: the first goes only if still its own
+    first, second = tmp_path / "first.ply", tmp_path / "second.ply"
+    for path in (first, second):
+        tmp = temporary_path(path)
+        tmp.write_bytes(b"ours")
+        files.stage(tmp, path)
+    real_replace = os.replace
+
+    def replace(source, target):
+        if Path(target) == second:  # meanwhile another writer's file took the first one's place
+            (tmp_path / ".x").write_bytes(b"theirs")
+            real_replace(tmp_path / ".x", first)
+            raise OSError(errno.ENOENT, os.strerror(errno.ENOENT))
+        real_replace(source, target)
+
+    monkeypatch.setattr(os, "replace", replace)
+    with pytest.raises(InputError, match="second.ply: cannot write the file"):
+        files.publish()
+    monkeypatch.undo()
+    assert first.read_bytes() == b"theirs" and not second.exists() and sorted(p.name for p in tmp_path.glob(".*.tmp")) == []
+
+
+def test_a_temporary_of_another_machine_or_container_is_left_alone(tmp_path):
+    """A writer's temporary names its process id and its process space (this boot, this PID
+    namespace): another space's file whose process id is not alive here was removed as a killed
+    writer's, though its writer, on another node of a shared folder, was still writing it."""
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True)
+    pid = int(gone.stdout)
+    out = tmp_path / "o.ply"
+    mine = temporary_path(out)
+    assert mine.name.startswith(f".o.ply.{os.getpid()}-{process_space()}") and mine.name.endswith(".tmp")
+    other_space = "%06x" % ((int(process_space(), 16) + 1) % (1 << 24))
+    killed_here = tmp_path / f".o.ply.{pid}-{process_space()}abcdef.tmp"
+    elsewhere = tmp_path / f".o.ply.{pid}-{other_space}abcdef.tmp"
+    for path in (killed_here, elsewhere):
+        path.write_bytes(b"partial")
+    assert remove_stale_temporaries([out]) == [killed_here]
+    assert not killed_here.exists() and elsewhere.exists()
 
 
 def _webp(pixels: np.ndarray) -> bytes:

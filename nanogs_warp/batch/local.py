@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 
 from ..errors import InputError
+from ..temporaries import remove_stale_temporaries
 from .gpu_workers import auto_workers
 from .scenes import SceneJob, largest_first, scene_timeout, timed_out_error
 from .work import SceneResult
@@ -200,6 +201,8 @@ def run_local(
         worker.reaped = True
         worker.conn.close()
         held, worker.jobs = worker.jobs, []
+        # what it was writing when it died (killed past a time limit, or by the out-of-memory killer)
+        remove_stale_temporaries([path for job in held for path in (job.record_path, *map(job.output_path, job.budgets))])
         culprit, seconds = None, 0.0
         if timed_out is not None:
             culprit, error, seconds = timed_out  # no one, if it finished just before the kill

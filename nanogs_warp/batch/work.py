@@ -230,7 +230,7 @@ def _read(scene: LoadedScene, force: bool) -> None:
 
 def _write(scene: LoadedScene) -> None:
     from ..io import input_files, save_splats
-    from ..io.ply_write import OutputSet
+    from ..io.ply_write import OutputSet, remove_if_still
 
     job, result = scene.job, scene.result
     files = OutputSet(keep=input_files(job.input))  # the scene's outputs appear together, or (a failure part way) none of them
@@ -246,8 +246,12 @@ def _write(scene: LoadedScene) -> None:
     except BaseException:
         files.discard()
         raise
+    identities = {}  # what this run put at each output path: only those files are taken back below
     for out in outputs:
-        out["bytes"] = (job.out_dir / out["path"]).stat().st_size
+        path = job.out_dir / out["path"]
+        out["bytes"] = path.stat().st_size
+        placed = path.lstat()
+        identities[out["path"]] = (placed.st_dev, placed.st_ino)
     outputs.sort(key=lambda o: [b.label for b in job.budgets].index(o["budget"]))
     record = {
         "format": RECORD_FORMAT,
@@ -264,8 +268,8 @@ def _write(scene: LoadedScene) -> None:
     try:
         write_json_atomic(job.record_path, record)
     except OSError as e:  # outputs without their record would be redone anyway: none stays (a full disk)
-        for out in outputs:
-            (job.out_dir / out["path"]).unlink(missing_ok=True)
+        for out in outputs:  # this run's files, not another node's written there since (a shared folder)
+            remove_if_still(job.out_dir / out["path"], identities[out["path"]])
         raise InputError(f"cannot write its record {job.record_path.name}: {e.strerror or e}") from e
     result.status = "done"
     result.outputs = [{"path": str(job.out_dir / o["path"]), "budget": o["budget"], "count": o["count"]} for o in outputs]
@@ -362,11 +366,20 @@ def planned(job: SceneJob, force: bool) -> tuple[str, str | None]:
 
 def check_output_names(job: SceneJob) -> None:
     """An InputError where an output's or the record's name is too long to be written (its temporary
-    file's name is longer still): found by ``--dry-run`` as by a run, before any work."""
+    file's name is longer still), or names a folder or another file that is no regular file (a
+    FIFO, a device) that writing would refuse: found by ``--dry-run`` as by a run, before any work."""
     from ..io.ply_write import check_name_length
+    from ..temporaries import through_links
 
     for path in (*(job.output_path(b) for b in job.budgets), job.record_path):
         check_name_length(path)
+    if job.record_path.is_dir():
+        raise InputError(f"its record {job.record_path} is a folder; move it away")
+    for path in map(through_links, map(job.output_path, job.budgets)):
+        if path.is_dir():
+            raise InputError(f"{path.name}: is a directory")
+        if path.exists() and not path.is_file():
+            raise InputError(f"{path.name}: exists and is not a regular file")
 
 
 def _input_status(job: SceneJob) -> os.stat_result:

@@ -10,7 +10,6 @@ import contextlib
 import errno
 import io
 import os
-import secrets
 import signal
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -20,6 +19,7 @@ import numpy as np
 import plyfile
 
 from ..errors import InputError
+from ..temporaries import remove_if_still, remove_stale_temporaries, temporary_path, through_links  # noqa: F401 - re-exported
 from .ply_header import (
     DC_NAMES,
     MEAN_NAMES,
@@ -259,7 +259,7 @@ class OutputSet:
         cannot be moved, the rest are removed, and so are the files already moved that replaced
         nothing (InputError); one that replaced an older file (``overwrite``) stays, as the older
         one is gone, and the retired files stay."""
-        placed = []  # the paths moved into place that replaced nothing
+        placed = []  # the paths moved into place that replaced nothing, with the identity of the file moved
         done = 0
         with signals_held():
             with self._lock:  # taken inside: a signal just before would have found nothing to discard
@@ -267,14 +267,15 @@ class OutputSet:
             try:
                 for tmp, path in staged:
                     existed = os.path.lexists(path)
+                    moved = os.lstat(tmp)
                     if self.overwrite or not _linked(tmp, path):
                         os.replace(tmp, path)
                     done += 1
                     if not existed:
-                        placed.append(path)
+                        placed.append((path, (moved.st_dev, moved.st_ino)))
             except BaseException as e:
-                for moved in placed:
-                    _remove(moved)
+                for path_moved, identity in placed:
+                    remove_if_still(path_moved, identity)
                 self._staged = staged[done:]
                 self.discard()
                 if isinstance(e, OSError):
@@ -381,14 +382,6 @@ def atomic_write(path: Path, write, overwrite: bool = True, outputs: OutputSet |
             _remove(tmp)
 
 
-def through_links(path: Path) -> Path:
-    """The file that a symbolic link at ``path`` names, after every link (a shell's redirection
-    writes there too); ``path`` itself where it is no link. Renaming a new file over ``path`` would
-    replace the link, not the file: ``-o /dev/stdout`` would have replaced the machine's
-    ``/dev/stdout`` with a regular file."""
-    return Path(os.path.realpath(path)) if os.path.islink(path) else path
-
-
 TEMPORARY_EXTRA_BYTES = 1 + 1 + 7 + 1 + 12 + 4  # ".<name>.<pid>-<12 hex>.tmp": pids below 10^7
 LONGEST_OUTPUT_NAME = 255 - TEMPORARY_EXTRA_BYTES  # a file name's bytes on common file systems, less the temporary's
 
@@ -398,53 +391,6 @@ def check_name_length(path: Path) -> None:
     length = len(os.fsencode(path.name))
     if length > LONGEST_OUTPUT_NAME:
         raise InputError(f"output name {path.name[:40]}... is {length} bytes long; at most {LONGEST_OUTPUT_NAME} can be written")
-
-
-def temporary_path(path: Path) -> Path:
-    """Where ``path`` is written first: ``.<name>.<pid>-<12 hex>.tmp`` beside it. The writer's
-    process id in the name lets a later run tell what a killed writer left (``remove_stale_temporaries``)
-    from a live writer's file."""
-    return path.parent / f".{path.name}.{os.getpid()}-{secrets.token_hex(6)}.tmp"
-
-
-def remove_stale_temporaries(paths: list[Path]) -> list[Path]:
-    """Removes the temporary files of ``paths`` that writers killed on this machine left behind (a
-    kill -9, a lost power: no handler ran), those whose process is gone; a live writer's stays.
-    One scan per folder. Returns what was removed."""
-    removed = []
-    paths = [through_links(p) for p in paths]  # written beside the files their links name
-    for folder in dict.fromkeys(p.parent for p in paths):
-        names = {p.name for p in paths if p.parent == folder}
-        try:
-            with os.scandir(folder) as entries:
-                stale = [e.path for e in entries if _killed_writers_temporary(e.name, names)]
-        except OSError:
-            continue
-        for path in stale:
-            try:
-                os.unlink(path)
-                removed.append(Path(path))
-            except OSError:
-                pass
-    return removed
-
-
-def _killed_writers_temporary(entry: str, names: set[str]) -> bool:
-    """Whether ``entry`` is ``temporary_path``'s name for one of ``names`` written by a process that
-    is gone."""
-    if not (entry.startswith(".") and entry.endswith(".tmp")):
-        return False
-    name, _, tag = entry[1:-4].rpartition(".")
-    pid, _, token = tag.partition("-")
-    if name not in names or not pid.isdigit() or len(token) != 12 or not all(c in "0123456789abcdef" for c in token):
-        return False
-    try:
-        os.kill(int(pid), 0)  # signal 0: only asks whether the process is there
-    except (ProcessLookupError, OverflowError):  # gone, or beyond any process id
-        return True
-    except OSError:  # there, but another user's
-        return False
-    return False
 
 
 def _linked(tmp: Path, path: Path) -> bool:
