@@ -62,11 +62,37 @@ def quiet_warp() -> None:
         use_cache_dir(cache_dir_from_environment())
 
 
+_start_lock = threading.Lock()
+_started: list[bool] = []  # [True] once Warp has been started (or found started) in this process
+
+
 def init_warp() -> None:
-    """Initialises Warp once, quietly (NANOGS_DEBUG=1: with Warp's own messages): the expected
-    notices that no GPU is there are dropped, anything else Warp's native code prints is passed on
-    to stderr (``start_up_messages``).
-    The kernel cache is $NANOGS_WARP_CACHE when set and no directory was chosen before."""
+    """Initialises Warp once a process, quietly (NANOGS_DEBUG=1: with Warp's own messages): the
+    expected notices that no GPU is there are dropped, anything else Warp's native code prints is
+    passed on to stderr (``start_up_messages``). The kernel cache is $NANOGS_WARP_CACHE when set and
+    no directory was chosen before. A Warp the program started itself is left as it is (its log
+    level, its kernel cache). Safe from several threads at once: stderr (file descriptor 2) is
+    captured only while the first of them starts Warp, and never touched again; every call did so
+    before, and two threads at once could leave the process's stderr on a deleted file."""
+    if _started:
+        return
+    with _start_lock:
+        if _started:
+            return
+        if not _warp_started_by_the_program():
+            _start_quietly()
+        _started.append(True)
+
+
+def _warp_started_by_the_program() -> bool:
+    try:
+        from warp._src.context import runtime
+    except ImportError:  # another Warp layout: started here as before (wp.init is idempotent)
+        return False
+    return runtime is not None
+
+
+def _start_quietly() -> None:
     import warp as wp
 
     quiet_warp()

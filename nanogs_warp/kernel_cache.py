@@ -146,13 +146,17 @@ _SHIPPED_LOCK = threading.Lock()
 def use_shipped_kernels(device, names) -> None:
     """For the Python API (the commands call ``load_kernels`` before they start): copies into the
     kernel cache the package's shipped binaries of the named modules that it lacks for ``device`` (a
-    Warp device), once a process and device, so that a program on a fresh machine compiles nothing
-    that ships. What ships for no such device, Warp compiles on first launch, as it always does."""
+    Warp device), then loads the modules there (compiling what ships for no such device), once a
+    process and device, so that a program on a fresh machine compiles nothing that ships. Loaded
+    here, under a lock, not on a first launch: the CPU's launches run on several threads at once
+    (``parallel``), and two threads whose first launch of a module met in Warp's lazy load crashed
+    the process (a segmentation fault, programs that call from several threads)."""
     key = str(device)
     with _SHIPPED_LOCK:
         todo = tuple(name for name in names if (key, name) not in _SHIPPED_CHECKED)
         if todo:
-            missing_after_shipped(warp_modules(todo), device)
+            modules = warp_modules(todo)
+            _force_load(modules, [device], len(missing_after_shipped(modules, device)))
             _SHIPPED_CHECKED.update((key, name) for name in todo)
 
 

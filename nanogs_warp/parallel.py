@@ -28,16 +28,21 @@ MIN_ROWS_TO_SPLIT = 16384
 
 
 _pools: dict[tuple[int, int], ThreadPoolExecutor] = {}
+_pools_lock = threading.Lock()
 POOL_THREADS = "nanogs-warp"  # the name prefix of the pools' threads
 
 
 def worker_pool(workers: int) -> ThreadPoolExecutor:
     """A pool of ``workers`` threads, started once per process and kept: starting threads costs
-    about as much as a small launch (keyed by process id, so a forked child starts its own)."""
+    about as much as a small launch (keyed by process id, so a forked child starts its own; one
+    pool a key even when threads of the caller's ask at once)."""
     key = (os.getpid(), workers)
     pool = _pools.get(key)
     if pool is None:
-        pool = _pools[key] = ThreadPoolExecutor(workers, thread_name_prefix=POOL_THREADS)
+        with _pools_lock:
+            pool = _pools.get(key)
+            if pool is None:
+                pool = _pools[key] = ThreadPoolExecutor(workers, thread_name_prefix=POOL_THREADS)
     return pool
 
 

@@ -105,7 +105,7 @@ class SplatSet:
         as on reading a file: NaN or infinite values (opacity logits of +-Inf are valid: alpha 1
         or 0, kept as +-the largest float32 as on reading), quaternions of norm 0, log-scales
         beyond the numeric domain."""
-        device = _warp_device(device)
+        device = warp_device(device)
         means = _host_rows("means", means, 3)
         n = means.shape[0]
         rotations = _host_rows("rotations", rotations, 4, n)
@@ -192,7 +192,7 @@ class SplatSet:
 
     def to(self, device) -> SplatSet:
         """This splat set on ``device`` (itself when it is already there)."""
-        device = _warp_device(device)
+        device = warp_device(device)
         if device == self.device:
             return self
         return self.clone(device)
@@ -255,7 +255,7 @@ _ARRAY_LAYOUT = {"means": (wp.vec3, 1), "rotations": (wp.quat, 1), "log_scales":
                  "features": (wp.float32, 2), "extras": (wp.float32, 2), "integer_extras": (wp.int64, 2)}  # fmt: skip
 
 
-def _warp_device(device) -> wp.Device:
+def warp_device(device) -> wp.Device:
     """``device`` as a Warp device; a name ("auto", "cpu", "cuda", "cuda:N") as ``--device`` reads
     it, so that a GPU this machine lacks is the package's InputError, not Warp's RuntimeError."""
     if isinstance(device, str):

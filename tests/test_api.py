@@ -1,8 +1,12 @@
 """The Python API as a library user meets it: several budgets in one call, configurations checked
 where they are built, the package's own error for a missing device."""
 
+import os
 import re
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -89,6 +93,49 @@ def test_missing_gpu_is_the_packages_error(splats):
     for odd in (0, 1.5, b"cpu"):  # Warp's ValueError "Invalid device identifier" before
         with pytest.raises(InputError, match="device must be auto, cpu, cuda, cuda:N or a Warp device"):
             simplify(splats, ratio=0.1, device=odd)
+
+
+def test_a_missing_device_is_the_packages_error_when_loading_and_refining(splats, tmp_path):
+    """load_ply, load_splats and refine gave Warp's RuntimeError or ValueError for a device name
+    (and a GPU this machine lacks printed native CUDA lines), where simplify gave the InputError."""
+    from nanogs_warp import load_ply, load_splats, refine, save_ply
+
+    save_ply(splats, tmp_path / "s.ply")
+    missing = f"cuda:{wp.get_cuda_device_count()}"
+    for load in (load_ply, load_splats):
+        for device, message in ((missing, rf"^--device {missing}: "), ("gpu", "expected auto, cpu, cuda or cuda:N")):
+            with pytest.raises(InputError, match=message):
+                load(tmp_path / "s.ply", device=device)
+    with pytest.raises(InputError, match="expected auto, cpu, cuda or cuda:N"):
+        refine(splats, splats, device="gpu")
+    with pytest.raises(InputError, match=rf"^--device {missing}: "):
+        refine(splats, splats, device=missing)
+
+
+def test_threads_that_name_a_device_leave_stderr_and_warps_settings_alone():
+    """Every call that named a device started Warp again with stderr (file descriptor 2) captured
+    in a temporary file: from several threads at once, one restored another's, and the process's
+    stderr went to a deleted file for good. Each call also set Warp's log level again. Warp now
+    starts once; a fresh process, four threads of many calls."""
+    code = (
+        "import os, sys\n"
+        "from concurrent.futures import ThreadPoolExecutor\n"
+        "import warp as wp\n"
+        "import nanogs_warp as ng\n"
+        "from scene_factory import random_splat_arrays\n"
+        "small = ng.SplatSet.from_numpy(**random_splat_arrays(64, seed=2))\n"
+        "stderr = os.readlink('/proc/self/fd/2') if os.path.exists('/proc/self/fd/2') else None\n"
+        "cfg = ng.SimplifyConfig.preset('fast')\n"
+        "with ThreadPoolExecutor(4) as pool:\n"
+        "    list(pool.map(lambda _: [ng.simplify(small, count=32, device='cpu', config=cfg) for _ in range(150)], range(4)))\n"
+        "wp.config.log_level = wp.LOG_INFO\n"
+        "ng.simplify(small, count=32, device='cpu', config=cfg)\n"
+        "print('still here', stderr is None or os.readlink('/proc/self/fd/2') == stderr, wp.config.log_level == wp.LOG_INFO, file=sys.stderr)\n"
+    )  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.splitlines()[-1:] == ["still here True True"], result.stderr
 
 
 def test_arguments_of_the_wrong_kind_are_named(splats, tmp_path):

@@ -368,16 +368,20 @@ def test_only_the_notices_that_no_gpu_is_there_are_dropped_from_warps_start():
     assert start_up_messages(output) == ["Warp CUDA error 2: out of memory (in function alloc_device, warp.cu:1)", "Warp: something else"]
 
 
-def test_warp_starts_where_no_temporary_file_can_be_made(monkeypatch):
-    import tempfile
-
-    from nanogs_warp.device import init_warp
-
-    def no_temporary_folder(*args, **kwargs):
-        raise FileNotFoundError(2, "No usable temporary directory found in ['/tmp']")
-
-    monkeypatch.setattr(tempfile, "TemporaryFile", no_temporary_folder)
-    init_warp()  # Warp starts, its output not captured
+def test_warp_starts_where_no_temporary_file_can_be_made():
+    """In a fresh process (Warp starts once a process): its output is then not captured."""
+    code = (
+        "import tempfile\n"
+        "def no_temporary_folder(*args, **kwargs):\n"
+        "    raise FileNotFoundError(2, \"No usable temporary directory found in ['/tmp']\")\n"
+        "tempfile.TemporaryFile = no_temporary_folder\n"
+        "from nanogs_warp.device import init_warp\n"
+        "init_warp()\n"
+        "from warp._src.context import runtime\n"
+        "print(runtime is not None)\n"
+    )  # fmt: skip
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and result.stdout == "True\n", result.stderr
 
 
 def test_without_overwrite_a_file_that_appears_meanwhile_is_kept(scene, tmp_path, monkeypatch):

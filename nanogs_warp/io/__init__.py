@@ -139,6 +139,9 @@ def load_splats(path, device="cpu", drop_invalid: bool = False, on_drop=None) ->
     Values are checked as :func:`nanogs_warp.io.ply.load_ply` checks them (``drop_invalid`` and
     ``on_drop`` likewise). Scenes from non-PLY files get the plain INRIA layout.
     """
+    from ..splats import warp_device
+
+    device = warp_device(device)  # a device this machine lacks: said before the file is read
     arrays, layout = read_any_splats(path, drop_invalid, on_drop)
     return splats_from_host(arrays, layout, device)
 

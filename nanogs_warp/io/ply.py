@@ -78,6 +78,9 @@ def load_ply(path, device="cpu", drop_invalid: bool = False, on_drop=None, diges
     of the file, hashed by the threads that read it. ``threads``: how many threads read the file
     (None: :func:`~nanogs_warp.io.ply_read.read_threads`).
     """
+    from ..splats import warp_device
+
+    device = warp_device(device)  # a device this machine lacks: said before the file is read
     arrays, layout = read_splats(path, drop_invalid, digest, on_drop, file_hash=file_hash, threads=threads)
     return _to_splat_set(arrays, layout, device)
 
@@ -196,9 +199,9 @@ def _to_splat_set(a: dict[str, np.ndarray], layout: PlyLayout, device) -> SplatS
     without a copy (Warp keeps a reference to them); on a GPU that set is copied there."""
     import warp as wp  # here, not at the top: reading a file's header and values needs no Warp
 
-    from ..splats import SplatSet
+    from ..splats import SplatSet, warp_device
 
-    device = wp.get_device(device)
+    device = warp_device(device)
     cpu = wp.get_device("cpu")
     n = a["means"].shape[0]
     quats = a["quats_xyzw"] if "quats_xyzw" in a else a["rotations"][:, [1, 2, 3, 0]]

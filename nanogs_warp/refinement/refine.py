@@ -30,7 +30,7 @@ from ..eval.units import render_offset, render_units, rendered_as_is, rescaled
 from ..kernels import adam as adam_kernels
 from ..kernels import image_loss as image_kernels
 from ..parallel import launch_rows_from
-from ..splats import SplatSet
+from ..splats import SplatSet, warp_device
 from .cameras import VALIDATION_STREAM, sampled_means, scene_spread, training_cameras
 from .config import RefineConfig
 from .image_loss import MIN_PIXELS_TO_SPLIT, ImageLoss, Targets, loss_view, target_views
@@ -388,7 +388,7 @@ def refine_with_report(
             raise TypeError(f"{name} must be a SplatSet (nanogs_warp.load_ply reads one from a file), got {type(value).__name__}")
     config = config or RefineConfig()
     config.validate()
-    device = wp.get_device(device if device is not None else simplified.device)
+    device = warp_device(device if device is not None else simplified.device)  # a name as --device reads it
     use_shipped_kernels(device, REFINE_MODULES)  # as the commands load them: no compile where they ship
     if views is not None and not views.serves(reference, config, device):
         raise ValueError("these reference views were made for another reference scene, configuration or device")
