@@ -84,6 +84,22 @@ def init_warp() -> None:
         _started.append(True)
 
 
+_device_locks: dict[str, threading.RLock] = {}
+
+
+def device_lock(device) -> threading.RLock:
+    """The lock that the package's calls on ``device`` (a Warp device) hold while they work there:
+    calls of a program's threads on one device run one at a time (several threads' simplifications
+    at once on one GPU met illegal memory accesses, and a call keeps a device busy by itself);
+    calls on different devices run at once. Re-entrant: a call may make others on its device."""
+    key = str(device)
+    lock = _device_locks.get(key)
+    if lock is None:
+        with _start_lock:
+            lock = _device_locks.setdefault(key, threading.RLock())
+    return lock
+
+
 def _warp_started_by_the_program() -> bool:
     try:
         from warp._src.context import runtime

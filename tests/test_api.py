@@ -112,6 +112,32 @@ def test_a_missing_device_is_the_packages_error_when_loading_and_refining(splats
         refine(splats, splats, device=missing)
 
 
+def test_calls_on_one_device_take_turns(splats):
+    """Several threads' calls on one device ran at once, and on a GPU met illegal memory accesses:
+    each call now holds its device's lock while it works there, and a progressive run holds it only
+    while it makes each output."""
+    import threading
+
+    from nanogs_warp.device import device_lock
+
+    fast = SimplifyConfig.preset("fast")
+    alone = simplify(splats, ratio=0.5, device="cpu", config=fast).to_numpy()
+    lock, results = device_lock(wp.get_device("cpu")), []
+    with lock:  # held here: another thread's call on the CPU waits for it
+        worker = threading.Thread(target=lambda: results.append(simplify(splats, ratio=0.5, device="cpu", config=fast)))
+        worker.start()
+        worker.join(timeout=2.0)
+        assert worker.is_alive() and not results
+    worker.join(timeout=120)
+    assert len(results) == 1 and all(np.array_equal(results[0].to_numpy()[k], alone[k]) for k in alone)
+    steps = simplify_progressively(splats, [splats.count // 2, splats.count // 4], fast)
+    next(steps)
+    other = threading.Thread(target=lambda: results.append(simplify(splats, ratio=0.5, device="cpu", config=fast)))
+    other.start()  # between two outputs the lock is free
+    other.join(timeout=120)
+    assert len(results) == 2 and next(steps)[0] == splats.count // 4
+
+
 def test_threads_that_name_a_device_leave_stderr_and_warps_settings_alone():
     """Every call that named a device started Warp again with stderr (file descriptor 2) captured
     in a temporary file: from several threads at once, one restored another's, and the process's

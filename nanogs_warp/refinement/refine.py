@@ -13,6 +13,7 @@ progress report. The same inputs, seed and device give the same bytes.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -23,7 +24,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import InputError
-from ..device import memory_short
+from ..device import device_lock, memory_short
 from ..kernel_cache import REFINE_MODULES, use_shipped_kernels
 from ..eval.render import _Rasteriser
 from ..eval.units import render_offset, render_units, rendered_as_is, rescaled
@@ -366,6 +367,24 @@ def step_views(pool: int, steps: int, views_per_step: int, seed: int) -> list[li
 
 
 def refine_with_report(
+    simplified: SplatSet,
+    reference: SplatSet,
+    config: RefineConfig | None = None,
+    device=None,
+    on_step: Callable[[int, int], None] | None = None,
+    timing: bool = False,
+    views: ReferenceViews | None = None,
+    checkpoints: tuple[float, ...] = CHECKPOINTS,
+    training_loss: bool = True,
+) -> tuple[SplatSet, RefineReport]:
+    """``refine``, also returning what it did (``_refine_with_report``), holding the device's
+    ``device_lock``: a program's threads refine one at a time on a device."""
+    on = device if device is not None else getattr(simplified, "device", None)
+    with device_lock(warp_device(on)) if on is not None else contextlib.nullcontext():
+        return _refine_with_report(simplified, reference, config, device, on_step, timing, views, checkpoints, training_loss)
+
+
+def _refine_with_report(
     simplified: SplatSet,
     reference: SplatSet,
     config: RefineConfig | None = None,

@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator, Sequence
 
 from ..config import SimplifyConfig
+from ..device import device_lock
 from ..kernel_cache import simplify_modules, use_shipped_kernels
 from ..pipeline import PassReport, check_arguments
 from ..pipeline import simplify as simplify_merged
@@ -27,7 +28,19 @@ def simplify_progressively(
     (``pipeline.simplify_progressively``), each output fitted for size when ``config.fit_size``."""
     check_arguments(splats, config)
     use_shipped_kernels(splats.device, simplify_modules(config))  # as the commands load them: no compile where they ship
-    return merged_progressively(splats, targets, config, on_pass, clock, finish=size_fit_for(splats, config))
+    return _one_step_at_a_time(merged_progressively(splats, targets, config, on_pass, clock, finish=size_fit_for(splats, config)),
+                               splats.device)  # fmt: skip
+
+
+def _one_step_at_a_time(steps: Iterator, device) -> Iterator:
+    """``steps``, each one made holding ``device_lock(device)`` (released while the caller has it)."""
+    while True:
+        with device_lock(device):
+            try:
+                step = next(steps)
+            except StopIteration:
+                return
+        yield step
 
 
 def simplify(
@@ -45,5 +58,6 @@ def simplify(
     check_arguments(splats, config)
     on_device = splats.to(device if device is not None else splats.device)  # a name read as --device reads it
     use_shipped_kernels(on_device.device, simplify_modules(config))
-    return simplify_merged(on_device, ratio, count, None, config, ratios=ratios, counts=counts,
-                           finish=size_fit_for(on_device, config))  # fmt: skip
+    with device_lock(on_device.device):  # a program's threads: one call at a time on a device
+        return simplify_merged(on_device, ratio, count, None, config, ratios=ratios, counts=counts,
+                               finish=size_fit_for(on_device, config))  # fmt: skip
