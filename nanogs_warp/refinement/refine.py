@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -366,25 +367,21 @@ def step_views(pool: int, steps: int, views_per_step: int, seed: int) -> list[li
     return steps_views
 
 
+def _on_its_device(refine_fn):
+    """``refine_fn`` holding the ``device_lock`` of the device it runs on: a program's threads refine
+    one at a time on a device."""
+
+    @functools.wraps(refine_fn)
+    def holding(simplified, reference, config=None, device=None, *args, **kwargs):
+        on = device if device is not None else getattr(simplified, "device", None)  # not a SplatSet: refine_fn says so
+        with device_lock(warp_device(on)) if on is not None else contextlib.nullcontext():
+            return refine_fn(simplified, reference, config, device, *args, **kwargs)
+
+    return holding
+
+
+@_on_its_device
 def refine_with_report(
-    simplified: SplatSet,
-    reference: SplatSet,
-    config: RefineConfig | None = None,
-    device=None,
-    on_step: Callable[[int, int], None] | None = None,
-    timing: bool = False,
-    views: ReferenceViews | None = None,
-    checkpoints: tuple[float, ...] = CHECKPOINTS,
-    training_loss: bool = True,
-) -> tuple[SplatSet, RefineReport]:
-    """``refine``, also returning what it did (``_refine_with_report``), holding the device's
-    ``device_lock``: a program's threads refine one at a time on a device."""
-    on = device if device is not None else getattr(simplified, "device", None)
-    with device_lock(warp_device(on)) if on is not None else contextlib.nullcontext():
-        return _refine_with_report(simplified, reference, config, device, on_step, timing, views, checkpoints, training_loss)
-
-
-def _refine_with_report(
     simplified: SplatSet,
     reference: SplatSet,
     config: RefineConfig | None = None,
