@@ -92,12 +92,7 @@ def device_lock(device) -> threading.RLock:
     calls of a program's threads on one device run one at a time (several threads' simplifications
     at once on one GPU met illegal memory accesses, and a call keeps a device busy by itself);
     calls on different devices run at once. Re-entrant: a call may make others on its device."""
-    key = str(device)
-    lock = _device_locks.get(key)
-    if lock is None:
-        with _start_lock:
-            lock = _device_locks.setdefault(key, threading.RLock())
-    return lock
+    return _device_locks.setdefault(str(device), threading.RLock())  # one lock a device: setdefault is atomic
 
 
 def _warp_started_by_the_program() -> bool:

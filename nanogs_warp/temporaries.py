@@ -11,6 +11,8 @@ import secrets
 import socket
 from pathlib import Path
 
+from .file_identity import file_identity
+
 
 def through_links(path: Path) -> Path:
     """The file that a symbolic link at ``path`` names, after every link (a shell's redirection
@@ -90,11 +92,7 @@ def remove_if_still(path: Path, identity: tuple[int, int]) -> None:
     """Removes ``path`` if it is still the file of ``identity`` (device, inode): a writer that failed
     part way takes back only its own files, never one another writer has put there since (two nodes
     writing one shared folder)."""
-    try:
-        now = os.lstat(path)
-    except OSError:
-        return
-    if (now.st_dev, now.st_ino) == identity:
+    if file_identity(path, follow_links=False) == identity:
         try:
             os.unlink(path)
         except OSError:

@@ -229,6 +229,7 @@ def _read(scene: LoadedScene, force: bool) -> None:
 
 
 def _write(scene: LoadedScene) -> None:
+    from ..file_identity import file_identity
     from ..io import input_files, save_splats
     from ..io.ply_write import OutputSet, remove_if_still
 
@@ -250,8 +251,7 @@ def _write(scene: LoadedScene) -> None:
     for out in outputs:
         path = job.out_dir / out["path"]
         out["bytes"] = path.stat().st_size
-        placed = path.lstat()
-        identities[out["path"]] = (placed.st_dev, placed.st_ino)
+        identities[out["path"]] = file_identity(path, follow_links=False)
     outputs.sort(key=lambda o: [b.label for b in job.budgets].index(o["budget"]))
     record = {
         "format": RECORD_FORMAT,
@@ -368,18 +368,14 @@ def check_output_names(job: SceneJob) -> None:
     """An InputError where an output's or the record's name is too long to be written (its temporary
     file's name is longer still), or names a folder or another file that is no regular file (a
     FIFO, a device) that writing would refuse: found by ``--dry-run`` as by a run, before any work."""
-    from ..io.ply_write import check_name_length
-    from ..temporaries import through_links
+    from ..io.ply_write import check_name_length, refuse_no_file, through_links
 
     for path in (*(job.output_path(b) for b in job.budgets), job.record_path):
         check_name_length(path)
     if job.record_path.is_dir():
         raise InputError(f"its record {job.record_path} is a folder; move it away")
-    for path in map(through_links, map(job.output_path, job.budgets)):
-        if path.is_dir():
-            raise InputError(f"{path.name}: is a directory")
-        if path.exists() and not path.is_file():
-            raise InputError(f"{path.name}: exists and is not a regular file")
+    for path in map(job.output_path, job.budgets):
+        refuse_no_file(through_links(path))
 
 
 def _input_status(job: SceneJob) -> os.stat_result:
@@ -442,9 +438,7 @@ def _remove_leftovers(job: SceneJob) -> None:
     another run writing the same scene at the same time keeps its own)."""
     if not job.out_dir.is_dir():
         return
-    if job.record_path.is_dir():
-        raise InputError(f"its record {job.record_path} is a folder; move it away")
-    job.record_path.unlink(missing_ok=True)
+    job.record_path.unlink(missing_ok=True)  # not a folder: check_output_names refused that first
     from ..io.ply_write import remove_stale_temporaries
 
     remove_stale_temporaries([job.record_path, *(job.output_path(b) for b in job.budgets)])

@@ -19,6 +19,7 @@ import numpy as np
 import plyfile
 
 from ..errors import InputError
+from ..file_identity import file_identity
 from ..temporaries import remove_if_still, remove_stale_temporaries, temporary_path, through_links  # noqa: F401 - re-exported
 from .ply_header import (
     DC_NAMES,
@@ -267,12 +268,12 @@ class OutputSet:
             try:
                 for tmp, path in staged:
                     existed = os.path.lexists(path)
-                    moved = os.lstat(tmp)
+                    moved = file_identity(tmp, follow_links=False)
                     if self.overwrite or not _linked(tmp, path):
                         os.replace(tmp, path)
                     done += 1
-                    if not existed:
-                        placed.append((path, (moved.st_dev, moved.st_ino)))
+                    if not existed and moved is not None:
+                        placed.append((path, moved))
             except BaseException as e:
                 for path_moved, identity in placed:
                     remove_if_still(path_moved, identity)
@@ -342,6 +343,15 @@ def _remove(path: Path) -> None:
         pass
 
 
+def refuse_no_file(path: Path) -> None:
+    """An InputError where ``path`` (links already followed) is a folder, or something there is no
+    regular file (a FIFO, a device): no file can be written in its place."""
+    if path.is_dir():
+        raise InputError(f"{path.name}: is a directory")
+    if path.exists() and not path.is_file():
+        raise InputError(f"{path.name}: exists and is not a regular file")
+
+
 def atomic_write(path: Path, write, overwrite: bool = True, outputs: OutputSet | None = None) -> None:
     """Calls ``write(stream)`` on a new temporary file beside ``path`` and moves it into place;
     without ``overwrite`` only where no file is (a file that appeared since it was checked, say by
@@ -352,10 +362,7 @@ def atomic_write(path: Path, write, overwrite: bool = True, outputs: OutputSet |
     path = through_links(path)
     name = path.name
     directory = path.parent
-    if path.is_dir():
-        raise InputError(f"{name}: is a directory")
-    if path.exists() and not path.is_file():
-        raise InputError(f"{name}: exists and is not a regular file")
+    refuse_no_file(path)
     if not directory.is_dir():
         raise InputError(f"{name}: cannot write: directory {str(directory)!r} does not exist")
     tmp = temporary_path(path)
