@@ -111,6 +111,29 @@ def test_a_record_that_cannot_be_written_leaves_no_outputs(tmp_path, monkeypatch
     assert result.status == "failed" and result.error.endswith("cannot create the directory: File exists"), result.error
 
 
+def test_a_record_that_cannot_be_written_takes_back_the_file_written_through_a_link(tmp_path, monkeypatch):
+    """An output path that is a symbolic link is written through. A full disk at the record then
+    removed the user's link (the identity taken was the link's) and left the file written
+    through it."""
+    scenes = tmp_path / "scenes"
+    scenes.mkdir()
+    random_splats_ply(scenes / "a.ply", 200, seed=3)
+    job = _job(tmp_path, scenes)
+    job.out_dir.mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    for budget in job.budgets:
+        job.output_path(budget).symlink_to(tmp_path / "elsewhere" / f"{budget.label}.ply")
+
+    def full(path, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(work, "write_json_atomic", full)
+    result = work.process_scene(job, wp.get_device("cpu"))
+    assert result.status == "failed" and "No space left on device" in result.error
+    assert all(job.output_path(budget).is_symlink() for budget in job.budgets)
+    assert list((tmp_path / "elsewhere").iterdir()) == []
+
+
 def test_another_nodes_outputs_are_never_taken_back(tmp_path, monkeypatch):
     """Two nodes writing one shared folder: a node whose record (or whose second output) cannot be
     written took back its outputs by name, deleting the files the other node had put there since,
@@ -155,21 +178,39 @@ def test_another_nodes_outputs_are_never_taken_back(tmp_path, monkeypatch):
 
 
 def test_a_temporary_of_another_machine_or_container_is_left_alone(tmp_path):
-    """A writer's temporary names its process id and its process space (this boot, this PID
-    namespace): another space's file whose process id is not alive here was removed as a killed
-    writer's, though its writer, on another node of a shared folder, was still writing it."""
+    """A writer's temporary names its process id and its process space (this machine and PID
+    namespace, this boot): another space's file whose process id is not alive here was removed as a
+    killed writer's, though its writer, on another node of a shared folder, was still writing it."""
     gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True, check=True)
     pid = int(gone.stdout)
     out = tmp_path / "o.ply"
     mine = temporary_path(out)
     assert mine.name.startswith(f".o.ply.{os.getpid()}-{process_space()}") and mine.name.endswith(".tmp")
-    other_space = "%06x" % ((int(process_space(), 16) + 1) % (1 << 24))
-    killed_here = tmp_path / f".o.ply.{pid}-{process_space()}abcdef.tmp"
-    elsewhere = tmp_path / f".o.ply.{pid}-{other_space}abcdef.tmp"
+    other_machine = "%04x" % ((int(process_space()[:4], 16) + 1) % (1 << 16)) + process_space()[4:]
+    killed_here = tmp_path / f".o.ply.{pid}-{process_space()}abcd.tmp"
+    elsewhere = tmp_path / f".o.ply.{pid}-{other_machine}abcd.tmp"
     for path in (killed_here, elsewhere):
         path.write_bytes(b"partial")
     assert remove_stale_temporaries([out]) == [killed_here]
     assert not killed_here.exists() and elsewhere.exists()
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/sys/kernel/random/boot_id"), reason="Linux tells a machine's boot")
+def test_a_temporary_of_an_earlier_boot_of_this_machine_is_removed(tmp_path):
+    """A writer lost with its machine (a power cut, a crashed node) left its temporary under the
+    boot it ran in, whose process ids say nothing now: it stayed for ever. One this machine's
+    earlier boot last wrote before this boot began is removed, whatever its process id; one of
+    another boot written since (a namesake machine writing a shared folder now) stays."""
+    out = tmp_path / "o.ply"
+    space = process_space()
+    earlier_boot = space[:4] + "%04x" % ((int(space[4:], 16) + 1) % (1 << 16))
+    before = tmp_path / f".o.ply.{os.getpid()}-{earlier_boot}abcd.tmp"  # a live process id: not what decides
+    since = tmp_path / f".o.ply.{os.getpid()}-{earlier_boot}ef01.tmp"
+    for path in (before, since):
+        path.write_bytes(b"partial")
+    os.utime(before, (0, 0))  # 1970: before any boot
+    assert remove_stale_temporaries([out]) == [before]
+    assert since.exists()
 
 
 def _webp(pixels: np.ndarray) -> bytes:

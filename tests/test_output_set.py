@@ -33,6 +33,23 @@ def test_discard_removes_the_files_and_the_folders_it_made(tmp_path):
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["kept"]
 
 
+def test_a_shared_folder_another_set_removed_is_made_again(tmp_path):
+    """Two scenes of a batch write one folder: the one that made it failed and removed it, still
+    empty, after the other had found it there; the other's healthy output then failed for a
+    missing folder."""
+    folder = tmp_path / "out" / "x"
+    first, second = OutputSet(), OutputSet()
+    first.make_folder(folder)
+    second.make_folder(folder)  # found there
+    first.discard()
+    assert not folder.exists()
+    _write(second, folder / "b.ply", b"b")
+    assert [(path.name, identity is not None) for path, identity in second.publish()] == [("b.ply", True)]
+    assert (folder / "b.ply").read_bytes() == b"b"
+    with pytest.raises(InputError, match="does not exist"):  # a folder no set asked for is never made
+        _write(OutputSet(), tmp_path / "elsewhere" / "c.ply", b"c")
+
+
 def test_a_file_that_appeared_meanwhile_stops_the_set(tmp_path):
     """Without overwrite, a file put at one of the paths before publishing is an InputError: it stays,
     and none of the set's files appear (those moved before it are taken back)."""

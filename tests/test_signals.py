@@ -233,3 +233,21 @@ def test_a_batch_worker_keeps_an_ignored_sighup_and_ends_on_sigterm():
     )  # fmt: skip
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and result.stdout.split() == ["True", "True", "ended", "143"], (result.stdout, result.stderr)
+
+
+def test_a_signal_held_while_outputs_are_moved_is_not_lost_behind_an_ignored_one():
+    """Under nohup a hang-up is ignored; one that arrived while the outputs were moved into place,
+    before a SIGTERM, was the signal acted on at the end (ignored), and the SIGTERM was lost: the
+    command kept running."""
+    code = (
+        "import os, signal, time\n"
+        "from nanogs_warp.io.ply_write import signals_held\n"
+        "signal.signal(signal.SIGHUP, signal.SIG_IGN)\n"
+        "with signals_held():\n"
+        "    os.kill(os.getpid(), signal.SIGHUP)\n"
+        "    os.kill(os.getpid(), signal.SIGTERM)\n"
+        "    time.sleep(0.1)\n"
+        "print('still running')\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == -signal.SIGTERM and "still running" not in done.stdout

@@ -510,5 +510,9 @@ def _stop(workers, interrupted: bool = False) -> None:
         if worker.process.is_alive():
             worker.process.terminate()
             worker.process.join(2.0)
+        if worker.process.is_alive():  # deaf to SIGTERM (a kernel that never returns): the batch must end
+            worker.process.kill()
+            worker.process.join(5.0)
+            remove_stale_temporaries([p for job in worker.jobs for p in (job.record_path, *map(job.output_path, job.budgets))])
         if not worker.conn.closed:
             worker.conn.close()

@@ -229,7 +229,6 @@ def _read(scene: LoadedScene, force: bool) -> None:
 
 
 def _write(scene: LoadedScene) -> None:
-    from ..file_identity import file_identity
     from ..io import input_files, save_splats
     from ..io.ply_write import OutputSet, remove_if_still
 
@@ -243,15 +242,12 @@ def _write(scene: LoadedScene) -> None:
                 save_splats(simplified, job.output_path(budget), job.output_format, on_loss=lambda line: _note_once(result, line),
                             outputs=files)  # fmt: skip
                 outputs.append({"path": job.output_path(budget).name, "budget": budget.label, "count": simplified.count})
-        files.publish()
+        published = files.publish()  # what this run put where: only those files are taken back below
     except BaseException:
         files.discard()
         raise
-    identities = {}  # what this run put at each output path: only those files are taken back below
     for out in outputs:
-        path = job.out_dir / out["path"]
-        out["bytes"] = path.stat().st_size
-        identities[out["path"]] = file_identity(path, follow_links=False)
+        out["bytes"] = (job.out_dir / out["path"]).stat().st_size
     outputs.sort(key=lambda o: [b.label for b in job.budgets].index(o["budget"]))
     record = {
         "format": RECORD_FORMAT,
@@ -268,8 +264,8 @@ def _write(scene: LoadedScene) -> None:
     try:
         write_json_atomic(job.record_path, record)
     except OSError as e:  # outputs without their record would be redone anyway: none stays (a full disk)
-        for out in outputs:  # this run's files, not another node's written there since (a shared folder)
-            remove_if_still(job.out_dir / out["path"], identities[out["path"]])
+        for path, identity in published:  # this run's files, not another node's written there since (a shared folder)
+            remove_if_still(path, identity)
         raise InputError(f"cannot write its record {job.record_path.name}: {e.strerror or e}") from e
     result.status = "done"
     result.outputs = [{"path": str(job.out_dir / o["path"]), "budget": o["budget"], "count": o["count"]} for o in outputs]
@@ -372,10 +368,13 @@ def check_output_names(job: SceneJob) -> None:
 
     for path in (*(job.output_path(b) for b in job.budgets), job.record_path):
         check_name_length(path)
-    if job.record_path.is_dir():
-        raise InputError(f"its record {job.record_path} is a folder; move it away")
-    for path in map(job.output_path, job.budgets):
-        refuse_no_file(through_links(path))
+    try:
+        if job.record_path.is_dir():
+            raise InputError(f"its record {job.record_path} is a folder; move it away")
+        for path in map(job.output_path, job.budgets):
+            refuse_no_file(through_links(path))
+    except OSError as e:  # a folder on the way it may not search: this scene fails, not the batch
+        raise InputError(f"cannot check its outputs: {e.strerror or e}") from None
 
 
 def _input_status(job: SceneJob) -> os.stat_result:

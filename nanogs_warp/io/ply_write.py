@@ -222,6 +222,7 @@ class OutputSet:
         self._keep = {os.path.realpath(p) for p in keep}
         self._staged: list[tuple[Path, Path]] = []  # (temporary, path)
         self._folders: list[Path] = []  # made for the outputs, outermost first
+        self._wanted: set[Path] = set()  # every folder make_folder was asked for, made here or found
         self._retired: list[Path] = []  # older outputs' files that the staged ones make stale
         self._lock = threading.Lock()
 
@@ -238,10 +239,16 @@ class OutputSet:
         missing = [f for f in (folder, *folder.parents) if not f.exists()][::-1]
         with self._lock:  # remembered first: a signal during mkdir must not leave them
             self._folders += [f for f in missing if f not in self._folders]
+            self._wanted.add(folder)
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             raise InputError(f"{folder}: cannot create the directory: {e.strerror or e}") from e
+
+    def wants(self, folder: Path) -> bool:
+        """Whether ``folder`` was made (or found) by ``make_folder``: one to make again if another
+        writer's ``discard`` removed it, empty, since (two scenes of a batch sharing a folder)."""
+        return folder in self._wanted
 
     def retire(self, paths) -> None:
         """Files of an older output that the staged ones replace as a whole without writing over
@@ -254,13 +261,15 @@ class OutputSet:
                     self._retired.append(path)
                     known.add(path)
 
-    def publish(self) -> None:
+    def publish(self) -> list[tuple[Path, tuple[int, int] | None]]:
         """Moves every staged file into place, in the order staged, with SIGINT, SIGTERM and SIGHUP
         held until the last is moved (``signals_held``), then removes the retired files. If one
         cannot be moved, the rest are removed, and so are the files already moved that replaced
         nothing (InputError); one that replaced an older file (``overwrite``) stays, as the older
-        one is gone, and the retired files stay."""
+        one is gone, and the retired files stay. Returns each file moved, as (the path it was moved
+        to, links followed; the identity of the file moved), for ``remove_if_still``."""
         placed = []  # the paths moved into place that replaced nothing, with the identity of the file moved
+        published = []
         done = 0
         with signals_held():
             with self._lock:  # taken inside: a signal just before would have found nothing to discard
@@ -272,6 +281,7 @@ class OutputSet:
                     if self.overwrite or not _linked(tmp, path):
                         os.replace(tmp, path)
                     done += 1
+                    published.append((path, moved))
                     if not existed and moved is not None:
                         placed.append((path, moved))
             except BaseException as e:
@@ -293,6 +303,7 @@ class OutputSet:
                     pass
         with self._lock:
             self._folders = []
+        return published
 
     def discard(self) -> None:
         """Removes every staged file and the folders made for them (where empty)."""
@@ -321,7 +332,7 @@ def signals_held():
     previous = {}
     for name in ("SIGINT", "SIGTERM", "SIGHUP"):
         number = getattr(signal, name, None)
-        if number is not None and signal.getsignal(number) is not None:
+        if number is not None and signal.getsignal(number) not in (None, signal.SIG_IGN):  # one ignored stays so
             previous[number] = signal.signal(number, lambda received, frame: pending.append(received))
     try:
         yield
@@ -363,16 +374,24 @@ def atomic_write(path: Path, write, overwrite: bool = True, outputs: OutputSet |
     name = path.name
     directory = path.parent
     refuse_no_file(path)
-    if not directory.is_dir():
+    remake = outputs is not None and outputs.wants(directory)
+    if not remake and not directory.is_dir():
         raise InputError(f"{name}: cannot write: directory {str(directory)!r} does not exist")
     tmp = temporary_path(path)
     created = True  # before the file exists: a signal just after os.open must not leave it behind
     try:
-        try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
-        except FileExistsError:  # another writer's (the names are random): not this one's to remove
-            created = False
-            raise
+        for attempt in range(3):
+            if remake:
+                outputs.make_folder(directory)
+            try:
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+                break
+            except FileExistsError:  # another writer's (the names are random): not this one's to remove
+                created = False
+                raise
+            except FileNotFoundError:  # the folder removed, empty, by another scene's writer that failed
+                if not remake or attempt == 2:
+                    raise
         with os.fdopen(fd, "wb") as f:
             write(f)
         if outputs is not None:
