@@ -275,6 +275,26 @@ def test_outputs_no_run_could_write_fail_their_scene_in_the_dry_run_too(tmp_path
     assert all(summary[k]["input_count"] in (None, 0) for k in expected)  # refused before the scene was read
 
 
+def test_an_output_folder_it_may_not_search_fails_that_scene_alone_in_the_dry_run_too(tmp_path, monkeypatch):
+    """A folder on an output's path that the user may not search (EACCES, which ``Path.is_dir``
+    raises): the dry run stopped at that scene with the error, listing no other, and the run named
+    a raw PermissionError."""
+    from nanogs_warp.batch.work import planned
+    from nanogs_warp.budgets import parse_budgets
+
+    random_splats_ply(tmp_path / "a.ply", 30, seed=1)
+    (job,) = find_scenes(str(tmp_path / "a.ply"), tmp_path / "out", parse_budgets("0.1", None), SimplifyConfig(), False)
+    is_dir = Path.is_dir
+
+    def unsearchable(path):
+        if path.parent == tmp_path / "out":
+            raise PermissionError(13, "Permission denied", str(path))
+        return is_dir(path)
+
+    monkeypatch.setattr(Path, "is_dir", unsearchable)
+    assert planned(job, False) == ("fail", "cannot check its outputs: Permission denied")
+
+
 def test_a_dry_run_says_what_a_run_would_do_and_writes_nothing(scenes, tmp_path):
     out = tmp_path / "out"
 
@@ -413,6 +433,13 @@ def test_live_progress_redraws_in_place():
     text = stream.getvalue()
     assert "w0 cuda:1: a.ply: loading" in text and "\033[" in text
     assert "a.ply: FAILED on cuda:1: boom\n" in text and "1/2 scenes (0 done, 0 skipped, 1 failed)" in text
+
+
+def test_a_failed_scene_is_named_once_in_its_line():
+    from nanogs_warp.batch.run import format_summary
+
+    result = SceneResult("/in/room/bad.ply", "room/bad.ply", "failed", "cpu", error="bad.ply: not a PLY file")
+    assert "failed: room/bad.ply: not a PLY file" in format_summary([result], 1.0).splitlines()
 
 
 def test_missing_ray_is_one_line(scenes, tmp_path, monkeypatch):
@@ -578,6 +605,35 @@ def test_workers_end_with_their_batch(scenes_and_a_spinner, tmp_path):
                 os.kill(child, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def _deaf_to_sigterm(ready) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # as a worker inside a native call that never returns
+    ready.set()
+    while True:
+        time.sleep(1)
+
+
+def test_a_worker_deaf_to_sigterm_is_killed_when_the_batch_ends(tmp_path):
+    """The batch's last step sent a worker that would not end SIGTERM once, then left it: the
+    parent waited on it at exit, and it ran on after the batch."""
+    import multiprocessing
+
+    from nanogs_warp.batch.local import _stop, _Worker
+
+    context = multiprocessing.get_context("spawn")
+    ready = context.Event()
+    process = context.Process(target=_deaf_to_sigterm, args=(ready,), daemon=True)
+    process.start()
+    parent, child = context.Pipe()
+    try:
+        assert ready.wait(60)
+        child.close()
+        _stop([_Worker("w0", "cpu", process, parent)])
+        assert not process.is_alive() and process.exitcode == -signal.SIGKILL
+    finally:
+        if process.is_alive():
+            process.kill()
 
 
 def test_a_batch_whose_last_scene_times_out_ends(scenes_and_a_spinner, tmp_path):

@@ -12,6 +12,7 @@ import os
 import sys
 import time
 from contextlib import nullcontext
+from pathlib import Path
 
 from ..errors import one_line, printable
 from .scenes import SceneJob, find_scenes, parse_shard, select_shard
@@ -140,9 +141,15 @@ class BatchProgress:
         return f"\033[{drawn}F\033[J" if drawn else ""
 
 
+def _error(result: SceneResult) -> str:
+    """The scene's error without its file's name in front, where it starts so: the scene is named
+    beside it (``failed: bad.ply: bad.ply: not a PLY file`` read twice)."""
+    return (result.error or "").removeprefix(f"{Path(result.relative).name}: ")
+
+
 def _describe(result: SceneResult) -> str:
     if result.status == "failed":
-        return f"FAILED on {result.device}: {result.error}"
+        return f"FAILED on {result.device}: {_error(result)}"
     counts = ", ".join(f"{o['count']:,}" for o in result.outputs)
     if result.status == "skipped":
         return f"skipped (up to date: {counts})"
@@ -163,7 +170,7 @@ def format_summary(results: list[SceneResult], seconds: float) -> str:
         return "  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths))).rstrip()
 
     out = [line(header), line(["-" * w for w in widths]), *(line(row) for row in rows)]
-    out += [one_line(f"failed: {r.relative}: {r.error}") for r in results if r.status == "failed"]
+    out += [one_line(f"failed: {r.relative}: {_error(r)}") for r in results if r.status == "failed"]
     out += [one_line(f"note: {r.relative}: {note}") for r in results for note in r.notes]
     totals = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
     out.append(f"{len(results)} scenes: {totals['done']} done, {totals['skipped']} skipped, "
