@@ -7,7 +7,7 @@ from decimal import Decimal, localcontext
 from fractions import Fraction
 from pathlib import Path
 
-from .config import exact_ratio, target_count
+from .config import RATIO_DIGITS, exact_ratio, target_count
 from .errors import InputError
 
 
@@ -39,7 +39,7 @@ class Budget:
         with localcontext() as context:
             context.prec = digits  # a decimal fraction divides exactly
             value = Decimal(self.exact.numerator) / Decimal(self.exact.denominator)
-        return format(value.normalize(), "f")
+            return format(value.normalize(), "f")  # in the context: outside it, normalize() rounds to 28 digits
 
     @property
     def label(self) -> str:
@@ -74,6 +74,8 @@ def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
     budgets = []
     for token in tokens:
         if ratio is not None:
+            if len(token) > RATIO_DIGITS:
+                raise InputError(f"--ratio {token!r} is longer than the {RATIO_DIGITS:,} digits a ratio may have")
             try:
                 exact = exact_ratio(token)
             except InputError:

@@ -67,6 +67,23 @@ def test_a_ratio_written_apart_from_its_float_is_labelled_as_written():
     assert parse_budgets("7e-2", None)[0].label == "0.07" and not parse_budgets("0.0700", None)[0].typed_apart
 
 
+def test_ratios_apart_beyond_28_digits_get_labels_apart():
+    """Decimal's default context has 28 digits: a label normalised outside the division's own
+    context named 0.1000000000000000000000000000000001 '0.1', and its output overwrote the 0.1 one."""
+    a, b = parse_budgets("0.1000000000000000000000000000000001,0.1", None)
+    assert (a.label, b.label) == ("0.1000000000000000000000000000000001", "0.1") and (a.target(20), b.target(20)) == (3, 2)
+
+
+def test_a_ratio_of_thousands_of_digits_is_refused_before_any_work():
+    """Its label spelled out the denominator, past Python's 4,300 digits of int-to-text: an
+    internal error after the whole run."""
+    assert len(parse_budgets("0." + "1" * 997, None)[0].label) == 999
+    with pytest.raises(InputError, match="longer than the 1,000 digits"):
+        parse_budgets("0." + "1" * 5000, None)
+    with pytest.raises(InputError, match="at most 1,000 digits"):
+        exact_ratio("0." + "1" * 1001)
+
+
 def test_float_api_converts_through_its_shortest_repr():
     assert exact_ratio(0.07) == Fraction(7, 100)
     assert exact_ratio("0.07") == Fraction(7, 100)
