@@ -2,6 +2,7 @@
 with examples and word placeholders."""
 
 import json
+import os
 import re
 from pathlib import Path
 
@@ -176,6 +177,18 @@ def test_a_set_of_files_gets_its_own_folder(scene, tmp_path):
     assert missing.exit_code == 2 and "cannot be created" in missing.stderr and not (tmp_path / "x").exists()
     plain = run("simplify", scene, "-o", tmp_path / "nd" / "s.ply", "--ratio", "0.5", "--device", "cpu")
     assert plain.exit_code == 2 and "does not exist" in plain.stderr and not (tmp_path / "nd").exists()
+
+
+def test_an_output_where_no_file_can_go_says_why(scene, tmp_path):
+    """A file where the output's folder should be was said not to exist; a FIFO at the output
+    asked for -w, which then refused it as no regular file."""
+    (tmp_path / "file").write_text("x")
+    os.mkfifo(tmp_path / "fifo.ply")
+    for output, why in ((tmp_path / "file" / "o.ply", f"output directory {tmp_path / 'file'} is not a folder"),
+                        (f"{tmp_path / 'file' / 'new'}/", f"cannot be created: {tmp_path / 'file'} is not a folder"),
+                        (tmp_path / "fifo.ply", "exists and is not a regular file")):  # fmt: skip
+        result = run("simplify", scene, "-o", output, "--ratio", "0.5", "--device", "cpu")
+        assert result.exit_code == 2 and why in result.stderr, result.stderr
 
 
 def test_a_lod_set_into_a_new_folder(scene, tmp_path):

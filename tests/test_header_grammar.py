@@ -53,6 +53,19 @@ def test_an_element_count_with_an_underscore_is_refused(tmp_path):
         read_splat_arrays(path)
 
 
+@pytest.mark.parametrize("before", [False, True])
+def test_an_element_of_rows_without_properties_is_named_so(tmp_path, before):
+    """An element that declares rows but no properties was refused as a truncated file, its rows
+    counted as a byte each."""
+    path = tmp_path / "a.ply"
+    random_splats_ply(path, 64, seed=1)
+    data = path.read_bytes()
+    at = data.index(b"element vertex") if before else data.index(b"end_header")
+    path.write_bytes(data[:at] + b"element empty 5\n" + data[at:])
+    with pytest.raises(InputError, match=r"element 'empty' has 5 rows but no properties"):
+        read_splat_arrays(path)
+
+
 def test_an_ascii_number_with_an_underscore_is_refused(tmp_path):
     path = tmp_path / "a.ply"
     random_splats_ply(path, 64, seed=1, text=True)

@@ -446,6 +446,11 @@ def _is_folder(path: str) -> bool:
         return False
 
 
+def _not_a_folder(path: Path) -> str:
+    """Why ``path``, no folder, cannot hold outputs: it is a file, or nothing."""
+    return f"{path} is not a folder" if path.exists() else f"{path} does not exist"
+
+
 def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwrite: bool = False,
                    folder: Path | None = None) -> None:  # fmt: skip
     """Refuses outputs that would overwrite the input, replace an existing file without
@@ -484,7 +489,7 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
         if folder.exists():
             raise InputError(f"output {folder} is not a folder")
         if not resolved(folder).parent.is_dir():
-            raise InputError(f"output folder {folder} cannot be created: {resolved(folder).parent} does not exist")
+            raise InputError(f"output folder {folder} cannot be created: {_not_a_folder(resolved(folder).parent)}")
     for path in outputs:
         if input_id is not None and file_identity(path) == input_id:
             raise InputError(f"output {path} is the input file; choose another output path")
@@ -492,7 +497,7 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
         if folder is not None and not folder.is_dir():
             parent = parent.parent  # the folder itself is created
         if not parent.is_dir():
-            raise InputError(f"output directory {parent} does not exist")
+            raise InputError(f"output directory {_not_a_folder(parent)}")
         if not os.access(parent, os.W_OK):
             raise InputError(f"output directory {parent} is not writable")
         if path.is_dir():
@@ -500,10 +505,10 @@ def _check_outputs(input: Path, outputs: list[Path], written: list[Path], overwr
     for path in written:
         if resolved(path) in inputs or file_identity(path) in input_ids:
             raise InputError(f"output {path} is one of the input's files; choose another output path")
-        if path.exists() and not overwrite:
-            raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it")
         if path.exists() and not path.is_file():  # -w never replaces a device, a FIFO or a socket
             raise InputError(f"output {path} exists and is not a regular file; choose another output path")
+        if path.exists() and not overwrite:
+            raise InputError(f"output {path} already exists; pass --overwrite (-w) to replace it")
 
 
 app.command("info", epilog=examples(

@@ -76,7 +76,9 @@ def finest_level_meta(path, data: bytes):
     name = path.name
     try:
         meta = json.loads(data.decode("utf-8"))
-    except (ValueError, RecursionError):  # not UTF-8, not JSON, an integer too long to read
+    except RecursionError:
+        raise InputError(f"{name}: nested too deeply to read") from None
+    except ValueError:  # not UTF-8, not JSON, an integer too long to read
         raise InputError(f"{name}: not valid JSON") from None
     if not isinstance(meta, dict) or meta.get("version", 1) != 1:
         raise InputError(f"{name}: not a version-1 lod-meta.json")

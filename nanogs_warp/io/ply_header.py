@@ -197,6 +197,8 @@ def check_sizes(header: Header, file_bytes: int, name: str) -> None:
     body = file_bytes - header.length
     needed = 0
     for e in header.elements:
+        if not e.props and e.count:  # rows of no bytes: a reader would loop over them without reading
+            raise InputError(f"{name}: element {e.name!r} has {e.count} rows but no properties")
         if header.format == "ascii":
             # every value takes a character and a separator; every row at least a line break
             row = max(2 * len(e.props), 1)

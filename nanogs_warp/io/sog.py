@@ -232,7 +232,7 @@ def _decode(name: str, meta_bytes: bytes, load) -> dict[str, np.ndarray]:
     if "version" not in meta:
         raise InputError(f"{name}: SOG version 1 (no 'version' in meta.json) is not supported; version 2 is")
     if meta.get("version") != 2:
-        raise InputError(f"{name}: SOG version {meta.get('version')!r} is not supported (2 is)")
+        raise InputError(f"{name}: SOG version {json.dumps(meta.get('version'))[:40]} is not supported (the number 2 is)")
     n = _int(meta, "count", name, 1, 1 << 31)
     bands = meta["shN"].get("bands") if isinstance(meta.get("shN"), dict) else 0
     check_decoded_memory(name, n, 3 + 3 * (_REST[bands] if bands in (0, 1, 2, 3) else 0))
