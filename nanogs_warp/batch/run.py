@@ -144,7 +144,10 @@ class BatchProgress:
 def _error(result: SceneResult) -> str:
     """The scene's error without its file's name in front, where it starts so: the scene is named
     beside it (``failed: bad.ply: bad.ply: not a PLY file`` read twice)."""
-    return (result.error or "").removeprefix(f"{Path(result.relative).name}: ")
+    error = result.error or ""
+    for named in (f"{result.input}: ", f"{Path(result.relative).name}: "):
+        error = error.removeprefix(named)
+    return error
 
 
 def _describe(result: SceneResult) -> str:

@@ -30,7 +30,7 @@ def open_regular(path: Path):
         if stat.S_ISDIR(mode):
             raise InputError(f"{name}: is a directory")
         if not stat.S_ISREG(mode):
-            raise InputError(f"{name}: not a regular file (a pipe, device or socket); give a file")
+            raise InputError(f"{path}: not a regular file (a pipe, device or socket); give a file")  # "null" alone says little
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
         return os.fdopen(fd, "rb")
