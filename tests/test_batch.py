@@ -439,7 +439,9 @@ def test_a_failed_scene_is_named_once_in_its_line():
     from nanogs_warp.batch.run import format_summary
 
     result = SceneResult("/in/room/bad.ply", "room/bad.ply", "failed", "cpu", error="bad.ply: not a PLY file")
-    assert "failed: room/bad.ply: not a PLY file" in format_summary([result], 1.0).splitlines()
+    dropped = SceneResult("/in/a.ply", "a.ply", "done", "cpu", notes=["a.ply: dropped 5 of 100 splats"])
+    lines = format_summary([result, dropped], 1.0).splitlines()
+    assert "failed: room/bad.ply: not a PLY file" in lines and "note: a.ply: dropped 5 of 100 splats" in lines
 
 
 def test_missing_ray_is_one_line(scenes, tmp_path, monkeypatch):

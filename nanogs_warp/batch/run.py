@@ -141,18 +141,18 @@ class BatchProgress:
         return f"\033[{drawn}F\033[J" if drawn else ""
 
 
-def _error(result: SceneResult) -> str:
-    """The scene's error without its file's name in front, where it starts so: the scene is named
-    beside it (``failed: bad.ply: bad.ply: not a PLY file`` read twice)."""
-    error = result.error or ""
+def _unnamed(result: SceneResult, line: str | None) -> str:
+    """An error or note of the scene without its file's name in front, where it starts so: the
+    scene is named beside it (``failed: bad.ply: bad.ply: not a PLY file`` read twice)."""
+    line = line or ""
     for named in (f"{result.input}: ", f"{Path(result.relative).name}: "):
-        error = error.removeprefix(named)
-    return error
+        line = line.removeprefix(named)
+    return line
 
 
 def _describe(result: SceneResult) -> str:
     if result.status == "failed":
-        return f"FAILED on {result.device}: {_error(result)}"
+        return f"FAILED on {result.device}: {_unnamed(result, result.error)}"
     counts = ", ".join(f"{o['count']:,}" for o in result.outputs)
     if result.status == "skipped":
         return f"skipped (up to date: {counts})"
@@ -173,8 +173,8 @@ def format_summary(results: list[SceneResult], seconds: float) -> str:
         return "  ".join(c.rjust(w) if i in right else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths))).rstrip()
 
     out = [line(header), line(["-" * w for w in widths]), *(line(row) for row in rows)]
-    out += [one_line(f"failed: {r.relative}: {_error(r)}") for r in results if r.status == "failed"]
-    out += [one_line(f"note: {r.relative}: {note}") for r in results for note in r.notes]
+    out += [one_line(f"failed: {r.relative}: {_unnamed(r, r.error)}") for r in results if r.status == "failed"]
+    out += [one_line(f"note: {r.relative}: {_unnamed(r, note)}") for r in results for note in r.notes]
     totals = {s: sum(r.status == s for r in results) for s in ("done", "skipped", "failed")}
     out.append(f"{len(results)} scenes: {totals['done']} done, {totals['skipped']} skipped, "
                f"{totals['failed']} failed, {seconds:.2f} s")  # fmt: skip
