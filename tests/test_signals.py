@@ -251,3 +251,32 @@ def test_a_signal_held_while_outputs_are_moved_is_not_lost_behind_an_ignored_one
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == -signal.SIGTERM and "still running" not in done.stdout
+
+
+def test_a_batch_workers_signal_while_it_waits_for_its_writer_lets_the_write_finish(tmp_path):
+    """A worker whose first ending signal arrived while it waited for its writer thread (the batch
+    gone, its last scene being written) ended at once, the write cut short."""
+    done = tmp_path / "written"
+    code = (
+        "import os, queue, signal, sys, threading, time\n"
+        "from nanogs_warp.batch import local\n"
+        "local._end_on_signals()\n"
+        "to_write = queue.Queue()\n"
+        "written = threading.Event()\n"
+        "def writer():\n"
+        "    while to_write.get() is not None:\n"
+        "        pass\n"
+        "    time.sleep(1.0)\n"
+        f"    open({str(done)!r}, 'w').write('whole')\n"
+        "    written.set()\n"
+        "threading.Thread(target=writer).start()\n"
+        "threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGTERM)).start()\n"
+        "try:\n"
+        "    local._finish_writing(to_write, written)\n"
+        "except SystemExit as e:\n"
+        "    os._exit(e.code)\n"
+        "os._exit(0)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 128 + signal.SIGTERM, result.stderr
+    assert done.read_text() == "whole"

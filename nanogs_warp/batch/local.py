@@ -379,9 +379,14 @@ def _serve(device: str, warp_device, conn, force: bool) -> None:
             read.put(read_scene(job, force, device))
         read.put(None)
 
+    written = threading.Event()  # the writer is done: an Event, as a join interrupted by a signal breaks the thread's state
+
     def writer() -> None:
-        while (scene := to_write.get()) is not None:
-            send(("finished", write_scene(scene)))
+        try:
+            while (scene := to_write.get()) is not None:
+                send(("finished", write_scene(scene)))
+        finally:
+            written.set()
 
     threads = [threading.Thread(target=t, name=f"nanogs-batch-{t.__name__}", daemon=True) for t in (receiver, reader, writer)]
     for thread in threads:
@@ -404,8 +409,22 @@ def _serve(device: str, warp_device, conn, force: bool) -> None:
             simplify_scene(scene, warp_device, on_pass)
             to_write.put(scene)
     finally:  # also on a signal: the scene being written (and one waiting for the writer) is finished
-        to_write.put(None)
-        threads[2].join()
+        _finish_writing(to_write, written)
+
+
+def _finish_writing(to_write: queue.Queue, written: threading.Event) -> None:
+    """Tells the writer thread to end once it has written what it holds, and waits until it has
+    (``written``). An ending signal that arrives meanwhile waits too (it ended the worker
+    mid-write), then ends it. Not ``Thread.join``: Python 3.11's, interrupted by the signal's
+    exception, marks the thread stopped while it still runs, and the next join returns at once."""
+    for step in (lambda: to_write.put(None), written.wait):
+        while True:
+            try:
+                step()
+                break
+            except SystemExit:  # the first ending signal: kept in _signalled, raised again below
+                pass
+    _end_if_signalled()
 
 
 _signalled: list[int] = []  # the exit code of the first ending signal a worker received
