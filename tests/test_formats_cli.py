@@ -38,6 +38,9 @@ def test_output_names_pick_the_format(scene, tmp_path):
     assert result.exit_code == 0, result.output
     assert detect_format(tmp_path / "c_0.1.compressed.ply") == "compressed-ply"
     assert load_splats(tmp_path / "c_0.05.compressed.ply").count == 20
+    (tmp_path / "c_0.1.compressed.ply").rename(tmp_path / "my.scene.compressed.ply")  # into a folder: its name less the two-part suffix
+    result = run("simplify", tmp_path / "my.scene.compressed.ply", "-o", f"{tmp_path / 'dir'}/", "--ratio", "0.5", "--device", "cpu", "-q")
+    assert result.exit_code == 0 and (tmp_path / "dir" / "my.scene_0.5.ply").is_file(), result.output
     result = run("simplify", scene, "-o", tmp_path / "forced.ply", "--ratio", "0.1", "--format", "spz", "--device", "cpu")
     assert result.exit_code == 0, result.output
     assert detect_format(tmp_path / "forced.ply") == "spz"

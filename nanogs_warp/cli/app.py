@@ -433,7 +433,8 @@ def _output_paths(output: str, input: Path, budgets: list[Budget], output_format
     if output.endswith(("/", os.sep)) or _is_folder(output):
         folder = Path(output)
         ext = _EXTENSIONS.get(output_format or "ply", ".ply")
-        stem = input.name.split(".")[0] if input.name.lower().endswith(".compressed.ply") else input.stem
+        compressed = input.name.lower().endswith(".compressed.ply")  # one suffix in two parts: a.b.compressed.ply is a.b's
+        stem = input.name[: -len(".compressed.ply")] if compressed else input.stem
         return {b: folder / f"{stem}_{b.label}{ext}" for b in budgets}, folder
     return output_paths(Path(output), budgets, _EXTENSIONS.get(output_format or "ply", ".ply")), None
 
