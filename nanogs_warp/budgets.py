@@ -7,7 +7,7 @@ from decimal import Decimal, localcontext
 from fractions import Fraction
 from pathlib import Path
 
-from .config import RATIO_DIGITS, exact_ratio, target_count
+from .config import RATIO_DIGITS, RatioTooLong, exact_ratio, target_count
 from .errors import InputError
 
 
@@ -74,10 +74,10 @@ def parse_budgets(ratio: str | None, count: str | None) -> list[Budget]:
     budgets = []
     for token in tokens:
         if ratio is not None:
-            if len(token) > RATIO_DIGITS:
-                raise InputError(f"--ratio {token!r} is longer than the {RATIO_DIGITS:,} digits a ratio may have")
             try:
                 exact = exact_ratio(token)
+            except RatioTooLong:
+                raise InputError(f"--ratio {token!r} is longer than the {RATIO_DIGITS:,} digits a ratio may have") from None
             except InputError:
                 raise InputError(f"--ratio {token!r} must be a number in (0, 1]") from None
             value = float(Decimal(token))  # as typed: exact_ratio counts every ratio below 1e-60 as 1e-61

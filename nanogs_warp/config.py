@@ -188,6 +188,10 @@ PRESETS: dict[str, dict] = {
 RATIO_DIGITS = 1000  # far past any count's need (a float has 17), well within Python's int-to-text limit
 
 
+class RatioTooLong(InputError):
+    """A ratio written with more than RATIO_DIGITS digits."""
+
+
 def exact_ratio(ratio: float | str | Decimal | Fraction) -> Fraction:
     """The ratio as an exact fraction in (0, 1]: text ("0.07", "7e-2") and Decimals as written, a
     float as its shortest repr (0.07 is 7/100, not the binary double just below it)."""
@@ -205,7 +209,7 @@ def exact_ratio(ratio: float | str | Decimal | Fraction) -> Fraction:
         if not decimal.is_finite() or decimal < 0 or decimal.adjusted() > 0:
             raise InputError(f"ratio must be in (0, 1], got {ratio}")
         if len(decimal.as_tuple().digits) > RATIO_DIGITS:  # its label and record spell it out as written
-            raise InputError(f"a ratio may have at most {RATIO_DIGITS:,} digits; this one has {len(decimal.as_tuple().digits):,}")
+            raise RatioTooLong(f"a ratio may have at most {RATIO_DIGITS:,} digits; this one has {len(decimal.as_tuple().digits):,}")
         # beyond 1e-60 every scene below 1e60 splats keeps one splat: spare Fraction a huge denominator
         if decimal > 0 and decimal.adjusted() < -60:
             decimal = Decimal("1e-61")

@@ -202,7 +202,7 @@ def run_local(
         worker.conn.close()
         held, worker.jobs = worker.jobs, []
         # what it was writing when it died (killed past a time limit, or by the out-of-memory killer)
-        remove_stale_temporaries([path for job in held for path in (job.record_path, *map(job.output_path, job.budgets))])
+        _remove_temporaries(held)
         culprit, seconds = None, 0.0
         if timed_out is not None:
             culprit, error, seconds = timed_out  # no one, if it finished just before the kill
@@ -506,6 +506,11 @@ def _exit_reason(code: int | None) -> str:
     return f"exit code {code}"
 
 
+def _remove_temporaries(jobs: list[SceneJob]) -> None:
+    """What a killed worker was writing for ``jobs``: their outputs' and records' temporaries."""
+    remove_stale_temporaries([path for job in jobs for path in (job.record_path, *map(job.output_path, job.budgets))])
+
+
 def _stop(workers, interrupted: bool = False) -> None:
     """Ends the workers: each is sent None and given 5 s to finish, or, when the batch was
     ``interrupted`` (a signal, an error), SIGTERM at once and 60 s to finish the scene it is writing
@@ -532,6 +537,6 @@ def _stop(workers, interrupted: bool = False) -> None:
         if worker.process.is_alive():  # deaf to SIGTERM (a kernel that never returns): the batch must end
             worker.process.kill()
             worker.process.join(5.0)
-            remove_stale_temporaries([p for job in worker.jobs for p in (job.record_path, *map(job.output_path, job.budgets))])
+            _remove_temporaries(worker.jobs)
         if not worker.conn.closed:
             worker.conn.close()
